@@ -1,0 +1,73 @@
+"""Rigid-body helpers. Poses are 4x4 homogeneous matrices; quaternions are (x, y, z, w)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+
+def quat_to_matrix(q_xyzw: ArrayLike) -> NDArray[np.float64]:
+    """Rotation matrix of a unit quaternion given as (x, y, z, w)."""
+    x, y, z, w = np.asarray(q_xyzw, dtype=np.float64) / np.linalg.norm(q_xyzw)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat(r: ArrayLike) -> NDArray[np.float64]:
+    """Unit quaternion (x, y, z, w) with w >= 0 of a 3x3 rotation matrix."""
+    m = np.asarray(r, dtype=np.float64)[:3, :3]
+    tr = np.trace(m)
+    if tr > 0:
+        s = np.sqrt(tr + 1.0) * 2
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    qa = np.asarray(q)
+    qa /= np.linalg.norm(qa)
+    return -qa if qa[3] < 0 else qa
+
+
+def pose_matrix(position: ArrayLike, quat_xyzw: ArrayLike = (0, 0, 0, 1)) -> NDArray[np.float64]:
+    """4x4 pose from a position and an (x, y, z, w) quaternion."""
+    t = np.eye(4)
+    t[:3, :3] = quat_to_matrix(quat_xyzw)
+    t[:3, 3] = np.asarray(position, dtype=np.float64)
+    return t
+
+
+def yaw_quat(yaw_rad: float) -> NDArray[np.float64]:
+    """Quaternion (x, y, z, w) of a rotation about world z."""
+    return np.array([0.0, 0.0, np.sin(yaw_rad / 2), np.cos(yaw_rad / 2)])
+
+
+def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0, 0, 1)) -> NDArray[np.float64]:
+    """Camera-to-world pose in the OpenCV convention (x right, y down, z forward) looking at target."""
+    eye_a = np.asarray(eye, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - eye_a
+    z /= np.linalg.norm(z)
+    x = np.cross(z, np.asarray(up, dtype=np.float64))
+    if np.linalg.norm(x) < 1e-9:  # looking straight along up: pick any perpendicular
+        x = np.cross(z, np.array([0.0, 1.0, 0.0]))
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    t = np.eye(4)
+    t[:3, 0], t[:3, 1], t[:3, 2], t[:3, 3] = x, y, z, eye_a
+    return t
+
+
+def rotation_angle_deg(r_a: ArrayLike, r_b: ArrayLike) -> float:
+    """Angle in degrees of the relative rotation between two rotation matrices."""
+    r = np.asarray(r_a)[:3, :3].T @ np.asarray(r_b)[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1.0, 1.0))))

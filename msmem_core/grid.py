@@ -1,0 +1,55 @@
+"""The voxel grid every belief, ground truth and metric is defined on."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class GridSpec(BaseModel):
+    """Axis-aligned voxel grid: voxel (i, j, k) covers ``[o + i*s, o + (i+1)*s)`` per axis."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    origin_m: tuple[float, float, float] = (-0.39, -0.01, -0.01)
+    """World position of the grid's minimum corner, metres."""
+    voxel_m: float = Field(0.01, gt=0.0, le=0.1)
+    """Edge length of one cubic voxel, metres."""
+    shape: tuple[int, int, int] = (78, 40, 30)
+    """Number of voxels along x, y, z."""
+
+    @property
+    def origin(self) -> NDArray[np.float64]:
+        return np.asarray(self.origin_m, dtype=np.float64)
+
+    @property
+    def upper_m(self) -> NDArray[np.float64]:
+        """World position of the grid's maximum corner."""
+        return self.origin + self.voxel_m * np.asarray(self.shape)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    def index_of(self, points: ArrayLike) -> NDArray[np.int64]:
+        """Voxel index (N, 3) containing each world point (N, 3); may lie outside the grid."""
+        p = np.asarray(points, dtype=np.float64)
+        return np.floor((p - self.origin) / self.voxel_m).astype(np.int64)
+
+    def contains_index(self, idx: ArrayLike) -> NDArray[np.bool_]:
+        i = np.asarray(idx)
+        return np.all((i >= 0) & (i < np.asarray(self.shape)), axis=-1)
+
+    def centers(self) -> NDArray[np.float64]:
+        """World coordinates of all voxel centres, shape (X, Y, Z, 3)."""
+        axes = [self.origin[a] + (np.arange(n) + 0.5) * self.voxel_m for a, n in enumerate(self.shape)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+
+    @classmethod
+    def around_box(cls, lower_m: ArrayLike, upper_m: ArrayLike, voxel_m: float, margin_voxels: int = 1) -> GridSpec:
+        """The grid that covers the box [lower, upper] with ``margin_voxels`` on every side."""
+        lo = np.asarray(lower_m, dtype=np.float64) - margin_voxels * voxel_m
+        hi = np.asarray(upper_m, dtype=np.float64) + margin_voxels * voxel_m
+        shape = np.ceil((hi - lo) / voxel_m - 1e-9).astype(int)
+        return cls(origin_m=tuple(float(v) for v in lo), voxel_m=voxel_m, shape=tuple(int(v) for v in shape))

@@ -1,0 +1,224 @@
+"""Scene descriptions: the shelf, the object catalogue and ``SceneSpec`` (stored as JSON).
+
+Every object class is a union of convex parts (boxes and cylinders in the object frame, whose
+origin is the centre of the object's footprint on its support). Backends build compound collision
+shapes from the parts; ground truth voxelises the same parts, so all agree on the geometry.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import cache
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from msmem_core.errors import UserError
+from msmem_core.geometry import pose_matrix
+
+
+class Part(BaseModel):
+    """One convex primitive of an object, in the object frame."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: Literal["box", "cylinder"]
+    size_m: tuple[float, ...]
+    """box: full extents (x, y, z); cylinder: (radius, height) along the part's z."""
+    position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    quat_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+
+    @property
+    def half_height_m(self) -> float:
+        return self.size_m[2] / 2 if self.kind == "box" else self.size_m[1] / 2
+
+
+class ObjectClass(BaseModel):
+    """A semantic class with YCB-like size, mass and geometry."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str
+    class_id: int = Field(ge=1)
+    parts: tuple[Part, ...]
+    mass_kg: float = Field(gt=0.0)
+    confusable_with: str | None = None
+    """Class the structured segmentation noise may report instead of this one."""
+
+    @property
+    def footprint_radius_m(self) -> float:
+        r = 0.0
+        for p in self.parts:
+            ext = p.size_m[0] if p.kind == "cylinder" else 0.5 * float(np.hypot(p.size_m[0], p.size_m[1]))
+            r = max(r, float(np.hypot(p.position_m[0], p.position_m[1])) + ext)
+        return r
+
+
+def _box(x: float, y: float, z: float, at: tuple[float, float, float] | None = None) -> Part:
+    return Part(kind="box", size_m=(x, y, z), position_m=at or (0.0, 0.0, z / 2))
+
+
+def _cyl(r: float, h: float, at: tuple[float, float, float] | None = None) -> Part:
+    return Part(kind="cylinder", size_m=(r, h), position_m=at or (0.0, 0.0, h / 2))
+
+
+def _ring(r_out: float, wall: float, h: float, z0: float, n: int = 10) -> list[Part]:
+    """A thin-walled open cylinder as n boxes (non-convex containers: mug, bowl)."""
+    parts = []
+    chord = 2 * r_out * np.sin(np.pi / n) * 1.05
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        rc = r_out - wall / 2
+        q = (0.0, 0.0, float(np.sin(a / 2)), float(np.cos(a / 2)))
+        parts.append(
+            Part(kind="box", size_m=(wall, chord, h), position_m=(rc * np.cos(a), rc * np.sin(a), z0 + h / 2), quat_xyzw=q)
+        )
+    return parts
+
+
+def _catalogue() -> tuple[ObjectClass, ...]:
+    mug = [_cyl(0.040, 0.008), *_ring(0.040, 0.006, 0.080, 0.008)]
+    mug += [_box(0.030, 0.012, 0.010, (0.052, 0.0, 0.070)), _box(0.010, 0.012, 0.050, (0.064, 0.0, 0.045)),
+            _box(0.030, 0.012, 0.010, (0.052, 0.0, 0.020))]
+    bowl = [_cyl(0.050, 0.010), *_ring(0.080, 0.008, 0.045, 0.010, n=12)]
+    classes = [
+        ("cracker_box", [_box(0.160, 0.060, 0.210)], 0.41, "sugar_box"),
+        ("sugar_box", [_box(0.090, 0.040, 0.175)], 0.51, "cracker_box"),
+        ("master_chef_can", [_cyl(0.051, 0.140)], 0.41, "tomato_soup_can"),
+        ("tomato_soup_can", [_cyl(0.033, 0.101)], 0.35, "master_chef_can"),
+        ("mustard_bottle", [_box(0.095, 0.058, 0.150), _cyl(0.015, 0.040, (0.02, 0.0, 0.170))], 0.60, "bleach_cleanser"),
+        ("tuna_fish_can", [_cyl(0.043, 0.033)], 0.17, "potted_meat_can"),
+        ("pudding_box", [_box(0.110, 0.089, 0.035)], 0.19, "gelatin_box"),
+        ("gelatin_box", [_box(0.085, 0.073, 0.028)], 0.10, "pudding_box"),
+        ("potted_meat_can", [_box(0.101, 0.051, 0.083)], 0.37, "tuna_fish_can"),
+        ("mug", mug, 0.12, "bowl"),
+        ("bleach_cleanser", [_box(0.100, 0.065, 0.200), _cyl(0.018, 0.040, (0.025, 0.0, 0.220)),
+                             _box(0.010, 0.030, 0.060, (-0.030, 0.0, 0.230))], 1.13, "mustard_bottle"),
+        ("bowl", bowl, 0.15, "mug"),
+        ("foam_brick", [_box(0.075, 0.050, 0.050)], 0.03, "wood_block"),
+        ("wood_block", [_box(0.085, 0.085, 0.200)], 0.73, "foam_brick"),
+    ]
+    return tuple(
+        ObjectClass(name=n, class_id=i + 1, parts=tuple(p), mass_kg=m, confusable_with=c)
+        for i, (n, p, m, c) in enumerate(classes)
+    )
+
+
+OBJECT_CLASSES: tuple[ObjectClass, ...] = _catalogue()
+CLASS_NAMES: tuple[str, ...] = ("background", *(c.name for c in OBJECT_CLASSES))
+NUM_CLASSES = len(CLASS_NAMES)  # 15: background + 14 object classes
+BACKGROUND = 0
+
+
+@cache
+def object_class(name: str) -> ObjectClass:
+    for c in OBJECT_CLASSES:
+        if c.name == name:
+            return c
+    raise UserError(f"unknown object class {name!r}; known: {', '.join(c.name for c in OBJECT_CLASSES)}")
+
+
+class ShelfSpec(BaseModel):
+    """Open-front shelf. Interior: x in [-w/2, w/2], y in [0, depth] (front at y = 0), z in [0, h]."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    width_m: float = Field(0.76, gt=0.1, le=3.0)
+    depth_m: float = Field(0.38, gt=0.1, le=2.0)
+    height_m: float = Field(0.28, gt=0.05, le=2.0)
+    wall_m: float = Field(0.02, gt=0.0, le=0.2)
+    friction: float = Field(0.5, ge=0.0)
+
+    @property
+    def interior_lower(self) -> NDArray[np.float64]:
+        return np.array([-self.width_m / 2, 0.0, 0.0])
+
+    @property
+    def interior_upper(self) -> NDArray[np.float64]:
+        return np.array([self.width_m / 2, self.depth_m, self.height_m])
+
+    def boards(self) -> list[tuple[NDArray[np.float64], NDArray[np.float64]]]:
+        """(centre, half-extents) of the bottom, top, left, right and back boards."""
+        w, d, h, t = self.width_m, self.depth_m, self.height_m, self.wall_m
+        return [
+            (np.array([0.0, d / 2, -t / 2]), np.array([w / 2 + t, d / 2, t / 2])),
+            (np.array([0.0, d / 2, h + t / 2]), np.array([w / 2 + t, d / 2, t / 2])),
+            (np.array([-w / 2 - t / 2, d / 2, h / 2]), np.array([t / 2, d / 2, h / 2 + t])),
+            (np.array([w / 2 + t / 2, d / 2, h / 2]), np.array([t / 2, d / 2, h / 2 + t])),
+            (np.array([0.0, d + t / 2, h / 2]), np.array([w / 2 + t, t / 2, h / 2 + t])),
+        ]
+
+
+class ObjectSpec(BaseModel):
+    """One object instance: its class and its pose (object frame origin = footprint centre)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    id: int = Field(ge=0)
+    class_name: str
+    position_m: tuple[float, float, float]
+    quat_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+
+    @field_validator("class_name")
+    @classmethod
+    def _known_class(cls, v: str) -> str:
+        if v not in CLASS_NAMES[1:]:
+            raise ValueError(f"unknown object class {v!r}")
+        return v
+
+    @property
+    def object_class(self) -> ObjectClass:
+        return object_class(self.class_name)
+
+    @property
+    def class_id(self) -> int:
+        return self.object_class.class_id
+
+    def pose(self) -> NDArray[np.float64]:
+        return pose_matrix(self.position_m, self.quat_xyzw)
+
+
+class SceneSpec(BaseModel):
+    """A shelf with objects; what ``Simulator.reset`` builds. Serialised as JSON."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = "scene"
+    seed: int | None = None
+    shelf: ShelfSpec = ShelfSpec()
+    objects: tuple[ObjectSpec, ...] = ()
+    occupancy_fraction: float | None = None
+    """Fraction of the shelf floor covered by object footprints (recorded by the generator)."""
+    hidden_objects: int | None = None
+    """Objects hidden from all viewpoints at the start (recorded by the hardness check)."""
+
+    @field_validator("objects")
+    @classmethod
+    def _unique_ids(cls, v: tuple[ObjectSpec, ...]) -> tuple[ObjectSpec, ...]:
+        ids = [o.id for o in v]
+        if len(set(ids)) != len(ids):
+            raise ValueError("object ids must be unique")
+        return v
+
+    def to_json(self, path: str | Path) -> None:
+        Path(path).write_text(self.model_dump_json(indent=2))
+
+    @classmethod
+    def from_json(cls, path: str | Path) -> SceneSpec:
+        """Load a scene file; failures raise a ``UserError`` naming the file and the field."""
+        p = Path(path)
+        try:
+            data = json.loads(p.read_text())
+        except OSError as e:
+            raise UserError(f"cannot read scene file {p}: {e.strerror or e}") from e
+        except json.JSONDecodeError as e:
+            raise UserError(f"scene file {p} is not valid JSON: {e.msg} at line {e.lineno}") from e
+        try:
+            return cls.model_validate(data)
+        except ValidationError as e:
+            err = e.errors()[0]
+            loc = ".".join(str(x) for x in err["loc"]) or "<root>"
+            raise UserError(f"invalid scene file {p}: field {loc}: {err['msg']}") from e
