@@ -1,0 +1,166 @@
+"""Run configuration: pydantic models, YAML/JSON files and method presets.
+
+Precedence: the ``--method`` preset < a ``--config`` file < CLI flags. Unknown keys and bad values
+are rejected with the dotted path of the field at fault.
+"""
+
+from __future__ import annotations
+
+import json
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from msmem_core.camera import CameraConfig
+from msmem_core.errors import UserError
+from msmem_core.grid import GridSpec
+from msmem_core.gripper import GripperSpec
+from msmem_core.ig import IGConfig
+from msmem_core.plugins.manager import ComponentRef
+from msmem_core.scenegen import SceneGenConfig
+from msmem_core.viewpoints import ViewpointConfig
+
+METHODS = ("view-only", "push-only", "grasp-only", "no-cdc", "ours")
+DEFAULT_METHOD = "view-only"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class GridConfig(_Strict):
+    voxel_m: float = Field(0.01, gt=0.001, le=0.05)
+    """Voxel edge; the grid covers the shelf interior plus ``margin_voxels`` on every side."""
+    margin_voxels: int = Field(1, ge=1, le=10)
+
+
+class SceneConfig(_Strict):
+    file: Path | None = None
+    """A SceneSpec JSON file; when unset the generator builds one from ``seed``."""
+    seed: int = 0
+    generator: SceneGenConfig = SceneGenConfig()
+
+
+class TermRef(ComponentRef):
+    """An objective term and its weight in the weighted sum."""
+
+    weight: float = 1.0
+
+
+class SkillRef(ComponentRef):
+    """A skill and (for manipulation skills) the belief model that predicts its effect."""
+
+    effect_model: ComponentRef | None = None
+
+
+class MSASConfig(_Strict):
+    tau_chi: float = Field(0.5, gt=0.0, le=1.0)
+    """Semantic vacuity below which a voxel's class counts as known (paper: tau_chi)."""
+    manipulation_window: tuple[int, int] = (3, 38)
+    """Steps (inclusive) in which manipulation may be chosen ([MEM]: 3 to 38)."""
+    conf_cutoff: float = Field(0.85, gt=0.0, lt=1.0)
+    mapped_fraction: float = Field(0.99, gt=0.0, le=1.0)
+    start_view: int | None = None
+    """Viewpoint of the initial observation (None: the centre of the middle grid)."""
+
+    @model_validator(mode="after")
+    def _window(self) -> MSASConfig:
+        lo, hi = self.manipulation_window
+        if lo < 0 or hi < lo:
+            raise ValueError("manipulation_window must be (first, last) with 0 <= first <= last")
+        return self
+
+
+class RunConfig(_Strict):
+    """Everything one episode needs; ``msmem config show`` prints the resolved form."""
+
+    method: str = DEFAULT_METHOD
+    seed: int = 0
+    """Root seed: every random choice of the episode flows from it."""
+    steps: int = Field(40, ge=1, le=1000)
+    """T_max: number of actions in the episode."""
+    threads: int = Field(2, ge=1, le=256)
+    """Threads for numba and torch inside one episode."""
+    grid: GridConfig = GridConfig()
+    camera: CameraConfig = CameraConfig()
+    gripper: GripperSpec = GripperSpec()
+    viewpoints: ViewpointConfig = ViewpointConfig()
+    scene: SceneConfig = SceneConfig()
+    simulator: ComponentRef = ComponentRef(name="pybullet")
+    observation_model: ComponentRef = ComponentRef(name="analytic-observation")
+    skills: list[SkillRef] = Field(default_factory=lambda: [SkillRef(name="view")], min_length=1)
+    objective: list[TermRef] = Field(default_factory=lambda: [TermRef(name="ig")], min_length=1)
+    ig: IGConfig = IGConfig()
+    msas: MSASConfig = MSASConfig()
+
+    def grid_spec(self, shelf: Any) -> GridSpec:
+        return GridSpec.around_box(shelf.interior_lower, shelf.interior_upper, self.grid.voxel_m, self.grid.margin_voxels)
+
+
+def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """Recursively merge ``over`` into a copy of ``base`` (lists and scalars are replaced)."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """A YAML or JSON mapping; errors name the file."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as e:
+        raise UserError(f"cannot read config file {p}: {e.strerror or e}") from e
+    try:
+        data = json.loads(text) if p.suffix == ".json" else yaml.safe_load(text)
+    except (json.JSONDecodeError, yaml.YAMLError) as e:
+        raise UserError(f"config file {p} is not valid {'JSON' if p.suffix == '.json' else 'YAML'}: {e}") from e
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise UserError(f"config file {p} must hold a mapping at the top level, not {type(data).__name__}")
+    return data
+
+
+def preset(method: str) -> dict[str, Any]:
+    """The shipped config of a method preset."""
+    if method not in METHODS:
+        raise UserError(f"unknown method {method!r}; methods: {', '.join(METHODS)}")
+    text = resources.files("msmem_core.presets").joinpath(f"{method}.yaml").read_text()
+    return yaml.safe_load(text) or {}
+
+
+def validate_config(data: dict[str, Any], source: str = "config") -> RunConfig:
+    try:
+        return RunConfig.model_validate(data)
+    except ValidationError as e:
+        lines = []
+        for err in e.errors()[:5]:
+            loc = ".".join(str(x) for x in err["loc"]) or "<root>"
+            lines.append(f"field {loc}: {err['msg']}")
+        more = f" (+{e.error_count() - 5} more)" if e.error_count() > 5 else ""
+        raise UserError(f"invalid {source}: " + "; ".join(lines) + more) from e
+
+
+def load_config(
+    method: str | None = None, config_file: str | Path | None = None, overrides: dict[str, Any] | None = None
+) -> RunConfig:
+    """Resolve preset < file < overrides into a validated ``RunConfig``."""
+    data: dict[str, Any] = {}
+    sources = []
+    file_data = read_config_file(config_file) if config_file else {}
+    chosen = method or file_data.get("method") or DEFAULT_METHOD
+    data = deep_merge(data, preset(chosen))
+    sources.append(f"preset {chosen}")
+    if config_file:
+        data = deep_merge(data, file_data)
+        sources.append(str(config_file))
+    if overrides:
+        data = deep_merge(data, overrides)
+        sources.append("command-line flags")
+    data["method"] = chosen if method or "method" not in file_data else file_data["method"]
+    return validate_config(data, "config (" + " < ".join(sources) + ")")

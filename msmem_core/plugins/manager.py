@@ -1,0 +1,228 @@
+"""The plugin manager: safe entry-point loading, duplicate detection and component building."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata as md
+import os
+import sys
+import warnings
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import pluggy
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from msmem_core.errors import PluginError
+from msmem_core.plugins.hookspec import PROJECT, MsmemSpecs
+from msmem_core.plugins.types import BeliefModelSpec, ObjectiveTermSpec, SimulatorSpec, SkillSpec, _Spec
+
+ENTRY_POINT_GROUP = "msmem"
+BUILTIN_DISTRIBUTION = "msmem"
+KINDS: dict[str, str] = {
+    "skill": "msmem_skills",
+    "belief-model": "msmem_belief_models",
+    "simulator": "msmem_simulators",
+    "objective-term": "msmem_objective_terms",
+}
+S = TypeVar("S", bound=_Spec)
+
+
+class PluginLoadWarning(UserWarning):
+    """A plugin could not be loaded; the others still are."""
+
+
+class ComponentRef(BaseModel):
+    """A reference to a plugin component in config: its registered name and its parameters."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(min_length=1)
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Registered:
+    """A spec with the plugin and distribution it came from."""
+
+    spec: _Spec
+    plugin: str
+    distribution: str
+
+
+def _flag(name: str) -> bool:
+    return os.environ.get(name, "").strip().lower() not in ("", "0", "false", "no")
+
+
+class MsmemPluginManager(pluggy.PluginManager):
+    """pluggy manager with typed accessors. Create one per process with ``get_plugin_manager``."""
+
+    def __init__(self) -> None:
+        super().__init__(PROJECT)
+        self.add_hookspecs(MsmemSpecs)
+        self.distributions: dict[str, str] = {}
+        """Plugin name -> distribution that provided it."""
+        self.load_errors: dict[str, str] = {}
+        """Plugin name -> why it failed to load."""
+        self._cache: dict[str, dict[str, Registered]] = {}
+        if _flag("MSMEM_TRACE_PLUGINS"):
+            self.trace.root.setwriter(lambda s: print(s, end="", file=sys.stderr))
+            self.enable_tracing()
+
+    # ------------------------------------------------------------------------------------ loading
+    def register_plugin(self, plugin: object, name: str, distribution: str) -> None:
+        """Register a module or object as a plugin; hook signatures are checked against the specs."""
+        try:
+            self.register(plugin, name=name)
+        except (pluggy.PluginValidationError, ValueError) as e:
+            raise PluginError(f"plugin {name!r} from {distribution} is invalid: {e}") from e
+        self.distributions[name] = distribution
+        self._cache.clear()
+
+    def _load_one(self, name: str, target: str, distribution: str, loader: Any) -> None:
+        if self.is_blocked(name) or self.has_plugin(name):
+            return
+        try:
+            plugin = loader()
+        except Exception as e:  # a broken plugin must not take the others down
+            self.load_errors[name] = f"{type(e).__name__}: {e}"
+            warnings.warn(
+                f"msmem plugin {name!r} ({target}, from {distribution}) failed to load and is skipped: "
+                f"{type(e).__name__}: {e}",
+                PluginLoadWarning,
+                stacklevel=3,
+            )
+            return
+        self.register_plugin(plugin, name, distribution)
+
+    def load_entrypoints(self, group: str = ENTRY_POINT_GROUP) -> None:
+        """Load every ``msmem`` entry point. With ``MSMEM_DISABLE_PLUGIN_AUTOLOAD`` set, only built-ins load."""
+        only_builtin = _flag("MSMEM_DISABLE_PLUGIN_AUTOLOAD")
+        seen: set[tuple[str, str]] = set()
+        for dist in md.distributions():
+            dist_name = dist.metadata["Name"] or "?"
+            if only_builtin and dist_name != BUILTIN_DISTRIBUTION:
+                continue
+            for ep in dist.entry_points:
+                if ep.group != group or (dist_name, ep.name) in seen:
+                    continue
+                seen.add((dist_name, ep.name))
+                self._load_one(ep.name, ep.value, dist_name, ep.load)
+
+    def load_env_plugins(self, value: str | None = None) -> None:
+        """Register uninstalled modules named in ``MSMEM_PLUGINS="name=module[,name=module]"``."""
+        value = os.environ.get("MSMEM_PLUGINS", "") if value is None else value
+        for item in filter(None, (s.strip() for s in value.split(","))):
+            name, sep, module = item.partition("=")
+            if not sep or not name.strip() or not module.strip():
+                raise PluginError(f"MSMEM_PLUGINS entry {item!r} must look like name=module")
+            mod = module.strip()
+            self._load_one(name.strip(), mod, "MSMEM_PLUGINS", lambda m=mod: importlib.import_module(m))
+
+    def check(self) -> None:
+        """Catch hook implementations that match no spec (typos such as ``msmem_skils``)."""
+        try:
+            self.check_pending()
+        except pluggy.PluginValidationError as e:
+            plugin = self.get_name(e.plugin) or "?"
+            dist = self.distributions.get(plugin, "?")
+            raise PluginError(f"plugin {plugin!r} from {dist}: {e}") from e
+
+    # ------------------------------------------------------------------------------------ results
+    def registered(self, kind: str) -> dict[str, Registered]:
+        """All specs of one kind ('skill', 'belief-model', 'simulator', 'objective-term') by name."""
+        if kind not in KINDS:
+            raise PluginError(f"unknown component kind {kind!r}; kinds: {', '.join(KINDS)}")
+        if kind in self._cache:
+            return self._cache[kind]
+        hook = getattr(self.hook, KINDS[kind])
+        out: dict[str, Registered] = {}
+        trace = _flag("MSMEM_TRACE_PLUGINS")
+        for impl in reversed(hook.get_hookimpls()):  # registration order
+            dist = self.distributions.get(impl.plugin_name, "?")
+            specs = list(impl.function() or ())
+            if trace:
+                names = ", ".join(s.name for s in specs)
+                print(f"msmem: {KINDS[kind]}() -> {impl.plugin_name} ({dist}): {names}", file=sys.stderr)
+            for spec in specs:
+                if spec.name in out:
+                    other = out[spec.name]
+                    raise PluginError(
+                        f"{spec.kind} name {spec.name!r} is registered twice: by plugin {other.plugin!r} "
+                        f"from {other.distribution} and by plugin {impl.plugin_name!r} from {dist}"
+                    )
+                out[spec.name] = Registered(spec, impl.plugin_name, dist)
+        self._cache[kind] = out
+        return out
+
+    def spec(self, kind: str, name: str) -> _Spec:
+        table = self.registered(kind)
+        if name not in table:
+            avail = ", ".join(sorted(table)) or "none"
+            raise PluginError(f"no {kind} named {name!r}; available: {avail}")
+        return table[name].spec
+
+    def skills(self) -> dict[str, SkillSpec]:
+        return {n: r.spec for n, r in self.registered("skill").items()}  # type: ignore[misc]
+
+    def belief_models(self) -> dict[str, BeliefModelSpec]:
+        return {n: r.spec for n, r in self.registered("belief-model").items()}  # type: ignore[misc]
+
+    def simulators(self) -> dict[str, SimulatorSpec]:
+        return {n: r.spec for n, r in self.registered("simulator").items()}  # type: ignore[misc]
+
+    def objective_terms(self) -> dict[str, ObjectiveTermSpec]:
+        return {n: r.spec for n, r in self.registered("objective-term").items()}  # type: ignore[misc]
+
+    # ------------------------------------------------------------------------------------ building
+    def build(self, kind: str, ref: ComponentRef | str, where: str | None = None, **extra: Any) -> Any:
+        """Validate ``ref.params`` against the spec's config model and call its factory.
+
+        ``extra`` supplies run-wide values (camera, gripper, seed) for config fields the user did not set.
+        """
+        if isinstance(ref, str):
+            ref = ComponentRef(name=ref)
+        spec = self.spec(kind, ref.name)
+        fields = spec.config_model.model_fields
+        params = {k: v for k, v in extra.items() if k in fields} | dict(ref.params)
+        try:
+            config = spec.config_model.model_validate(params)
+        except ValidationError as e:
+            err = e.errors()[0]
+            loc = ".".join(str(x) for x in err["loc"])
+            at = f"{where}.params.{loc}" if where else f"params.{loc}"
+            raise PluginError(f"{kind} {ref.name!r}: {at}: {err['msg']}") from e
+        return spec.factory(config)
+
+    def listing(self) -> list[dict[str, Any]]:
+        """One row per component: kind, name, distribution, plugin, description, config fields."""
+        rows = []
+        for kind in KINDS:
+            for name, reg in sorted(self.registered(kind).items()):
+                schema = reg.spec.config_model.model_json_schema()
+                props = schema.get("properties", {})
+                rows.append(
+                    {
+                        "kind": kind,
+                        "name": name,
+                        "distribution": reg.distribution,
+                        "plugin": reg.plugin,
+                        "description": reg.spec.description,
+                        "config": {k: {kk: v[kk] for kk in ("type", "default", "description") if kk in v}
+                                   for k, v in props.items()},
+                    }
+                )
+        return rows
+
+
+def get_plugin_manager(load: bool = True, extra_plugins: Iterable[tuple[str, object]] = ()) -> MsmemPluginManager:
+    """A fresh manager with entry points, ``MSMEM_PLUGINS`` and ``extra_plugins`` loaded and checked."""
+    pm = MsmemPluginManager()
+    if load:
+        pm.load_entrypoints()
+        pm.load_env_plugins()
+    for name, plugin in extra_plugins:
+        pm.register_plugin(plugin, name, "<code>")
+    pm.check()
+    return pm

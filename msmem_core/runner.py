@@ -1,0 +1,208 @@
+"""Build an episode from a ``RunConfig``, run MSAS on it and write the run folder.
+
+Run folder: ``config.json`` (resolved), ``scene.json``, ``steps.jsonl`` (one record per step) and
+``metrics.json`` (final metrics and action counts).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from msmem_core.belief import EvidentialMap
+from msmem_core.config import RunConfig
+from msmem_core.errors import PluginError
+from msmem_core.groundtruth import observable_mask, voxelize
+from msmem_core.ig import IGService
+from msmem_core.interfaces import EffectModel, ObservationModel, Outcome, Simulator
+from msmem_core.metrics import (
+    occupancy_iou,
+    observable_iou,
+    position_change_m,
+    prediction_from_belief,
+    semantic_miou,
+    semantic_miou_bev,
+)
+from msmem_core.msas import BoundSkill, Decision, DecisionContext, Objective, run_msas
+from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager
+from msmem_core.scene import SceneSpec
+from msmem_core.scenegen import generate_scene
+from msmem_core.viewpoints import default_start_view, generate_viewpoints
+
+
+def set_threads(n: int) -> None:
+    """Per-episode thread counts, so results do not depend on where an episode runs."""
+    os.environ.setdefault("OMP_NUM_THREADS", str(n))
+    import numba
+    import torch
+
+    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    torch.set_num_threads(n)
+
+
+def resolve_scene(cfg: RunConfig) -> SceneSpec:
+    if cfg.scene.file is not None:
+        return SceneSpec.from_json(cfg.scene.file)
+    return generate_scene(cfg.scene.seed, cfg.scene.generator)
+
+
+@dataclass
+class Episode:
+    """Everything built from a config, ready for ``run``."""
+
+    cfg: RunConfig
+    scene: SceneSpec
+    sim: Simulator
+    observe_model: ObservationModel
+    skills: list[BoundSkill]
+    objective: Objective
+    ig: IGService
+    viewpoints: np.ndarray
+    records: list[dict[str, Any]] = field(default_factory=list)
+
+
+def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | None = None) -> Episode:
+    # run-wide values a component receives for config fields the user left unset
+    common = {"camera": cfg.camera, "gripper": cfg.gripper, "seed": cfg.seed}
+    observe_model = pm.build("belief-model", cfg.observation_model, where="observation_model", **common)
+    if not isinstance(observe_model, ObservationModel):
+        raise PluginError(f"belief model {cfg.observation_model.name!r} cannot update from observations")
+    skills = []
+    for i, ref in enumerate(cfg.skills):
+        skill = pm.build("skill", ref, where=f"skills.{i}", **common)
+        effect = None
+        if skill.category == "manipulation":
+            spec = pm.skills()[ref.name]
+            eref = ref.effect_model or (ComponentRef(name=spec.effect_model) if spec.effect_model else None)
+            if not eref:
+                raise PluginError(f"skill {ref.name!r} needs an effect_model in config (skills.{i}.effect_model)")
+            effect = pm.build("belief-model", eref, where=f"skills.{i}.effect_model", **common)
+            if not isinstance(effect, EffectModel):
+                raise PluginError(f"belief model {eref.name!r} cannot predict effects (skills.{i}.effect_model)")
+        skills.append(BoundSkill(ref.name, skill, effect))
+    terms = [(t.name, t.weight, pm.build("objective-term", t, where=f"objective.{i}", **common))
+             for i, t in enumerate(cfg.objective)]
+    sim = pm.build("simulator", cfg.simulator, where="simulator", **common)
+    scene = scene or resolve_scene(cfg)  # after the plugins, so a bad name fails fast
+    viewpoints = generate_viewpoints(cfg.viewpoints, scene.shelf)
+    ig = IGService(cfg.grid_spec(scene.shelf), cfg.camera, viewpoints, scene.shelf, cfg.ig)
+    return Episode(cfg, scene, sim, observe_model, skills, Objective(terms), ig, viewpoints)
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return x
+
+
+class MetricTracker:
+    """Ground truth and per-step metrics; GT is recomputed only when objects moved."""
+
+    def __init__(self, ep: Episode) -> None:
+        self.ep = ep
+        self.grid = ep.ig.grid
+        self.initial = ep.sim.object_poses()
+        self._gt_poses: dict[int, np.ndarray] | None = None
+        self.objects = {o.id: o for o in ep.scene.objects}
+        self._refresh(self.initial)
+
+    def _refresh(self, poses: dict[int, np.ndarray]) -> None:
+        objs = [self.objects[i] for i in poses]
+        self.gt_occ, self.gt_cls = voxelize(objs, self.grid, poses=poses)
+        self.mask = observable_mask(objs, poses, self.ep.scene.shelf, self.ep.viewpoints, self.ep.cfg.camera, self.grid)
+        self._gt_poses = {k: v.copy() for k, v in poses.items()}
+
+    def __call__(self, belief: EvidentialMap) -> dict[str, float]:
+        poses = self.ep.sim.object_poses()
+        assert self._gt_poses is not None
+        moved = set(poses) != set(self._gt_poses) or any(
+            np.abs(poses[i] - self._gt_poses[i]).max() > 1e-4 for i in poses
+        )
+        if moved:
+            self._refresh(poses)
+        pred_occ, pred_cls = prediction_from_belief(belief.expected_occupancy(), belief.class_probs())
+        return {
+            "occupancy_iou": occupancy_iou(pred_occ, self.gt_occ),
+            "observable_iou": observable_iou(pred_occ, self.gt_occ, self.mask),
+            "semantic_miou": semantic_miou(pred_cls, self.gt_cls),
+            "semantic_miou_bev": semantic_miou_bev(pred_cls, self.gt_cls),
+            "position_change_m": position_change_m(self.initial, poses),
+        }
+
+
+def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None) -> dict[str, Any]:
+    """Run MSAS for ``cfg.steps`` actions; returns the final metrics (and writes the run folder)."""
+    cfg = ep.cfg
+    set_threads(cfg.threads)
+    rng = np.random.default_rng(cfg.seed)
+    ep.sim.reset(ep.scene)
+    metrics = MetricTracker(ep)
+    grid = ep.ig.grid
+    start = cfg.msas.start_view if cfg.msas.start_view is not None else default_start_view(cfg.viewpoints)
+    belief = ep.observe_model.update(EvidentialMap.empty(grid), ep.sim.observe(ep.viewpoints[start]))
+    initial = metrics(belief)
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "config.json").write_text(cfg.model_dump_json(indent=2))
+        ep.scene.to_json(out_dir / "scene.json")
+        steps_file = (out_dir / "steps.jsonl").open("w")
+    counts: Counter[str] = Counter()
+    t_last = time.perf_counter()
+
+    def make_ctx(step: int, b: EvidentialMap, visited: set[int], allowed: bool) -> DecisionContext:
+        return DecisionContext(step, b, ep.ig, ep.viewpoints, visited | ({start} if step == 0 else set()), grid,
+                               ep.scene.shelf, cfg.gripper, rng, allowed, cfg.msas.tau_chi)
+
+    def on_step(step: int, d: Decision, outcome: Outcome, b: EvidentialMap) -> None:
+        nonlocal t_last
+        now = time.perf_counter()
+        m = metrics(b)
+        counts[d.skill] += 1
+        rec = {
+            "step": step, "skill": d.skill, "action": d.action.model_dump(), "objective": d.value,
+            "terms": d.terms, "best_per_skill": d.best, "candidates": d.candidates,
+            "success": outcome.success, "fell_or_left": outcome.fell_or_left,
+            "metrics": m, "seconds": now - t_last,
+        }
+        t_last = now
+        ep.records.append(rec)
+        if out_dir is not None:
+            steps_file.write(json.dumps(_jsonable(rec)) + "\n")
+            steps_file.flush()
+        if progress is not None:
+            progress(rec)
+
+    t0 = time.perf_counter()
+    try:
+        belief = run_msas(ep.sim, belief, ep.observe_model, ep.skills, ep.objective, make_ctx, cfg.msas, cfg.steps,
+                          on_step)
+    finally:
+        if out_dir is not None:
+            steps_file.close()
+    final = dict(ep.records[-1]["metrics"]) if ep.records else initial
+    final.update({
+        "initial": initial,
+        "actions": dict(counts),
+        "steps": len(ep.records),
+        "seconds_total": time.perf_counter() - t0,
+        "seconds_per_step": (time.perf_counter() - t0) / max(1, len(ep.records)),
+        "scene": ep.scene.name,
+        "method": cfg.method,
+    })
+    if out_dir is not None:
+        (out_dir / "metrics.json").write_text(json.dumps(_jsonable(final), indent=2))
+        belief.save(out_dir / "belief_final.npz")
+    return final

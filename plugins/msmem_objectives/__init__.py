@@ -1,0 +1,1 @@
+"""Built-in objective terms (paper: OIG, Delta H, CDC)."""

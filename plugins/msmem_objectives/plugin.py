@@ -1,0 +1,14 @@
+from collections.abc import Iterable
+
+from msmem_core.plugins import ObjectiveTermSpec, hookimpl
+from msmem_objectives.ig import IGTerm, IGTermConfig
+
+
+@hookimpl
+def msmem_objective_terms() -> Iterable[ObjectiveTermSpec]:
+    yield ObjectiveTermSpec(
+        name="ig",
+        factory=IGTerm,
+        config_model=IGTermConfig,
+        description="Occlusion-aware information gain: two-step IG for views, best next-view IG after a manipulation",
+    )

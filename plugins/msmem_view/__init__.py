@@ -1,0 +1,1 @@
+"""The viewpoint skill: move the camera to one of the candidate viewpoints and observe."""

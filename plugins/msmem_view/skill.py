@@ -1,0 +1,36 @@
+"""Next-best-view skill: proposes every viewpoint not visited since the last manipulation."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict
+
+from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
+
+
+class ViewAction(Action):
+    """Observe from viewpoint ``view`` (an index into the run's viewpoints)."""
+
+    kind: str = "view"
+    category: Literal["perception"] = "perception"
+    view: int
+
+
+class ViewConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ViewSkill(Skill):
+    category: ClassVar[Category] = "perception"
+
+    def __init__(self, config: ViewConfig | None = None) -> None:
+        self.config = config or ViewConfig()
+
+    def propose(self, ctx: Any) -> list[Action]:
+        return [ViewAction(view=v) for v in range(len(ctx.viewpoints)) if v not in ctx.visited]
+
+    def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
+        assert isinstance(action, ViewAction)
+        obs = sim.observe(ctx.viewpoints[action.view])
+        return Outcome(success=True, observation=obs, info={"view": action.view})

@@ -1,0 +1,17 @@
+from collections.abc import Iterable
+
+from msmem_core._quiet import quiet_stdio
+from msmem_core.plugins import SimulatorSpec, hookimpl
+
+with quiet_stdio():  # pybullet prints its build time on import
+    from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
+
+
+@hookimpl
+def msmem_simulators() -> Iterable[SimulatorSpec]:
+    yield SimulatorSpec(
+        name="pybullet",
+        factory=PyBulletSimulator,
+        config_model=PyBulletConfig,
+        description="PyBullet (DIRECT mode, TinyRenderer depth and segmentation)",
+    )

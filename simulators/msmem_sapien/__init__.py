@@ -1,0 +1,1 @@
+"""SAPIEN 3 backend (optional extra ``msmem[sapien]``)."""

@@ -1,0 +1,68 @@
+"""Configs: presets, files, precedence and errors that name the field."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from msmem_core.config import METHODS, load_config
+from msmem_core.errors import UserError
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_every_preset_resolves(method):
+    cfg = load_config(method)
+    assert cfg.method == method
+    assert cfg.skills[0].name == "view"
+
+
+def test_file_overrides_preset_and_flags_override_file(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("steps: 7\nseed: 3\nig:\n  ray_stride_px: 16\n")
+    cfg = load_config("view-only", f, {"steps": 5})
+    assert (cfg.steps, cfg.seed, cfg.ig.ray_stride_px) == (5, 3, 16)
+    assert cfg.objective[0].name == "ig"  # untouched preset value survives
+
+
+def test_json_config_files_work(tmp_path):
+    f = tmp_path / "c.json"
+    f.write_text(json.dumps({"msas": {"tau_chi": 0.3}}))
+    assert load_config(None, f).msas.tau_chi == 0.3
+
+
+def test_unknown_key_is_rejected_with_dotted_path(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("msas:\n  tau_chii: 0.3\n")
+    with pytest.raises(UserError, match=r"field msas\.tau_chii: Extra inputs are not permitted"):
+        load_config(None, f)
+
+
+def test_wrong_type_is_rejected_with_dotted_path(tmp_path):
+    f = tmp_path / "c.yaml"
+    f.write_text("camera:\n  width_px: wide\n")
+    with pytest.raises(UserError, match=r"c\.yaml.*field camera\.width_px: Input should be a valid integer"):
+        load_config(None, f)
+
+
+def test_bad_window_is_rejected():
+    with pytest.raises(UserError, match=r"msas: Value error, manipulation_window"):
+        load_config(None, None, {"msas": {"manipulation_window": [5, 2]}})
+
+
+def test_unknown_method_lists_methods():
+    with pytest.raises(UserError, match="methods: view-only, push-only, grasp-only, no-cdc, ours"):
+        load_config("nosuch")
+
+
+def test_unreadable_and_invalid_files_name_the_file(tmp_path):
+    with pytest.raises(UserError, match=r"cannot read config file .*missing\.yaml"):
+        load_config(None, tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("a: [1, 2\n")
+    with pytest.raises(UserError, match=r"bad\.yaml is not valid YAML"):
+        load_config(None, bad)
+    lst = tmp_path / "list.yaml"
+    lst.write_text("- 1\n")
+    with pytest.raises(UserError, match="mapping at the top level"):
+        load_config(None, lst)
