@@ -106,6 +106,10 @@ class Simulator(ABC):
         """Open or close the fingers (closing stops at contact); return the reached opening."""
 
     @abstractmethod
+    def park_gripper(self) -> None:
+        """Move the gripper out of the workspace and out of every camera's view."""
+
+    @abstractmethod
     def gripper_pose(self) -> NDArray[np.float64]:
         """Current gripper pose (gripper frame of ``GripperSpec``)."""
 

@@ -56,6 +56,10 @@ class FakeSimulator(Simulator):
         self.opening = opening_m
         return opening_m
 
+    def park_gripper(self) -> None:
+        self.pose = np.eye(4)
+        self.pose[2, 3] = 2.0
+
     def gripper_pose(self) -> NDArray[np.float64]:
         return self.pose.copy()
 

@@ -1,0 +1,631 @@
+"""PyBullet implementation of ``Simulator``: rigid-body shelf scenes, a floating parallel-jaw gripper and a
+depth + semantic camera rendered with TinyRenderer (CPU, headless).
+
+Design notes:
+- Each instance owns its own ``p.DIRECT`` client and passes ``physicsClientId`` on every call, so
+  several simulators in one process do not interfere.
+- Every object is one multibody with a compound collision shape made from its class's parts; its
+  inertial frame sits at the parts' volume centroid and poses are converted back to the object frame
+  of ``ObjectSpec`` at the boundary. TinyRenderer draws collision shapes, so no visual shapes are made.
+- The gripper is a palm base with two prismatic fingers; a fixed constraint to the world drives the
+  base (objects push back), position-controlled motors with ``finger_force_n`` drive the fingers.
+- ``snapshot`` records the full state in plain data; ``restore`` rebuilds the world from it. Rebuilding
+  brings back removed objects and discards solver caches, so restoring a snapshot and repeating the
+  same calls reproduces the same result bit for bit.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pybullet as p
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from msmem_core.camera import CameraConfig, Observation
+from msmem_core.errors import UserError
+from msmem_core.geometry import matrix_to_quat, pose_matrix, quat_to_matrix
+from msmem_core.gripper import GripperSpec
+from msmem_core.interfaces import GRIPPER_ID, SHELF_ID, Capabilities, Contact, Simulator
+from msmem_core.scene import ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec, object_class
+
+OBJECT_FRICTION = 0.6
+"""Lateral friction of objects (Bullet multiplies the coefficients of the two bodies in contact)."""
+GRIPPER_MAX_FORCE_N = 200.0
+"""Force (and torque, N m) limit of the constraint that drives the gripper base."""
+FINGER_MASS_KG = 0.05
+FINGER_SPEED_MPS = 0.1
+"""Top speed of each finger while opening or closing."""
+ROTATION_LEVER_M = 0.1
+"""Rotations are timed so that a point this far from the gripper origin moves at ``speed_mps``."""
+PARK_POSITION_M = (0.0, 0.0, 3.0)
+"""Where the gripper waits, out of every camera's range; moves from here start with a teleport."""
+START_CLEARANCE_M = 0.02
+"""Free space the gripper needs around the pose it teleports to when leaving the parking pose."""
+START_BACKOFF_STEP_M = 0.02
+START_BACKOFF_MAX_M = 0.50
+SOLVER_ITERATIONS = 200
+"""More than PyBullet's default 50: two 40 N fingers squeezing a light object otherwise sink ~3 mm in."""
+CONTACT_DISTANCE_M = 1e-3
+"""Manifold points farther apart than this are not reported as contacts."""
+_DOWN = (1.0, 0.0, 0.0, 0.0)  # quaternion xyzw of a rotation by pi about x: approach axis points down
+
+
+class PyBulletConfig(BaseModel):
+    """Configuration of the PyBullet backend."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    camera: CameraConfig = CameraConfig()
+    gripper: GripperSpec = GripperSpec()
+    label_noise: float = Field(0.05, ge=0.0, le=1.0)
+    """Probability that, in one view, a visible object is labelled entirely as its confusable class."""
+    time_step_s: float = Field(1.0 / 240.0, gt=0.0, le=0.05)
+    settle_s: float = Field(1.0, ge=0.0)
+    """Simulated time objects settle for after ``reset``."""
+    seed: int = 0
+    """Seed of every random choice of the backend (segmentation noise)."""
+
+
+@dataclass(frozen=True)
+class _BodyState:
+    """Inertial-frame pose and velocity of one body (what PyBullet reports and resets)."""
+
+    position: tuple[float, float, float]
+    orientation: tuple[float, float, float, float]
+    linear_velocity: tuple[float, float, float]
+    angular_velocity: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class _Snapshot:
+    """Everything ``restore`` needs to rebuild the world exactly."""
+
+    client: int
+    scene: SceneSpec
+    objects: tuple[tuple[int, _BodyState], ...]
+    """Objects present at snapshot time, in scene order."""
+    gripper: _BodyState
+    finger_positions: tuple[float, float]
+    finger_velocities: tuple[float, float]
+    finger_target_m: float
+    gripper_target: tuple[tuple[float, float, float], tuple[float, float, float, float]]
+    parked: bool
+
+
+@dataclass(frozen=True)
+class _Object:
+    uid: int
+    class_id: int
+    confusable_id: int | None
+    """Class the structured segmentation noise reports instead of ``class_id``."""
+    com_m: NDArray[np.float64]
+    """Inertial frame origin (parts' volume centroid) in the object frame."""
+
+
+def _parts_centroid(parts: Sequence[Part]) -> NDArray[np.float64]:
+    """Volume-weighted centroid of the parts (overlaps counted twice; good enough for a mass centre)."""
+    vols = np.array(
+        [float(np.prod(q.size_m)) if q.kind == "box" else math.pi * q.size_m[0] ** 2 * q.size_m[1] for q in parts]
+    )
+    centres = np.array([q.position_m for q in parts], dtype=np.float64)
+    return (vols[:, None] * centres).sum(axis=0) / vols.sum()
+
+
+def _slerp(q0: NDArray[np.float64], q1: NDArray[np.float64], t: float) -> NDArray[np.float64]:
+    """Spherical linear interpolation of unit quaternions (xyzw) along the shorter arc."""
+    d = float(np.dot(q0, q1))
+    if d < 0.0:
+        q1, d = -q1, -d
+    if d > 0.9995:
+        q = q0 + t * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = math.acos(d)
+    return (math.sin((1 - t) * theta) * q0 + math.sin(t * theta) * q1) / math.sin(theta)
+
+
+def _quat_angle(q0: NDArray[np.float64], q1: NDArray[np.float64]) -> float:
+    """Angle in radians between two unit quaternions."""
+    return 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
+
+
+def _tiny_renderer_projection(cam: CameraConfig) -> list[float]:
+    """OpenGL projection (column-major) that makes TinyRenderer's pixels follow ``Observation``'s convention.
+
+    TinyRenderer samples pixel (i, j) at pixel-corner coordinates (u, v) = (i, j + 1) of the projected
+    image, where ``Observation.points_world`` assumes pixel centres (i + 0.5, j + 0.5). Moving the
+    principal point by (-0.5, +0.5) px removes that half-pixel shift (measured with box edges).
+    """
+    k = cam.intrinsics
+    w, h, n, f = cam.width_px, cam.height_px, cam.near_m, cam.far_m
+    cx, cy = k[0, 2] - 0.5, k[1, 2] + 0.5
+    proj = np.array(
+        [
+            [2 * k[0, 0] / w, 0.0, 1 - 2 * cx / w, 0.0],
+            [0.0, 2 * k[1, 1] / h, 2 * cy / h - 1, 0.0],
+            [0.0, 0.0, -(f + n) / (f - n), -2 * f * n / (f - n)],
+            [0.0, 0.0, -1.0, 0.0],
+        ]
+    )
+    return proj.T.reshape(-1).tolist()
+
+
+class PyBulletSimulator(Simulator):
+    """Shelf scenes in PyBullet (``p.DIRECT``; one physics client per instance)."""
+
+    def __init__(self, config: PyBulletConfig | None = None, **kwargs: Any) -> None:
+        if config is not None and kwargs:
+            raise UserError("pass either a PyBulletConfig or keyword options, not both")
+        self.config = config if config is not None else PyBulletConfig(**kwargs)
+        self._client = p.connect(p.DIRECT)
+        if self._client < 0:
+            raise RuntimeError("pybullet could not open a DIRECT physics client")
+        self._rng = np.random.default_rng(self.config.seed)
+        cam = self.config.camera
+        self._projection = _tiny_renderer_projection(cam)
+        g = self.config.gripper
+        self._palm_centre = np.array([0.0, 0.0, -g.finger_length_m - g.palm_depth_m / 2])
+        self._scene: SceneSpec | None = None
+        self._objects: dict[int, _Object] = {}
+        self._shelf_uids: set[int] = set()
+        self._gripper_uid = -1
+        self._constraint = -1
+        self._gripper_target: tuple[tuple[float, float, float], tuple[float, float, float, float]] = (
+            PARK_POSITION_M,
+            _DOWN,
+        )
+        self._finger_target_m = g.max_opening_m
+        self._parked = True
+
+    # ------------------------------------------------------------------------------------- lifecycle
+    def reset(self, scene: SceneSpec) -> None:
+        """Build the shelf and objects at their poses, park the gripper open, settle for ``settle_s``."""
+        self._scene = scene
+        self._finger_target_m = self.config.gripper.max_opening_m
+        self._gripper_target = (PARK_POSITION_M, _DOWN)
+        self._parked = True
+        self._build_world(scene, [(o, None) for o in scene.objects])
+        q = self._finger_target_m / 2
+        for j in (0, 1):
+            p.resetJointState(self._gripper_uid, j, q, 0.0, physicsClientId=self._client)
+        self._drive_fingers()
+        self.step(self.config.settle_s)
+
+    def close(self) -> None:
+        """Disconnect the physics client (idempotent)."""
+        if self._client >= 0:
+            with contextlib.suppress(p.error):
+                p.disconnect(physicsClientId=self._client)
+            self._client = -1
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):  # the interpreter may be shutting down
+            self.close()
+
+    def capabilities(self) -> Capabilities:
+        return Capabilities(name="pybullet", notes="TinyRenderer (CPU) depth and labels; Bullet rigid bodies")
+
+    # ------------------------------------------------------------------------------------- building
+    def _build_world(self, scene: SceneSpec, objects: Sequence[tuple[ObjectSpec, _BodyState | None]]) -> None:
+        """Reset the physics world and create shelf, gripper and objects (``None`` state: the spec pose)."""
+        c = self._client
+        p.resetSimulation(physicsClientId=c)
+        p.setPhysicsEngineParameter(
+            fixedTimeStep=self.config.time_step_s,
+            numSolverIterations=SOLVER_ITERATIONS,
+            deterministicOverlappingPairs=1,
+            physicsClientId=c,
+        )
+        p.setGravity(0.0, 0.0, -9.81, physicsClientId=c)
+        self._shelf_uids = self._build_shelf(scene.shelf)
+        self._build_gripper()
+        self._objects = {}
+        for spec, state in objects:
+            self._objects[spec.id] = self._build_object(spec, state)
+
+    def _build_shelf(self, shelf: ShelfSpec) -> set[int]:
+        uids = set()
+        for centre, half in shelf.boards():
+            shape = p.createCollisionShape(p.GEOM_BOX, halfExtents=half.tolist(), physicsClientId=self._client)
+            uid = p.createMultiBody(0.0, shape, -1, basePosition=centre.tolist(), physicsClientId=self._client)
+            p.changeDynamics(uid, -1, lateralFriction=shelf.friction, physicsClientId=self._client)
+            uids.add(uid)
+        return uids
+
+    def _build_object(self, spec: ObjectSpec, state: _BodyState | None) -> _Object:
+        cls: ObjectClass = spec.object_class
+        c = self._client
+        boxes = [q.kind == "box" for q in cls.parts]
+        shape = p.createCollisionShapeArray(
+            shapeTypes=[p.GEOM_BOX if b else p.GEOM_CYLINDER for b in boxes],
+            halfExtents=[
+                [s / 2 for s in q.size_m] if b else [0.0, 0.0, 0.0] for q, b in zip(cls.parts, boxes, strict=True)
+            ],
+            radii=[0.0 if b else q.size_m[0] for q, b in zip(cls.parts, boxes, strict=True)],
+            lengths=[0.0 if b else q.size_m[1] for q, b in zip(cls.parts, boxes, strict=True)],
+            collisionFramePositions=[list(q.position_m) for q in cls.parts],
+            collisionFrameOrientations=[list(q.quat_xyzw) for q in cls.parts],
+            physicsClientId=c,
+        )
+        com = _parts_centroid(cls.parts)
+        uid = p.createMultiBody(
+            cls.mass_kg,
+            shape,
+            -1,
+            basePosition=list(spec.position_m),
+            baseOrientation=list(spec.quat_xyzw),
+            baseInertialFramePosition=com.tolist(),
+            physicsClientId=c,
+        )
+        p.changeDynamics(
+            uid, -1, lateralFriction=OBJECT_FRICTION, spinningFriction=1e-3, rollingFriction=1e-4, physicsClientId=c
+        )
+        if state is not None:
+            self._set_body_state(uid, state)
+        other = cls.confusable_with
+        return _Object(uid, cls.class_id, object_class(other).class_id if other else None, com)
+
+    def _build_gripper(self) -> None:
+        """Palm base (its frame is the gripper frame) with two prismatic fingers along gripper x."""
+        g = self.config.gripper
+        c = self._client
+        _, finger_half = g.boxes(0.0)[0]
+        _, palm_half = g.boxes(0.0)[2]
+        palm = p.createCollisionShape(
+            p.GEOM_BOX,
+            halfExtents=palm_half.tolist(),
+            collisionFramePosition=self._palm_centre.tolist(),
+            physicsClientId=c,
+        )
+        finger = p.createCollisionShape(p.GEOM_BOX, halfExtents=finger_half.tolist(), physicsClientId=c)
+        pos, orn = self._gripper_target
+        fz = -g.finger_length_m / 2
+        # A finger's joint position q is half the opening: its centre sits at x = -+(q + thickness/2).
+        self._gripper_uid = p.createMultiBody(
+            g.mass_kg,
+            palm,
+            -1,
+            basePosition=list(pos),
+            baseOrientation=list(orn),
+            baseInertialFramePosition=self._palm_centre.tolist(),
+            linkMasses=[FINGER_MASS_KG, FINGER_MASS_KG],
+            linkCollisionShapeIndices=[finger, finger],
+            linkVisualShapeIndices=[-1, -1],
+            linkPositions=[[-g.finger_thickness_m / 2, 0.0, fz], [g.finger_thickness_m / 2, 0.0, fz]],
+            linkOrientations=[[0.0, 0.0, 0.0, 1.0]] * 2,
+            linkInertialFramePositions=[[0.0, 0.0, 0.0]] * 2,
+            linkInertialFrameOrientations=[[0.0, 0.0, 0.0, 1.0]] * 2,
+            linkParentIndices=[0, 0],
+            linkJointTypes=[p.JOINT_PRISMATIC, p.JOINT_PRISMATIC],
+            linkJointAxis=[[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]],
+            physicsClientId=c,
+        )
+        uid = self._gripper_uid
+        for link in (-1, 0, 1):
+            p.changeDynamics(uid, link, lateralFriction=g.finger_friction, physicsClientId=c)
+        for j in (0, 1):
+            p.changeDynamics(uid, j, jointLowerLimit=0.0, jointUpperLimit=g.max_opening_m / 2, physicsClientId=c)
+        self._constraint = p.createConstraint(
+            uid,
+            -1,
+            -1,
+            -1,
+            p.JOINT_FIXED,
+            [0.0, 0.0, 0.0],
+            parentFramePosition=(-self._palm_centre).tolist(),
+            childFramePosition=list(pos),
+            childFrameOrientation=list(orn),
+            physicsClientId=c,
+        )
+        p.changeConstraint(self._constraint, maxForce=GRIPPER_MAX_FORCE_N, physicsClientId=c)
+
+    # ------------------------------------------------------------------------------------- state
+    def _body_state(self, uid: int) -> _BodyState:
+        pos, orn = p.getBasePositionAndOrientation(uid, physicsClientId=self._client)
+        lin, ang = p.getBaseVelocity(uid, physicsClientId=self._client)
+        return _BodyState(tuple(pos), tuple(orn), tuple(lin), tuple(ang))
+
+    def _set_body_state(self, uid: int, s: _BodyState) -> None:
+        p.resetBasePositionAndOrientation(uid, s.position, s.orientation, physicsClientId=self._client)
+        p.resetBaseVelocity(uid, s.linear_velocity, s.angular_velocity, physicsClientId=self._client)
+
+    def _require_scene(self) -> SceneSpec:
+        if self._scene is None:
+            raise RuntimeError("call reset(scene) first")
+        return self._scene
+
+    def object_poses(self) -> dict[int, NDArray[np.float64]]:
+        """Object-frame poses (``ObjectSpec`` convention) of every object still in the workspace."""
+        out = {}
+        for oid, obj in self._objects.items():
+            pos, orn = p.getBasePositionAndOrientation(obj.uid, physicsClientId=self._client)
+            t = pose_matrix(pos, orn)
+            t[:3, 3] -= t[:3, :3] @ obj.com_m
+            out[oid] = t
+        return out
+
+    def step(self, seconds: float) -> None:
+        """Advance physics by ``seconds`` rounded to whole time steps."""
+        for _ in range(max(0, round(seconds / self.config.time_step_s))):
+            p.stepSimulation(physicsClientId=self._client)
+
+    def remove_object(self, object_id: int) -> None:
+        """Delete the object's body; a snapshot taken before brings it back."""
+        obj = self._objects.pop(object_id, None)
+        if obj is None:
+            raise KeyError(f"object {object_id} is not in the workspace")
+        p.removeBody(obj.uid, physicsClientId=self._client)
+
+    def snapshot(self) -> _Snapshot:
+        scene = self._require_scene()
+        c, g = self._client, self._gripper_uid
+        joints = p.getJointStates(g, [0, 1], physicsClientId=c)
+        return _Snapshot(
+            client=c,
+            scene=scene,
+            objects=tuple(
+                (o.id, self._body_state(self._objects[o.id].uid)) for o in scene.objects if o.id in self._objects
+            ),
+            gripper=self._body_state(g),
+            finger_positions=(joints[0][0], joints[1][0]),
+            finger_velocities=(joints[0][1], joints[1][1]),
+            finger_target_m=self._finger_target_m,
+            gripper_target=self._gripper_target,
+            parked=self._parked,
+        )
+
+    def restore(self, token: Any) -> None:
+        """Rebuild the world in the snapshot's state (objects removed since come back)."""
+        if not isinstance(token, _Snapshot) or token.client != self._client:
+            raise ValueError("not a snapshot of this simulator")
+        specs = {o.id: o for o in token.scene.objects}
+        self._scene = token.scene
+        self._gripper_target = token.gripper_target
+        self._finger_target_m = token.finger_target_m
+        self._parked = token.parked
+        self._build_world(token.scene, [(specs[oid], s) for oid, s in token.objects])
+        self._set_body_state(self._gripper_uid, token.gripper)
+        for j in (0, 1):
+            p.resetJointState(
+                self._gripper_uid,
+                j,
+                token.finger_positions[j],
+                token.finger_velocities[j],
+                physicsClientId=self._client,
+            )
+        self._drive_fingers()
+        p.performCollisionDetection(physicsClientId=self._client)
+
+    # ------------------------------------------------------------------------------------- camera
+    def observe(self, camera_to_world: NDArray[np.float64]) -> Observation:
+        """Render z-depth, labels and object ids from an OpenCV camera-to-world pose."""
+        self._require_scene()
+        cam = self.config.camera
+        c2w = np.asarray(camera_to_world, dtype=np.float64)
+        # OpenGL camera axes are OpenCV's with y and z flipped; PyBullet wants column-major matrices.
+        view = np.linalg.inv(c2w @ np.diag([1.0, -1.0, -1.0, 1.0]))
+        _, _, _, zbuf, seg = p.getCameraImage(
+            cam.width_px,
+            cam.height_px,
+            viewMatrix=view.T.reshape(-1).tolist(),
+            projectionMatrix=self._projection,
+            renderer=p.ER_TINY_RENDERER,
+            physicsClientId=self._client,
+        )
+        n, f = cam.near_m, cam.far_m
+        zbuf = np.asarray(zbuf, dtype=np.float64).reshape(cam.height_px, cam.width_px)
+        seg = np.asarray(seg, dtype=np.int64).reshape(cam.height_px, cam.width_px)
+        depth = f * n / (f - (f - n) * zbuf)
+        depth[depth >= 0.999 * f] = 0.0
+
+        # Lookup tables indexed by body uid + 1 (uid -1 = nothing hit); shelf and gripper stay -1 / 0.
+        size = max([self._gripper_uid, *self._shelf_uids, *(o.uid for o in self._objects.values())]) + 2
+        id_lut = np.full(size, -1, dtype=np.int32)
+        label_lut = np.zeros(size, dtype=np.int16)
+        for oid, obj in self._objects.items():
+            id_lut[obj.uid + 1] = oid
+            label_lut[obj.uid + 1] = obj.class_id
+        if self.config.label_noise > 0.0:
+            # Structured noise: a visible object is relabelled as a whole for this view, never per pixel.
+            hit = set(np.unique(seg).tolist())
+            visible = sorted(oid for oid, obj in self._objects.items() if obj.uid in hit)
+            flips = self._rng.random(len(visible)) < self.config.label_noise
+            for oid, flip in zip(visible, flips, strict=True):
+                obj = self._objects[oid]
+                if flip and obj.confusable_id is not None:
+                    label_lut[obj.uid + 1] = obj.confusable_id
+        object_ids = id_lut[seg + 1]
+        labels = label_lut[seg + 1]
+        return Observation(
+            depth=depth.astype(np.float32),
+            labels=labels,
+            intrinsics=cam.intrinsics,
+            camera_to_world=c2w.copy(),
+            object_ids=object_ids,
+        )
+
+    # ------------------------------------------------------------------------------------- gripper
+    def gripper_pose(self) -> NDArray[np.float64]:
+        """Pose of the gripper frame (origin between the fingertip pads, z = approach)."""
+        pos, orn = p.getBasePositionAndOrientation(self._gripper_uid, physicsClientId=self._client)
+        t = pose_matrix(pos, orn)
+        t[:3, 3] -= t[:3, :3] @ self._palm_centre
+        return t
+
+    def _opening(self) -> float:
+        joints = p.getJointStates(self._gripper_uid, [0, 1], physicsClientId=self._client)
+        return float(joints[0][0] + joints[1][0])
+
+    def _drive_fingers(self) -> None:
+        g = self.config.gripper
+        for j in (0, 1):
+            p.setJointMotorControl2(
+                self._gripper_uid,
+                j,
+                p.POSITION_CONTROL,
+                targetPosition=self._finger_target_m / 2,
+                force=g.finger_force_n,
+                maxVelocity=FINGER_SPEED_MPS,
+                physicsClientId=self._client,
+            )
+
+    def set_gripper(self, opening_m: float) -> float:
+        """Drive both fingers to ``opening_m`` (clamped); stop when reached or blocked (<= 0.5 s)."""
+        self._require_scene()
+        g = self.config.gripper
+        self._finger_target_m = float(np.clip(opening_m, 0.0, g.max_opening_m))
+        self._drive_fingers()
+        dt = self.config.time_step_s
+        still = 0
+        for i in range(max(1, round(0.5 / dt))):
+            p.stepSimulation(physicsClientId=self._client)
+            opening = self._opening()
+            if abs(opening - self._finger_target_m) < 5e-4:
+                break
+            joints = p.getJointStates(self._gripper_uid, [0, 1], physicsClientId=self._client)
+            moving = abs(joints[0][1]) + abs(joints[1][1]) > 2e-3
+            still = 0 if moving else still + 1
+            if still >= 10 and i * dt > 0.05:
+                break
+        return self._opening()
+
+    def _set_target(self, pos: NDArray[np.float64], quat: NDArray[np.float64]) -> None:
+        self._gripper_target = (tuple(pos.tolist()), tuple(quat.tolist()))
+        p.changeConstraint(
+            self._constraint,
+            jointChildPivot=pos.tolist(),
+            jointChildFrameOrientation=quat.tolist(),
+            maxForce=GRIPPER_MAX_FORCE_N,
+            physicsClientId=self._client,
+        )
+
+    def _teleport_gripper(self, pose: NDArray[np.float64]) -> None:
+        pos = pose[:3, 3] + pose[:3, :3] @ self._palm_centre
+        quat = matrix_to_quat(pose[:3, :3])
+        p.resetBasePositionAndOrientation(self._gripper_uid, pos.tolist(), quat.tolist(), physicsClientId=self._client)
+        p.resetBaseVelocity(self._gripper_uid, [0.0] * 3, [0.0] * 3, physicsClientId=self._client)
+        self._set_target(pose[:3, 3], quat)
+
+    def _clearance(self, uids: Sequence[int], cap: float) -> float:
+        """Distance from the gripper to the nearest of ``uids``, capped at ``cap``."""
+        best = cap
+        for uid in uids:
+            for pt in p.getClosestPoints(self._gripper_uid, uid, cap, physicsClientId=self._client):
+                best = min(best, pt[8])
+        return best
+
+    def _start_is_clear(self, start: NDArray[np.float64], first: NDArray[np.float64]) -> bool:
+        """Whether the gripper at ``start`` keeps START_CLEARANCE_M from everything and the straight
+        path from there to ``first`` does not cross a shelf board (objects on it may be pushed)."""
+        self._teleport_gripper(start)
+        everything = [*self._shelf_uids, *(o.uid for o in self._objects.values())]
+        if self._clearance(everything, START_CLEARANCE_M) < START_CLEARANCE_M:
+            return False
+        dist = float(np.linalg.norm(first[:3, 3] - start[:3, 3]))
+        n = math.ceil(dist / 0.01)
+        for i in range(1, n):  # the end is the waypoint itself: it may touch what the skill aims at
+            pose = start.copy()
+            pose[:3, 3] += (i / n) * (first[:3, 3] - start[:3, 3])
+            self._teleport_gripper(pose)
+            if self._clearance(list(self._shelf_uids), 1e-3) < 1e-3:
+                return False
+        return True
+
+    def _leave_park(self, first: NDArray[np.float64]) -> None:
+        """Teleport out of the parking pose to the nearest clear start for the first waypoint: the
+        waypoint itself, or a pose behind it along its approach axis, or out towards the open front
+        of the shelf (-y). The move then reaches the waypoint under physics."""
+        n = round(START_BACKOFF_MAX_M / START_BACKOFF_STEP_M)
+        candidates = [first]
+        for k in range(1, n + 1):
+            for direction in (-first[:3, 2], np.array([0.0, -1.0, 0.0])):
+                pose = first.copy()
+                pose[:3, 3] += k * START_BACKOFF_STEP_M * direction
+                candidates.append(pose)
+        start = next((c for c in candidates if self._start_is_clear(c, first)), first)
+        self._teleport_gripper(start)
+        self._parked = False
+
+    def move_gripper(
+        self, waypoints: Sequence[NDArray[np.float64]], opening_m: float | None = None, speed_mps: float = 0.1
+    ) -> NDArray[np.float64]:
+        """Drive the gripper base through the waypoints (linear position, slerped rotation) under physics.
+
+        The opening is set first. From the parking pose the gripper first teleports next to the first
+        waypoint (see ``_leave_park``). Returns the reached pose.
+        """
+        self._require_scene()
+        if speed_mps <= 0:
+            raise ValueError("speed_mps must be positive")
+        if opening_m is not None:
+            self.set_gripper(opening_m)
+        poses = [np.asarray(w, dtype=np.float64) for w in waypoints]
+        if not poses:
+            return self.gripper_pose()
+        if self._parked:
+            self._leave_park(poses[0])
+        dt = self.config.time_step_s
+        start = self.gripper_pose()
+        pos0, q0 = start[:3, 3], matrix_to_quat(start[:3, :3])
+        for pose in poses:
+            pos1, q1 = pose[:3, 3], matrix_to_quat(pose[:3, :3])
+            dist = float(np.linalg.norm(pos1 - pos0))
+            duration = max(dist, _quat_angle(q0, q1) * ROTATION_LEVER_M) / speed_mps
+            n = max(1, math.ceil(duration / dt))
+            for i in range(1, n + 1):
+                t = i / n
+                self._set_target(pos0 + t * (pos1 - pos0), _slerp(q0, q1, t))
+                p.stepSimulation(physicsClientId=self._client)
+            pos0, q0 = pos1, q1
+        # Let the base catch up with the final target (it lags slightly behind a moving target).
+        target = quat_to_matrix(q0)
+        for _ in range(round(0.2 / dt)):
+            now = self.gripper_pose()
+            if np.linalg.norm(now[:3, 3] - pos0) < 5e-4 and np.trace(now[:3, :3].T @ target) > 3 - 1e-5:
+                break
+            p.stepSimulation(physicsClientId=self._client)
+        return self.gripper_pose()
+
+    def park_gripper(self) -> None:
+        """Teleport the gripper back to its parking pose out of view (not part of the ``Simulator`` API)."""
+        self._require_scene()
+        park = pose_matrix(PARK_POSITION_M, _DOWN)
+        self._teleport_gripper(park)
+        self._parked = True
+
+    # ------------------------------------------------------------------------------------- contacts
+    def _ids_by_uid(self) -> dict[int, int]:
+        """Body uid -> object id, ``GRIPPER_ID`` or ``SHELF_ID``."""
+        ids = {obj.uid: oid for oid, obj in self._objects.items()}
+        ids.update({uid: SHELF_ID for uid in self._shelf_uids})
+        ids[self._gripper_uid] = GRIPPER_ID
+        return ids
+
+    def contacts(self) -> list[Contact]:
+        """Contacts of the last physics step between the gripper, objects and the shelf."""
+        ids = self._ids_by_uid()
+        out = []
+        for pt in p.getContactPoints(physicsClientId=self._client):
+            a, b = ids.get(pt[1]), ids.get(pt[2])
+            if pt[8] > CONTACT_DISTANCE_M or a is None or b is None:
+                continue
+            x, y, z = (0.5 * (np.asarray(pt[5]) + np.asarray(pt[6]))).tolist()
+            out.append(Contact(body_a=a, body_b=b, position_m=(x, y, z), normal_force_n=float(pt[9])))
+        return out
+
+    def held_object(self) -> int | None:
+        """The object touching both fingers (the most firmly gripped one if several do)."""
+        ids = {obj.uid: oid for oid, obj in self._objects.items()}
+        touching: list[dict[int, float]] = [{}, {}]
+        for finger in (0, 1):
+            for pt in p.getContactPoints(bodyA=self._gripper_uid, linkIndexA=finger, physicsClientId=self._client):
+                oid = ids.get(pt[2])
+                if pt[8] <= CONTACT_DISTANCE_M and oid is not None:
+                    touching[finger][oid] = touching[finger].get(oid, 0.0) + pt[9]
+        both = [(min(touching[0][oid], touching[1][oid]), oid) for oid in touching[0].keys() & touching[1].keys()]
+        return max(both)[1] if both else None
