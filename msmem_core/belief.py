@@ -1,0 +1,116 @@
+"""The evidential metric-semantic belief (paper eq. occ_beta and the Dirichlet after it).
+
+Entropies here are Shannon entropies in nats of the *expected* Bernoulli / categorical
+distribution, the quantities IG and Delta-H use; they are not the differential entropies of the
+Beta or Dirichlet themselves (what ``scipy.stats.beta(...).entropy()`` would return).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from msmem_core.grid import GridSpec
+from msmem_core.scene import NUM_CLASSES
+
+
+def _xlogx(p: NDArray[np.floating]) -> NDArray[np.float64]:
+    """p * log(p) with 0 log 0 = 0, in float64."""
+    p64 = np.asarray(p, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(p64 > 0.0, p64 * np.log(np.where(p64 > 0.0, p64, 1.0)), 0.0)
+
+
+def bernoulli_entropy(p: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Shannon entropy (nats) of Bernoulli(p), elementwise; 0 at p in {0, 1}."""
+    return -(_xlogx(p) + _xlogx(1.0 - np.asarray(p, dtype=np.float64)))
+
+
+@dataclass
+class EvidentialMap:
+    """Beta occupancy evidence ``alpha, beta [X,Y,Z]`` and Dirichlet class evidence ``eta [C,X,Y,Z]``.
+
+    Evidence is float32 and never below the prior 1. Class 0 is background (free space / shelf).
+    """
+
+    grid: GridSpec
+    alpha: NDArray[np.float32]
+    beta: NDArray[np.float32]
+    eta: NDArray[np.float32]
+
+    def __post_init__(self) -> None:
+        shape = tuple(self.grid.shape)
+        if self.alpha.shape != shape or self.beta.shape != shape or self.eta.shape[1:] != shape:
+            raise ValueError(
+                f"evidence shapes {self.alpha.shape}, {self.beta.shape}, {self.eta.shape} do not match grid {shape}"
+            )
+
+    @classmethod
+    def empty(cls, grid: GridSpec, num_classes: int = NUM_CLASSES) -> EvidentialMap:
+        """The uninformed prior: all evidence 1 (p = 0.5, vacuity 1)."""
+        shape = tuple(grid.shape)
+        return cls(
+            grid=grid,
+            alpha=np.ones(shape, np.float32),
+            beta=np.ones(shape, np.float32),
+            eta=np.ones((num_classes, *shape), np.float32),
+        )
+
+    @property
+    def num_classes(self) -> int:
+        return int(self.eta.shape[0])
+
+    def copy(self) -> EvidentialMap:
+        return EvidentialMap(self.grid, self.alpha.copy(), self.beta.copy(), self.eta.copy())
+
+    # ------------------------------------------------------------------ expected distributions
+    def expected_occupancy(self) -> NDArray[np.float32]:
+        """E[occupancy] = alpha / (alpha + beta), [X,Y,Z]."""
+        return self.alpha / (self.alpha + self.beta)
+
+    def class_probs(self) -> NDArray[np.float32]:
+        """E[class] = eta / sum_c eta, [C,X,Y,Z]."""
+        return self.eta / self.eta.sum(axis=0, keepdims=True)
+
+    def vacuity(self) -> NDArray[np.float32]:
+        """Semantic vacuity chi = C / sum_c eta in (0, 1]; 1 for the prior."""
+        return np.float32(self.num_classes) / self.eta.sum(axis=0)
+
+    def occupancy_entropy(self) -> NDArray[np.float64]:
+        """Shannon entropy (nats) of the expected Bernoulli occupancy, [X,Y,Z]."""
+        return bernoulli_entropy(self.expected_occupancy())
+
+    def semantic_entropy(self) -> NDArray[np.float64]:
+        """Shannon entropy (nats) of the expected categorical, [X,Y,Z]."""
+        return -_xlogx(self.class_probs()).sum(axis=0)
+
+    def total_semantic_entropy(self) -> float:
+        """H(Phi) of the Delta-H term: semantic entropy summed over all voxels (nats)."""
+        return float(self.semantic_entropy().sum())
+
+    def argmax_class(self, tau_chi: float) -> NDArray[np.int64]:
+        """Most likely class per voxel, -1 (*unknown*) where vacuity >= tau_chi."""
+        cls = np.argmax(self.eta, axis=0).astype(np.int64)
+        cls[self.vacuity() >= tau_chi] = -1
+        return cls
+
+    # ------------------------------------------------------------------------------- storage
+    def save(self, path: str | Path) -> None:
+        np.savez_compressed(
+            path, grid=np.array(self.grid.model_dump_json()), alpha=self.alpha, beta=self.beta, eta=self.eta
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> EvidentialMap:
+        with np.load(path) as f:
+            grid = GridSpec.model_validate(json.loads(str(f["grid"])))
+            return cls(
+                grid,
+                f["alpha"].astype(np.float32),
+                f["beta"].astype(np.float32),
+                f["eta"].astype(np.float32),
+            )

@@ -1,0 +1,181 @@
+"""The evidential map and the analytic observation update (sigma_o) integrate depth frames correctly."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.stats
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from msmem_analytic.observation import AnalyticObservationConfig, AnalyticObservationModel
+from pydantic import ValidationError
+
+from msmem_core.belief import EvidentialMap
+from msmem_core.camera import CameraConfig, Observation
+from msmem_core.geometry import look_at
+from msmem_core.grid import GridSpec
+from msmem_core.ig_reference import traverse
+from msmem_core.scene import NUM_CLASSES
+
+GRID = GridSpec(origin_m=(-0.1, -0.01, -0.01), voxel_m=0.01, shape=(20, 16, 12))
+CAM = CameraConfig(width_px=160, height_px=120)
+TAU_CHI = 0.5
+
+
+def plane_observation(pose: np.ndarray, plane_y: float, label: int, camera: CameraConfig = CAM) -> Observation:
+    """Depth + labels of the infinite plane y = plane_y seen from ``pose`` (z-depth, pixel centres)."""
+    k = camera.intrinsics
+    v, u = np.mgrid[0 : camera.height_px, 0 : camera.width_px]
+    cam = np.stack([(u + 0.5 - k[0, 2]) / k[0, 0], (v + 0.5 - k[1, 2]) / k[1, 1], np.ones(u.shape)], -1)
+    d_world = cam @ pose[:3, :3].T
+    z = (plane_y - pose[1, 3]) / d_world[..., 1]
+    depth = np.where((z > camera.near_m) & (z < camera.far_m), z, 0.0).astype(np.float32)
+    labels = np.where(depth > 0, label, 0).astype(np.int16)
+    return Observation(depth, labels, k, pose)
+
+
+def pose_facing_plane(dx: float = 0.0, dz: float = 0.0) -> np.ndarray:
+    eye = np.array([0.0031 + dx, -0.2513, 0.0517 + dz])
+    return look_at(eye, eye + np.array([0.013, 1.0, 0.021]))
+
+
+PLANE_Y = 0.0937  # inside voxel row j = 10 (y in [0.09, 0.10)), away from its faces
+
+
+def test_empty_map_is_the_uninformed_prior() -> None:
+    b = EvidentialMap.empty(GRID)
+    assert b.eta.shape == (NUM_CLASSES, *GRID.shape)
+    assert np.all(b.expected_occupancy() == 0.5)
+    assert np.all(b.vacuity() == 1.0)
+    np.testing.assert_allclose(b.occupancy_entropy(), np.log(2))
+    np.testing.assert_allclose(b.semantic_entropy(), np.log(NUM_CLASSES), rtol=1e-6)
+    assert np.all(b.argmax_class(TAU_CHI) == -1)
+
+
+def test_entropies_are_shannon_entropies_of_the_expected_distributions() -> None:
+    rng = np.random.default_rng(3)
+    b = EvidentialMap.empty(GRID)
+    b.alpha[:] = rng.uniform(1, 50, GRID.shape)
+    b.beta[:] = rng.uniform(1, 50, GRID.shape)
+    b.eta[:] = rng.uniform(1, 30, b.eta.shape)
+    p = b.expected_occupancy().astype(np.float64)
+    np.testing.assert_allclose(b.occupancy_entropy(), scipy.stats.entropy(np.stack([p, 1 - p]), axis=0), rtol=1e-6)
+    expected = scipy.stats.entropy(b.class_probs().astype(np.float64), axis=0)
+    np.testing.assert_allclose(b.semantic_entropy(), expected, rtol=1e-5)
+    np.testing.assert_allclose(b.total_semantic_entropy(), b.semantic_entropy().sum(), rtol=1e-9)
+
+
+def test_save_and_load_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    rng = np.random.default_rng(0)
+    b = EvidentialMap.empty(GRID)
+    b.alpha[:] = rng.uniform(1, 5, GRID.shape)
+    b.save(tmp_path / "belief.npz")
+    c = EvidentialMap.load(tmp_path / "belief.npz")
+    assert c.grid == b.grid
+    for name in ("alpha", "beta", "eta"):
+        np.testing.assert_array_equal(getattr(c, name), getattr(b, name))
+
+
+def test_weights_must_be_positive() -> None:
+    for field in ("w_occ", "w_free", "w_cls", "pixel_stride"):
+        with pytest.raises(ValidationError):
+            AnalyticObservationConfig(**{field: 0})
+    assert AnalyticObservationModel(w_occ=3.0).config.w_occ == 3.0
+
+
+def test_a_plane_marks_the_voxels_holding_its_returns_occupied_and_the_space_before_it_free() -> None:
+    model = AnalyticObservationModel()
+    obs = plane_observation(pose_facing_plane(), PLANE_Y, label=4)
+    free, occ, seen = model.masks(EvidentialMap.empty(GRID), obs)
+
+    st_ = model.config.pixel_stride
+    v, u = np.nonzero(obs.depth[::st_, ::st_] > 0)
+    k = obs.intrinsics
+    z = obs.depth[::st_, ::st_][v, u].astype(np.float64)
+    pc = np.stack([(u * st_ + 0.5 - k[0, 2]) / k[0, 0] * z, (v * st_ + 0.5 - k[1, 2]) / k[1, 1] * z, z], -1)
+    hits = pc @ obs.camera_to_world[:3, :3].T + obs.camera_to_world[:3, 3]
+    idx = GRID.index_of(hits)
+    inside = GRID.contains_index(idx)
+    assert inside.sum() > 100
+    expected_occ = np.zeros(GRID.shape, bool)
+    expected_occ[tuple(idx[inside].T)] = True
+    np.testing.assert_array_equal(occ, expected_occ)
+    assert np.all(np.nonzero(occ)[1] == 10)
+    assert np.array_equal(np.nonzero(seen.any(axis=0)), np.nonzero(occ))
+    assert seen[4].sum() == occ.sum()
+
+    # free voxels: everything an independent (Siddon) traversal crosses before the return
+    expected_free = np.zeros(GRID.size, bool)
+    o = obs.camera_to_world[:3, 3]
+    for p in hits:
+        d = (p - o) / np.linalg.norm(p - o)
+        vox, _, t_out = traverse(o, d, GRID, 0.0, np.inf)
+        t_hit = np.linalg.norm(p - o)
+        expected_free[vox[t_out <= t_hit]] = True
+    np.testing.assert_array_equal(free.ravel(), expected_free & ~occ.ravel())
+    assert np.all(np.nonzero(free)[1] <= 10)  # nothing behind the plane's voxel row
+    assert free[:, :10].sum() > 1000  # the space in front of the plane is seen
+
+
+def test_two_agreeing_views_make_voxels_confident_and_one_view_does_not() -> None:
+    model = AnalyticObservationModel()
+    b0 = EvidentialMap.empty(GRID)
+    b1 = model.update(b0, plane_observation(pose_facing_plane(), PLANE_Y, label=7))
+    b2 = model.update(b1, plane_observation(pose_facing_plane(0.012, -0.007), PLANE_Y, label=7))
+    assert np.all(b0.alpha == 1.0)
+    assert np.all(b0.beta == 1.0)
+
+    twice = (b1.alpha > 1) & (b2.alpha > b1.alpha)  # hit in both views
+    assert twice.sum() > 100
+    p1, p2 = b1.expected_occupancy(), b2.expected_occupancy()
+    np.testing.assert_allclose(p1[b1.alpha > 1], 11 / 12, rtol=1e-6)
+    np.testing.assert_allclose(p2[twice], 21 / 22, rtol=1e-6)
+    assert np.all(p2[twice] > 0.95)
+    assert np.all(p1[b1.alpha > 1] < 0.95)
+    np.testing.assert_allclose(b2.vacuity()[twice], NUM_CLASSES / 35, rtol=1e-6)
+    np.testing.assert_allclose(b1.vacuity()[b1.alpha > 1], 0.6, rtol=1e-6)
+    assert np.all(b2.argmax_class(TAU_CHI)[twice] == 7)
+    assert np.all(b1.argmax_class(TAU_CHI)[b1.alpha > 1] == -1)
+
+    free_twice = b2.beta == 21.0
+    assert free_twice.sum() > 200
+    assert np.all(p2[free_twice] < 0.05)
+    assert np.all(b2.argmax_class(TAU_CHI)[free_twice] == 0)  # free space is background
+
+
+@st.composite
+def observations(draw: st.DrawFn) -> Observation:
+    seed = draw(st.integers(0, 2**31 - 1))
+    rng = np.random.default_rng(seed)
+    cam = CameraConfig(width_px=16, height_px=12)
+    target = rng.uniform(GRID.origin, GRID.upper_m)
+    eye = target + rng.normal(size=3) * 0.3 + np.array([0.0, -0.3, 0.0])
+    pose = look_at(eye, target)
+    depth = rng.uniform(0.05, 0.9, (12, 16)).astype(np.float32)
+    depth[rng.random((12, 16)) < 0.2] = 0.0
+    labels = rng.integers(0, NUM_CLASSES, (12, 16)).astype(np.int16)
+    return Observation(depth, labels, cam.intrinsics, pose)
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.lists(observations(), min_size=1, max_size=4), st.integers(1, 3))
+def test_any_sequence_of_observations_keeps_the_belief_valid(obs_list: list[Observation], stride: int) -> None:
+    model = AnalyticObservationModel(pixel_stride=stride)
+    b = EvidentialMap.empty(GRID)
+    for o in obs_list:
+        prev = b
+        b = model.update(b, o)
+        assert b is not prev
+        assert np.all(b.alpha >= prev.alpha)
+        assert np.all(b.beta >= prev.beta)
+        assert np.all(b.eta >= prev.eta)
+    assert np.all(b.alpha >= 1)
+    assert np.all(b.beta >= 1)
+    assert np.all(b.eta >= 1)
+    p = b.expected_occupancy()
+    assert np.all((p >= 0) & (p <= 1))
+    assert np.all(b.occupancy_entropy() >= 0)
+    assert np.all(b.semantic_entropy() >= -1e-9)
+    chi = b.vacuity()
+    assert np.all((chi > 0) & (chi <= 1))
+    assert np.all(b.class_probs().sum(axis=0) == pytest.approx(1.0, abs=1e-5))
