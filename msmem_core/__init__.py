@@ -7,3 +7,11 @@ simulator backends are plugins registered through the ``msmem`` entry-point grou
 """
 
 __version__ = "0.1.0"
+
+import os as _os
+import sys as _sys
+
+# numba probes TBB first and warns when the installed one is too old; OpenMP is what we use.
+_os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
+if "numba" in _sys.modules:  # imported before us: its config has already read the environment
+    _sys.modules["numba"].config.THREADING_LAYER = _os.environ["NUMBA_THREADING_LAYER"]

@@ -20,7 +20,7 @@ from msmem_core.belief import EvidentialMap
 from msmem_core.config import RunConfig
 from msmem_core.errors import PluginError
 from msmem_core.groundtruth import observable_mask, voxelize
-from msmem_core.ig import IGService
+from msmem_core.ig import IGService, shelf_wall_mask
 from msmem_core.interfaces import EffectModel, ObservationModel, Outcome, Simulator
 from msmem_core.metrics import (
     occupancy_iou,
@@ -117,6 +117,7 @@ class MetricTracker:
         self.initial = ep.sim.object_poses()
         self._gt_poses: dict[int, np.ndarray] | None = None
         self.objects = {o.id: o for o in ep.scene.objects}
+        self.walls = shelf_wall_mask(self.grid, ep.scene.shelf)
         self._refresh(self.initial)
 
     def _refresh(self, poses: dict[int, np.ndarray]) -> None:
@@ -134,6 +135,8 @@ class MetricTracker:
         if moved:
             self._refresh(poses)
         pred_occ, pred_cls = prediction_from_belief(belief.expected_occupancy(), belief.class_probs())
+        pred_occ &= ~self.walls  # the shelf itself is known; metrics are about the objects
+        pred_cls[self.walls] = 0
         return {
             "occupancy_iou": occupancy_iou(pred_occ, self.gt_occ),
             "observable_iou": observable_iou(pred_occ, self.gt_occ, self.mask),

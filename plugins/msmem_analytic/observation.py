@@ -43,6 +43,10 @@ class AnalyticObservationConfig(BaseModel):
     pixel_stride: int = Field(2, gt=0)
     """Integrate every n-th pixel in u and v. 2 is chosen for speed (4x fewer rays): at 1 cm voxels
     and <= 1 m range a 2-pixel step (~2.3 mm at 1 m) still hits every surface voxel in view."""
+    surface_offset_m: float = Field(0.001, ge=0.0)
+    """Depth returns are moved this far into the surface along the ray, so a surface lying exactly on
+    a voxel boundary (the shelf floor at z = 0, an object face) marks the voxel behind it, which is
+    the voxel the solid touches (the ground-truth rule), not the free voxel in front of it."""
     far_m: float = Field(1.5, gt=0.0)
     """Pixels without a return mark free space up to this z-depth (the camera's far plane)."""
 
@@ -72,6 +76,7 @@ class AnalyticObservationModel(ObservationModel):
         dirs = np.ascontiguousarray(cam @ pose[:3, :3].T)
         origins = np.ascontiguousarray(np.broadcast_to(pose[:3, 3], dirs.shape))
         d = depth.reshape(-1).astype(np.float64)
+        d = np.where(d > 0.0, d + cfg.surface_offset_m / np.linalg.norm(cam, axis=1), 0.0)
         g0, s, n = raycast.grid_params(belief.grid)
         free, occ, seen = raycast.integrate_rays(
             origins, dirs, d, d > 0.0, labels.reshape(-1).astype(np.int16), belief.num_classes, g0, s, n, 0.0, cfg.far_m
