@@ -1,0 +1,113 @@
+"""Mapping and disturbance metrics on voxel grids and object poses (plain numpy).
+
+Conventions: occupancy arrays are bool ``[X, Y, Z]``; class arrays are integer ``[X, Y, Z]`` with
+0 = free / background and 1..C-1 = object classes; z is the grid's third axis (up). An IoU whose
+union is empty is 1.0 (nothing to find and nothing claimed); a mean over an empty class set is NaN.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from msmem_core.scene import BACKGROUND
+
+
+def _iou(pred: NDArray[np.bool_], gt: NDArray[np.bool_]) -> float:
+    union = int(np.count_nonzero(pred | gt))
+    return 1.0 if union == 0 else int(np.count_nonzero(pred & gt)) / union
+
+
+def occupancy_iou(
+    pred_occ: NDArray[np.bool_], gt_occ: NDArray[np.bool_], mask: NDArray[np.bool_] | None = None
+) -> float:
+    """|pred & gt| / |pred | gt| over all voxels, or only over voxels where ``mask`` is True."""
+    pred, gt = np.asarray(pred_occ, dtype=bool), np.asarray(gt_occ, dtype=bool)
+    if pred.shape != gt.shape:
+        raise ValueError(f"prediction shape {pred.shape} differs from ground truth {gt.shape}")
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        pred, gt = pred[m], gt[m]
+    return _iou(pred, gt)
+
+
+def observable_iou(pred_occ: NDArray[np.bool_], gt_occ: NDArray[np.bool_], observable: NDArray[np.bool_]) -> float:
+    """Occupancy IoU restricted to the observable voxels (``groundtruth.observable_mask``).
+
+    The mask drops only self-occluded object interiors, which no method can observe, so the
+    score is comparable across methods on the same scene.
+    """
+    return occupancy_iou(pred_occ, gt_occ, observable)
+
+
+def _class_miou(pred: NDArray[np.integer], gt: NDArray[np.integer], classes: Iterable[int] | None) -> float:
+    if pred.shape != gt.shape:
+        raise ValueError(f"prediction shape {pred.shape} differs from ground truth {gt.shape}")
+    if classes is None:
+        classes = np.unique(gt)
+    ious = [_iou(pred == c, gt == c) for c in classes if c != BACKGROUND]
+    return float(np.mean(ious)) if ious else float("nan")
+
+
+def semantic_miou(
+    pred_cls: NDArray[np.integer], gt_cls: NDArray[np.integer], classes: Iterable[int] | None = None
+) -> float:
+    """Mean over object classes of the 3-D per-class IoU ``|pred == c & gt == c| / |pred == c | gt == c|``.
+
+    ``classes`` defaults to the object classes present in ground truth (class 0 is never scored),
+    so a class predicted but absent from the scene lowers no score except through the classes it
+    steals voxels from.
+    """
+    return _class_miou(np.asarray(pred_cls), np.asarray(gt_cls), classes)
+
+
+def top_view_classes(cls: NDArray[np.integer]) -> NDArray[np.integer]:
+    """Bird's-eye class map ``[X, Y]``: per column the class of the highest voxel with class != 0, else 0."""
+    c = np.asarray(cls)
+    nonzero = c != BACKGROUND
+    top = c.shape[2] - 1 - np.argmax(nonzero[:, :, ::-1], axis=2)  # highest z with a class
+    out = np.take_along_axis(c, top[:, :, None], axis=2)[:, :, 0]
+    return np.where(nonzero.any(axis=2), out, BACKGROUND)
+
+
+def semantic_miou_bev(pred_cls: NDArray[np.integer], gt_cls: NDArray[np.integer]) -> float:
+    """mIoU of the bird's-eye class maps (``top_view_classes``), as MEM's 2-D semantic map.
+
+    Averaged over the object classes present in ground truth's map (class 0 excluded).
+    """
+    return _class_miou(top_view_classes(pred_cls), top_view_classes(gt_cls), None)
+
+
+def position_change_m(initial_poses: Mapping[int, ArrayLike], final_poses: Mapping[int, ArrayLike]) -> float:
+    """Summed XY displacement (metres) between initial and final pose of every object still present.
+
+    Sums over the objects in ``final_poses`` (MEM's Position Change): removed objects (successful
+    grasps) are absent from the final poses and excluded; an object of a failed grasp is still
+    present and counts. Objects without an initial pose are an error.
+    """
+    total = 0.0
+    for oid, final in final_poses.items():
+        if oid not in initial_poses:
+            raise KeyError(f"object {oid} has a final pose but no initial pose")
+        d = np.asarray(final, dtype=np.float64)[:2, 3] - np.asarray(initial_poses[oid], dtype=np.float64)[:2, 3]
+        total += float(np.hypot(d[0], d[1]))
+    return total
+
+
+def prediction_from_belief(
+    expected_occupancy: NDArray[np.floating], class_probs: NDArray[np.floating], occ_threshold: float = 0.5
+) -> tuple[NDArray[np.bool_], NDArray[np.int16]]:
+    """Hard maps from a belief: occupied where expected occupancy > threshold; class there = argmax.
+
+    ``class_probs`` is ``[C, X, Y, Z]`` (index 0 = background); the class of an occupied voxel is
+    the most probable *object* class 1..C-1 (a voxel believed occupied is an object), else 0.
+    """
+    p = np.asarray(expected_occupancy)
+    probs = np.asarray(class_probs)
+    if probs.shape[1:] != p.shape or probs.shape[0] < 2:
+        raise ValueError(f"class_probs shape {probs.shape} does not match occupancy {p.shape} as [C>=2, X, Y, Z]")
+    occ = p > occ_threshold
+    cls = (np.argmax(probs[1:], axis=0) + 1).astype(np.int16)
+    return occ, np.where(occ, cls, np.int16(BACKGROUND)).astype(np.int16)
