@@ -8,8 +8,10 @@ Beta or Dirichlet themselves (what ``scipy.stats.beta(...).entropy()`` would ret
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,6 +25,12 @@ def _xlogx(p: NDArray[np.floating]) -> NDArray[np.float64]:
     p64 = np.asarray(p, dtype=np.float64)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where(p64 > 0.0, p64 * np.log(np.where(p64 > 0.0, p64, 1.0)), 0.0)
+
+
+def categorical_entropy(eta: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Shannon entropy (nats) of the expected categorical of Dirichlet evidence ``eta [C, ...]``."""
+    e = np.asarray(eta)
+    return -_xlogx(e / e.sum(axis=0, keepdims=True)).sum(axis=0)
 
 
 def bernoulli_entropy(p: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -86,7 +94,7 @@ class EvidentialMap:
 
     def semantic_entropy(self) -> NDArray[np.float64]:
         """Shannon entropy (nats) of the expected categorical, [X,Y,Z]."""
-        return -_xlogx(self.class_probs()).sum(axis=0)
+        return categorical_entropy(self.eta)
 
     def total_semantic_entropy(self) -> float:
         """H(Phi) of the Delta-H term: semantic entropy summed over all voxels (nats)."""
@@ -114,3 +122,53 @@ class EvidentialMap:
                 f["beta"].astype(np.float32),
                 f["eta"].astype(np.float32),
             )
+
+
+# ------------------------------------------------------------------------------ sparse predictions
+@dataclass
+class BeliefDelta:
+    """A sparse change of a belief: the new evidence at some voxels (flat indices, sorted, unique).
+
+    Effect models that change a small region return these (in :class:`DeltaBeliefs`), so K
+    predictions cost K small arrays instead of K full maps, and IG / entropy terms touch only the
+    changed voxels.
+    """
+
+    idx: NDArray[np.int64]
+    alpha: NDArray[np.float32]
+    """[M] new Beta alpha at ``idx``."""
+    beta: NDArray[np.float32]
+    eta: NDArray[np.float32]
+    """[C, M] new Dirichlet evidence at ``idx``."""
+
+    def apply(self, base: EvidentialMap) -> EvidentialMap:
+        """``base`` with this change written in (a new map)."""
+        out = base.copy()
+        out.alpha.reshape(-1)[self.idx] = self.alpha
+        out.beta.reshape(-1)[self.idx] = self.beta
+        out.eta.reshape(out.num_classes, -1)[:, self.idx] = self.eta
+        return out
+
+
+class DeltaBeliefs(Sequence[EvidentialMap]):
+    """K predicted beliefs stored as one base map and K :class:`BeliefDelta`; an item is built on access."""
+
+    def __init__(self, base: EvidentialMap, deltas: Sequence[BeliefDelta]) -> None:
+        self.base = base
+        self.deltas = list(deltas)
+
+    def __len__(self) -> int:
+        return len(self.deltas)
+
+    @overload
+    def __getitem__(self, i: int) -> EvidentialMap: ...
+    @overload
+    def __getitem__(self, i: slice) -> list[EvidentialMap]: ...
+    def __getitem__(self, i: int | slice) -> EvidentialMap | list[EvidentialMap]:
+        if isinstance(i, slice):
+            return [d.apply(self.base) for d in self.deltas[i]]
+        return self.deltas[i].apply(self.base)
+
+    def __iter__(self) -> Iterator[EvidentialMap]:
+        for d in self.deltas:
+            yield d.apply(self.base)

@@ -153,7 +153,8 @@ class Simulator(ABC):
 class Prediction:
     """Predicted beliefs after K candidate actions and the voxels each changes."""
 
-    beliefs: list[EvidentialMap]
+    beliefs: Sequence[EvidentialMap]
+    """One belief per action (a list, or a lazy ``DeltaBeliefs`` of sparse changes)."""
     changed: NDArray[np.bool_]
     """[K, X, Y, Z] voxels whose evidence differs from the prior belief."""
 

@@ -39,7 +39,9 @@ class ComponentRef(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     name: str = Field(min_length=1)
+    """Registered name of the component (``msmem plugins`` lists them)."""
     params: dict[str, Any] = Field(default_factory=dict)
+    """Its parameters, validated against the component's own config model."""
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,1 @@
+"""Push skill (UPS) and its analytic effect model (sigma_p)."""

@@ -1,0 +1,162 @@
+"""The pushing tool and its swept volume on the voxel grid.
+
+The tool is the closed parallel-jaw gripper of ``GripperSpec`` pointing straight down, with its
+closing axis along the push: the two closed fingers form a peg ``2 * finger_thickness`` deep (along
+the push) and ``finger_width`` wide, reaching from the tip up ``finger_length``; the palm above
+them is ``palm_length`` (10 cm) long along the push and ``palm_width`` wide, so it reaches
+``palm_length / 2 - finger_thickness`` (4 cm) ahead of the fingers. The whole tool is 2 cm wide
+across the push: in a cluttered shelf a palm held across the push (10 cm wide) would collide with
+the neighbours of most targets. For an object taller than the fingers' reach the palm touches it
+first; the sampler and the effect model use the leading face of the tool part at the object's height.
+
+Geometry is expressed in the *push frame*: ``along`` the unit push direction u, ``across`` it
+(w = u rotated by +90 deg about z) and z up from the tool tip. Each tool part is an axis-aligned
+box there: ``(half_along, half_across, z_lo, z_hi)``.
+
+Rasterisation rule (shared by the sampler, ``PushAction.swept_volume`` and the effect model): a
+voxel belongs to a swept prism when its centre lies within half a voxel of the prism (the prism's
+half-planes moved out by s/2, z likewise) — exact for axis-aligned pushes, slightly under the
+exact overlap at the corners of oblique ones. A voxel only touching the prism's boundary is not in it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from msmem_core.grid import GridSpec
+from msmem_core.gripper import GripperSpec
+
+_SIGNS = np.array([[-1.0, -1.0], [-1.0, 1.0], [1.0, -1.0], [1.0, 1.0]])
+Box = tuple[float, float, float, float]
+"""(half_along, half_across, z_lo, z_hi) of one tool part in the push frame, z from the tool tip."""
+
+
+def tool_boxes(gripper: GripperSpec, palm: str = "along") -> tuple[Box, ...]:
+    """Fingers (closed) and palm of the gripper pointing down; closing axis along the push
+    (``palm="along"``) or across it (``"across"``: a 10 cm wide palm flush with the fingers)."""
+    fl, pd = gripper.finger_length_m, gripper.palm_depth_m
+    if palm == "across":
+        return (gripper.finger_width_m / 2, gripper.finger_thickness_m, 0.0, fl), (
+            gripper.palm_width_m / 2, gripper.palm_length_m / 2, fl, fl + pd)
+    fingers = (gripper.finger_thickness_m, gripper.finger_width_m / 2, 0.0, fl)
+    palm_box = (gripper.palm_length_m / 2, gripper.palm_width_m / 2, fl, fl + pd)
+    return fingers, palm_box
+
+
+def leading_half_depth(boxes: Sequence[Box], tip_z: float, top_z: float) -> float:
+    """How far ahead of the tool centre its leading face is, for an object reaching up to ``top_z``:
+    the largest ``half_along`` of the parts whose height range overlaps [0, top_z]."""
+    reach = [b[0] for b in boxes if tip_z + b[2] < top_z]
+    return max(reach) if reach else min(b[0] for b in boxes)
+
+
+def across(u: NDArray[np.float64]) -> NDArray[np.float64]:
+    """u rotated by +90 deg about z."""
+    return np.array([-u[1], u[0]])
+
+
+def gripper_pose(xy: ArrayLike, tip_z: float, u: ArrayLike, palm: str = "along") -> NDArray[np.float64]:
+    """``GripperSpec`` pose of the pushing tool: origin at the fingertips, approach axis down,
+    closing axis along the push direction u."""
+    ua, xa = np.asarray(u, dtype=np.float64), np.asarray(xy, dtype=np.float64)
+    ux, uy = float(ua[0]), float(ua[1])
+    t = np.eye(4)
+    if palm == "across":
+        t[:3, 0] = (-uy, ux, 0.0)
+        t[:3, 1] = (ux, uy, 0.0)
+    else:
+        t[:3, 0] = (ux, uy, 0.0)
+        t[:3, 1] = (uy, -ux, 0.0)
+    t[:3, 2] = (0.0, 0.0, -1.0)
+    t[:3, 3] = (float(xa[0]), float(xa[1]), float(tip_z))
+    return t
+
+
+def box_corners(start: NDArray[np.float64], u: NDArray[np.float64], box: Box) -> NDArray[np.float64]:
+    """World xy corners [4, 2] of one tool part's footprint with the tool at ``start``."""
+    w = np.array([-u[1], u[0]])
+    return start + _SIGNS[:, :1] * (box[0] * u) + _SIGNS[:, 1:] * (box[1] * w)
+
+
+def sweep_halfplanes(
+    start: NDArray[np.float64], u: NDArray[np.float64], box: Box, v: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Half-planes ``N @ x <= b`` of one part's footprint swept by the translation v (a convex
+    hexagon: the Minkowski sum of the rectangle and the segment [0, v]), and its xy corners."""
+    corners = box_corners(start, u, box)
+    w = np.array([-u[1], u[0]])
+    vn = float(np.hypot(v[0], v[1]))
+    if vn > 1e-12:
+        pv = np.array([-v[1], v[0]]) / vn
+        n = np.stack([u, -u, w, -w, pv, -pv])
+    else:
+        n = np.stack([u, -u, w, -w])
+    support = (corners @ n.T).max(axis=0) + np.maximum(0.0, n @ v)
+    return n, support, np.concatenate([corners, corners + v])
+
+
+def prism_voxels(
+    grid: GridSpec, normals: NDArray[np.float64], offsets: NDArray[np.float64], corners: NDArray[np.float64],
+    z_lo: float, z_hi: float,
+) -> NDArray[np.int64]:
+    """Flat indices (sorted) of the voxels of a vertical prism (xy polygon given by half-planes) by
+    the module's rasterisation rule; voxels outside the grid are dropped."""
+    s = grid.voxel_m
+    o = grid.origin
+    shape = np.asarray(grid.shape)
+    lo = np.floor((np.array([*corners.min(axis=0), z_lo]) - o) / s).astype(np.int64) - 1
+    hi = np.floor((np.array([*corners.max(axis=0), z_hi]) - o) / s).astype(np.int64) + 1
+    lo = np.maximum(lo, 0)
+    hi = np.minimum(hi, shape - 1)
+    if np.any(hi < lo):
+        return np.zeros(0, np.int64)
+    ix = np.arange(lo[0], hi[0] + 1)
+    iy = np.arange(lo[1], hi[1] + 1)
+    iz = np.arange(lo[2], hi[2] + 1)
+    tol = 1e-9 * s  # a voxel whose face only touches the prism is out, whatever the rounding
+    zc = o[2] + (iz + 0.5) * s
+    iz = iz[(zc > z_lo - s / 2 + tol) & (zc < z_hi + s / 2 - tol)]
+    if len(iz) == 0:
+        return np.zeros(0, np.int64)
+    xc = o[0] + (ix + 0.5) * s
+    yc = o[1] + (iy + 0.5) * s
+    inside = np.all(
+        normals[:, 0, None, None] * xc[None, :, None] + normals[:, 1, None, None] * yc[None, None, :]
+        < offsets[:, None, None] + s / 2 - tol,
+        axis=0,
+    )
+    gi, gj = np.nonzero(inside)
+    if len(gi) == 0:
+        return np.zeros(0, np.int64)
+    flat_xy = (ix[gi] * shape[1] + iy[gj]) * shape[2]
+    return np.sort((flat_xy[:, None] + iz[None, :]).ravel())
+
+
+def swept_voxels(
+    grid: GridSpec, start: ArrayLike, u: ArrayLike, tip_z: float, boxes: Sequence[Box],
+    travel: ArrayLike = (0.0, 0.0),
+) -> NDArray[np.int64]:
+    """Voxels (flat, sorted, unique) the tool covers at ``start`` and while translating by ``travel``."""
+    st = np.asarray(start, dtype=np.float64)
+    ua = np.asarray(u, dtype=np.float64)
+    v = np.asarray(travel, dtype=np.float64)
+    parts = []
+    for box in boxes:
+        n, b, corners = sweep_halfplanes(st, ua, box, v)
+        parts.append(prism_voxels(grid, n, b, corners, tip_z + box[2], tip_z + box[3]))
+    if len(parts) == 1:
+        return parts[0]
+    return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+
+
+def swept_extent(
+    start: NDArray[np.float64], u: NDArray[np.float64], tip_z: float, boxes: Sequence[Box], travel: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Exact xyz bounds (lower, upper) of the tool swept by ``travel`` (for the wall test)."""
+    pts = np.concatenate([sweep_halfplanes(start, u, b, travel)[2] for b in boxes])
+    z_lo = tip_z + min(b[2] for b in boxes)
+    z_hi = tip_z + max(b[3] for b in boxes)
+    return np.array([*pts.min(axis=0), z_lo]), np.array([*pts.max(axis=0), z_hi])

@@ -1,0 +1,431 @@
+"""The push skill: Uncertainty-Informed Push Selection (UPS, after Dengler et al. 2025 / MEM) and
+push execution composed from the ``Simulator`` vocabulary.
+
+Proposal (``PushSkill.propose``), all from the belief, never from ground truth:
+
+1. *Hidden regions*: bird's-eye-view (BEV) columns of the shelf interior holding at least
+   ``min_hidden_voxels`` voxels that are not believed free (p > ``free_threshold``) and whose
+   semantic vacuity is >= ``vacuity_threshold`` (never seen), and no confidently occupied voxel.
+2. *Seeds*: up to ``seeds`` such columns, drawn without replacement with probability proportional
+   to their hidden-voxel count.
+3. *Occluders*: from the shelf front (y = 0) a line is traced to each seed (straight along +y, and
+   from ``trace_spread_m`` left and right); the first BEV cell holding a confidently occupied voxel
+   (p >= ``confidence_threshold``, argmax class not background) is the contact with the object in
+   the way. The object is that cell's 8-connected BEV component of its (argmax) class.
+4. *Pushes of each occluder*: a direction mainly into the shelf (+y rotated by up to
+   ``max_angle_deg``, share ``into_fraction``) or sideways, away from the seed's line of sight (+-x
+   rotated by up to half that; the opposite side with probability 1/4). The line through the
+   footprint's centroid (jittered by a voxel across) is followed back to where it enters the
+   footprint, and the tool starts so that the leading face of the tool part at the object's height
+   is ``standoff_m`` from the believed contour. Length uniform in [``min_length_m``,
+   ``max_length_m``], shortened to the room the tool has before a wall. Tool tip height:
+   ``min(tool_height_m, low_object_fraction * object top)``, at least ``min_tool_height_m``: 2 cm by
+   default (not MEM's 8.5 cm: with this downward-pointing gripper the palm, 5-8 cm above the tip,
+   would push tall objects 13.5-16.5 cm up and topple them; docs/push.md has the survey), 60 % of
+   the believed height for low ones (a gelatin box is 2.8 cm tall) so the tool does not pass over.
+5. *Rejection*: a candidate is dropped if the tool swept along the push leaves the shelf interior
+   through a side, the back or the top (the front is open; the tool *centre* may start at most
+   ``START_FRONT_MARGIN_M`` in front of the opening) or covers a wall voxel, if the tool at its
+   start covers a believed-occupied voxel (p > ``occupied_threshold``), or if its approach corridor
+   from in front of the shelf does. Raw candidates are drawn in up to ``ROUNDS`` rounds of
+   ``2 * max_samples`` until ``max_samples`` survive; at most ``max_samples`` are kept, spread over
+   the occluders round-robin.
+
+Execution (``PushSkill.execute``): fingers closed, from in front of the shelf (y = ``approach_y_m``)
+straight to the start at tool height, the push at ``speed_mps``, back along the same path out of
+the shelf, park; then ``settle_s`` of physics. The outcome reports every object's XY displacement
+and the objects that fell (up axis tilted more than ``fall_tilt_deg``) or left the shelf interior.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from scipy import ndimage
+
+from msmem_core.gripper import GripperSpec
+from msmem_core.ig import shelf_wall_mask
+from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
+from msmem_core.scene import ShelfSpec
+from msmem_push.geometry import (
+    Box,
+    gripper_pose,
+    leading_half_depth,
+    sweep_halfplanes,
+    swept_extent,
+    swept_voxels,
+    tool_boxes,
+)
+
+START_FRONT_MARGIN_M = 0.05
+"""A push may start at most this far in front of the shelf opening (y >= -0.05 m)."""
+ROUNDS = 3
+"""Sampling rounds per step: a round draws 2 * max_samples raw candidates over the occluders."""
+_DEFAULT_INTERIOR = (*ShelfSpec().interior_lower.tolist(), *ShelfSpec().interior_upper.tolist())
+_DEFAULT_TOOL = tool_boxes(GripperSpec())
+
+
+def interior_of(shelf: ShelfSpec) -> tuple[float, float, float, float, float, float]:
+    """(x_lo, y_lo, z_lo, x_hi, y_hi, z_hi) of a shelf's interior."""
+    lo, hi = shelf.interior_lower, shelf.interior_upper
+    return (float(lo[0]), float(lo[1]), float(lo[2]), float(hi[0]), float(hi[1]), float(hi[2]))
+
+
+class PushAction(Action):
+    """Push with the closed gripper: its tip at ``height_m`` above the shelf floor travels from
+    ``start_m`` along ``direction`` for ``length_m`` (tool frame: see ``msmem_push.geometry``)."""
+
+    kind: str = "push"
+    category: Literal["manipulation"] = "manipulation"
+    interior_m: tuple[float, float, float, float, float, float] = _DEFAULT_INTERIOR
+    """The shelf interior the push was planned in: (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi)."""
+    start_m: tuple[float, float]
+    """Tool centre (xy) at the start of the push; its leading face is half the tool depth ahead."""
+    direction: tuple[float, float]
+    """Unit push direction in the horizontal plane."""
+    length_m: float = Field(gt=0.0, le=1.0)
+    height_m: float = Field(gt=0.0, le=1.0)
+    """Tool tip height above the shelf floor."""
+    palm: Literal["along", "across"] = "along"
+    """Gripper yaw: closing axis (and palm) along the push or across it."""
+    tool: tuple[Box, ...] = _DEFAULT_TOOL
+    """Tool parts (half_along, half_across, z_lo, z_hi) in the push frame (from ``palm``)."""
+    target_class: int | None = None
+    """Believed class of the object the push aims at."""
+    contact_m: tuple[float, float, float] | None = None
+    """Believed point of the object the trace from the shelf front met first."""
+
+    @field_validator("direction")
+    @classmethod
+    def _unit(cls, v: tuple[float, float]) -> tuple[float, float]:
+        n = math.hypot(v[0], v[1])
+        if not math.isfinite(n) or abs(n - 1.0) > 1e-6:
+            raise ValueError(f"direction must be a unit vector, has length {n:.6g}")
+        return v
+
+    @field_validator("start_m")
+    @classmethod
+    def _inside(cls, v: tuple[float, float], info: ValidationInfo) -> tuple[float, float]:
+        box = info.data.get("interior_m")
+        if box is None:
+            return v
+        x_lo, y_lo, _, x_hi, y_hi, _ = box
+        if not (x_lo <= v[0] <= x_hi and y_lo - START_FRONT_MARGIN_M <= v[1] <= y_hi):
+            raise ValueError(
+                f"start ({v[0]:.3f}, {v[1]:.3f}) lies outside the shelf interior x in [{x_lo:.3f}, {x_hi:.3f}], "
+                f"y in [{y_lo - START_FRONT_MARGIN_M:.3f}, {y_hi:.3f}]"
+            )
+        return v
+
+    @property
+    def u(self) -> NDArray[np.float64]:
+        return np.asarray(self.direction, dtype=np.float64)
+
+    @property
+    def start(self) -> NDArray[np.float64]:
+        return np.asarray(self.start_m, dtype=np.float64)
+
+    @property
+    def end(self) -> NDArray[np.float64]:
+        return self.start + self.length_m * self.u
+
+    def swept_indices(self, grid: Any) -> NDArray[np.int64]:
+        """Flat indices of the voxels the tool sweeps during the push (start to end)."""
+        return swept_voxels(grid, self.start, self.u, self.height_m, self.tool, self.length_m * self.u)
+
+    def swept_volume(self, grid: Any) -> NDArray[np.bool_]:
+        mask = np.zeros(grid.size, dtype=bool)
+        mask[self.swept_indices(grid)] = True
+        return mask.reshape(grid.shape)
+
+
+class PushConfig(BaseModel):
+    """Parameters of UPS and of push execution (see the module docstring)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    gripper: GripperSpec = GripperSpec()
+    """The run's gripper (filled in by the runner); the tool's shape comes from it."""
+    palm: Literal["along", "across"] = "along"
+    """Closing axis (and the 10 cm palm) along the push (a 2 cm wide tool) or across it."""
+    min_length_m: float = Field(0.05, gt=0.0, le=1.0)
+    max_length_m: float = Field(0.25, gt=0.0, le=1.0)
+    """Push lengths are uniform in [min_length_m, max_length_m] (MEM: 5-25 cm)."""
+    tool_height_m: float = Field(0.02, gt=0.0, le=1.0)
+    """Tool tip height above the shelf floor. MEM pushes ~8.5 cm above the board; here the
+    gripper points down and its palm (5-8 cm above the tip) touches tall objects too: at 8.5 cm, 6 of
+    40 surveyed pushes toppled the object, at 2 cm none (docs/push.md)."""
+    low_object_fraction: float = Field(0.6, gt=0.0, le=1.0)
+    """For objects lower than tool_height_m / this, the tip goes to this fraction of their top."""
+    min_tool_height_m: float = Field(0.01, gt=0.0, le=0.2)
+    """The tip never goes lower than this (it would drag on the shelf floor)."""
+    max_samples: int = Field(80, ge=1, le=10000)
+    seeds: int = Field(24, ge=1, le=10000)
+    """Hidden BEV columns drawn per step as push seeds."""
+    vacuity_threshold: float = Field(0.9, gt=0.0, le=1.0)
+    """Semantic vacuity at or above which a voxel counts as never seen (prior: 1; one view: 0.6)."""
+    confidence_threshold: float = Field(0.9, gt=0.5, lt=1.0)
+    """Expected occupancy at or above which a voxel is a confidently occupied object surface."""
+    occupied_threshold: float = Field(0.5, ge=0.0, lt=1.0)
+    """Expected occupancy above which a voxel is believed occupied (the tool may not start there)."""
+    free_threshold: float = Field(0.2, ge=0.0, lt=0.5)
+    """Expected occupancy at or below which a voxel is believed free (not a hidden region)."""
+    min_hidden_voxels: int = Field(2, ge=1)
+    trace_spread_m: float = Field(0.08, ge=0.0, le=1.0)
+    """Besides the straight trace, seeds are traced to from this far left and right on the front."""
+    into_fraction: float = Field(0.4, ge=0.0, le=1.0)
+    """Share of directions mainly into the shelf; the rest push sideways."""
+    max_angle_deg: float = Field(30.0, ge=0.0, le=90.0)
+    standoff_m: float = Field(0.01, ge=0.0, le=0.1)
+    """Gap between the tool's leading face and the believed contour at the start."""
+    speed_mps: float = Field(0.1, gt=0.0, le=1.0)
+    travel_speed_mps: float = Field(0.25, gt=0.0, le=2.0)
+    """Speed of the approach and the retreat."""
+    approach_y_m: float = Field(-0.08, lt=0.0, ge=-1.0)
+    """The approach starts (and the retreat ends) at this y in front of the shelf opening."""
+    settle_s: float = Field(0.5, ge=0.0, le=10.0)
+    fall_tilt_deg: float = Field(30.0, gt=0.0, lt=90.0)
+
+    @field_validator("max_length_m")
+    @classmethod
+    def _longer(cls, v: float, info: ValidationInfo) -> float:
+        lo = info.data.get("min_length_m")
+        if lo is not None and v <= lo:
+            raise ValueError(f"must exceed min_length_m ({lo})")
+        return v
+
+    @field_validator("approach_y_m")
+    @classmethod
+    def _in_front(cls, v: float) -> float:
+        if v > -START_FRONT_MARGIN_M:
+            raise ValueError(f"must be at most {-START_FRONT_MARGIN_M} (in front of every push start)")
+        return v
+
+
+class _Target:
+    """An occluder met by a trace: its BEV footprint, class, contact cell and the seed behind it."""
+
+    def __init__(self, foot: NDArray[np.bool_], cls: int, contact: NDArray[np.float64], seed: NDArray[np.float64],
+                 top_z: float, key: tuple[int, int]) -> None:
+        self.foot, self.cls, self.contact, self.seed, self.top_z, self.key = foot, cls, contact, seed, top_z, key
+        ij = np.argwhere(foot)
+        self.cells = ij
+
+
+class PushSkill(Skill):
+    category: ClassVar[Category] = "manipulation"
+
+    def __init__(self, config: PushConfig | None = None) -> None:
+        self.config = config or PushConfig()
+        self.tool = tool_boxes(self.config.gripper, self.config.palm)
+        self._grid_cache: dict[Any, Any] = {}
+
+    # ------------------------------------------------------------------------------------ proposal
+    def _grid_data(self, grid: Any, shelf: ShelfSpec) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+        key = (grid, shelf)
+        if key not in self._grid_cache:
+            c = grid.centers()
+            interior = np.all((c > shelf.interior_lower) & (c < shelf.interior_upper), axis=-1)
+            self._grid_cache = {key: (interior, shelf_wall_mask(grid, shelf).ravel())}
+        return self._grid_cache[key]
+
+    def propose(self, ctx: Any) -> list[Action]:
+        if not ctx.manipulation_allowed:
+            return []
+        return list(self.sample(ctx.belief, ctx.shelf, ctx.rng))
+
+    def sample(self, belief: Any, shelf: ShelfSpec, rng: np.random.Generator) -> list[PushAction]:
+        """UPS: push candidates from the belief (see the module docstring)."""
+        cfg = self.config
+        grid = belief.grid
+        s = grid.voxel_m
+        o = grid.origin
+        interior, walls = self._grid_data(grid, shelf)
+        p = belief.expected_occupancy()
+        cls = np.argmax(belief.eta, axis=0)
+        # confident object surfaces; occupied voxels of class background are shelf boards seen in
+        # the interior's boundary layer, not objects
+        conf = (p >= cfg.confidence_threshold) & interior & (cls != 0)
+        hidden = interior & (p > cfg.free_threshold) & (belief.vacuity() >= cfg.vacuity_threshold)
+        conf_bev = conf.any(axis=2)
+        count = hidden.sum(axis=2)
+        seed_mask = (count >= cfg.min_hidden_voxels) & ~conf_bev
+        cells = np.argwhere(seed_mask)
+        if len(cells) == 0 or not conf_bev.any():
+            return []
+        w = count[seed_mask].astype(np.float64)
+        pick = rng.choice(len(cells), size=min(cfg.seeds, len(cells)), replace=False, p=w / w.sum())
+        seeds = o[:2] + (cells[pick] + 0.5) * s
+        targets = self._trace(seeds, conf, conf_bev, cls, grid, shelf)
+        if not targets:
+            return []
+        occupied = (p > cfg.occupied_threshold).ravel()
+        per_target = max(2, math.ceil(2 * cfg.max_samples / len(targets)))
+        groups: list[list[PushAction]] = [[] for _ in targets]
+        interior_m = interior_of(shelf)
+        for _ in range(ROUNDS):  # in dense shelves most sideways pushes collide: sample again
+            for g, t in zip(groups, targets, strict=True):
+                raw = (self._candidate(t, rng, grid, interior_m) for _ in range(per_target))
+                g += [a for a in raw if a is not None and self._valid(a, grid, walls, occupied)]
+            if sum(len(g) for g in groups) >= cfg.max_samples:
+                break
+        out: list[PushAction] = []
+        i = 0
+        while len(out) < cfg.max_samples and any(i < len(g) for g in groups):
+            out += [g[i] for g in groups if i < len(g)][: cfg.max_samples - len(out)]
+            i += 1
+        return out
+
+    def _trace(self, seeds: NDArray[np.float64], conf: NDArray[np.bool_], conf_bev: NDArray[np.bool_],
+               cls: NDArray[np.int64], grid: Any, shelf: ShelfSpec) -> list[_Target]:
+        """The first confident object on the lines from the shelf front to each seed (deduplicated)."""
+        cfg = self.config
+        s = grid.voxel_m
+        o = grid.origin
+        nx, ny = grid.shape[0], grid.shape[1]
+        offsets = [0.0] + ([-cfg.trace_spread_m, cfg.trace_spread_m] if cfg.trace_spread_m > 0 else [])
+        labels: dict[int, tuple[NDArray[np.int32], int]] = {}
+        found: dict[tuple[int, int], _Target] = {}
+        steps = np.linspace(0.0, 1.0, max(2, math.ceil((shelf.depth_m + 0.2) / (s / 4))))
+        zs = o[2] + (np.arange(grid.shape[2]) + 1.0) * s
+        for seed in seeds:
+            for off in offsets:
+                front = np.array([np.clip(seed[0] + off, -shelf.width_m / 2, shelf.width_m / 2), 0.0])
+                pts = front + steps[:, None] * (seed - front)
+                ij = np.floor((pts - o[:2]) / s).astype(np.int64)
+                ok = (ij[:, 0] >= 0) & (ij[:, 0] < nx) & (ij[:, 1] >= 0) & (ij[:, 1] < ny)
+                ij = ij[ok]
+                hit = np.flatnonzero(conf_bev[ij[:, 0], ij[:, 1]])
+                if len(hit) == 0:
+                    continue
+                ci, cj = ij[hit[0]]
+                col = cls[ci, cj][conf[ci, cj]]
+                c = int(np.bincount(col).argmax())
+                if c not in labels:
+                    bev = (conf & (cls == c)).any(axis=2)
+                    labels[c] = ndimage.label(bev, structure=np.ones((3, 3), dtype=bool))
+                lab = labels[c][0]
+                key = (c, int(lab[ci, cj]))
+                if key in found:
+                    continue
+                foot = lab == lab[ci, cj]
+                col3 = conf & (cls == c) & foot[:, :, None]
+                top_z = float(zs[np.nonzero(col3.any(axis=(0, 1)))[0].max()])
+                contact = np.array([o[0] + (ci + 0.5) * s, o[1] + (cj + 0.5) * s, 0.0])
+                top_k = np.nonzero(col3[ci, cj])[0]
+                contact[2] = o[2] + (top_k.min() + top_k.max() + 1) * s / 2
+                found[key] = _Target(foot, c, contact, seed, top_z, key)
+        return list(found.values())
+
+    def _candidate(self, t: _Target, rng: np.random.Generator, grid: Any,
+                   interior_m: tuple[float, float, float, float, float, float]) -> PushAction | None:
+        cfg = self.config
+        s = grid.voxel_m
+        o = grid.origin
+        centre = o[:2] + (t.cells.mean(axis=0) + 0.5) * s
+        max_a = math.radians(cfg.max_angle_deg)
+        if rng.random() < cfg.into_fraction:
+            ang = math.pi / 2 + rng.uniform(-max_a, max_a)
+            q = np.array([centre[0] + rng.uniform(-s, s), centre[1]])
+        else:
+            away = -1.0 if t.seed[0] > centre[0] else 1.0
+            side = away if rng.random() < 0.75 else -away
+            ang = (0.0 if side > 0 else math.pi) + rng.uniform(-max_a / 2, max_a / 2)
+            q = np.array([centre[0], centre[1] + rng.uniform(-s, s)])
+        u = np.array([math.cos(ang), math.sin(ang)])
+        # follow the line through the object's centre back (against u) to where it enters the footprint
+        ts = np.arange(0.0, 0.6, s / 8)
+        pts = q[None, :] - ts[:, None] * u[None, :]
+        ij = np.floor((pts - o[:2]) / s).astype(np.int64)
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < grid.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < grid.shape[1])
+        inside = np.zeros(len(ts), dtype=bool)
+        inside[ok] = t.foot[ij[ok, 0], ij[ok, 1]]
+        if not inside.any():
+            return None
+        t_entry = ts[np.flatnonzero(inside).max()] + s / 8
+        height = max(cfg.min_tool_height_m, min(cfg.tool_height_m, cfg.low_object_fraction * t.top_z))
+        half_depth = leading_half_depth(self.tool, height, t.top_z)
+        start = q - (t_entry + cfg.standoff_m + half_depth) * u
+        x_lo, y_lo, _, x_hi, y_hi, _ = interior_m
+        if not (x_lo <= start[0] <= x_hi and y_lo - START_FRONT_MARGIN_M <= start[1] <= y_hi):
+            return None
+        # longest push whose tool stays inside the shelf (the wall test in _valid is then rarely hit)
+        corners = np.concatenate([sweep_halfplanes(start, u, b, np.zeros(2))[2][:4] for b in self.tool])
+        room = np.inf
+        for axis, lo_b, hi_b in ((0, x_lo, x_hi), (1, None, y_hi)):  # in front of the shelf is open
+            if u[axis] > 1e-9:
+                room = min(room, float((hi_b - corners[:, axis].max()) / u[axis]))
+            elif u[axis] < -1e-9 and lo_b is not None:
+                room = min(room, float((corners[:, axis].min() - lo_b) / -u[axis]))
+        hi_len = min(cfg.max_length_m, room)
+        if hi_len < cfg.min_length_m:
+            return None
+        return PushAction(
+            interior_m=interior_m,
+            start_m=(float(start[0]), float(start[1])),
+            direction=(float(u[0]), float(u[1])),
+            length_m=float(rng.uniform(cfg.min_length_m, hi_len)),
+            height_m=float(height),
+            palm=cfg.palm,
+            tool=self.tool,
+            target_class=t.cls,
+            contact_m=tuple(float(v) for v in t.contact),
+        )
+
+    def _valid(self, a: PushAction, grid: Any, walls: NDArray[np.bool_], occupied: NDArray[np.bool_]) -> bool:
+        """Inside the shelf, no wall voxel swept, no believed-occupied voxel at the start or on the approach."""
+        x_lo, _, _, x_hi, y_hi, z_hi = a.interior_m
+        lo, hi = swept_extent(a.start, a.u, a.height_m, a.tool, a.length_m * a.u)
+        if lo[0] < x_lo or hi[0] > x_hi or hi[1] > y_hi or hi[2] > z_hi:  # sides, back, top (front is open)
+            return False
+        if occupied[swept_voxels(grid, a.start, a.u, a.height_m, a.tool)].any():  # the most common rejection
+            return False
+        if walls[a.swept_indices(grid)].any():
+            return False
+        approach = np.array([a.start[0], self.config.approach_y_m])
+        corridor = swept_voxels(grid, approach, a.u, a.height_m, a.tool, a.start - approach)
+        return not (occupied[corridor].any() or walls[corridor].any())
+
+    # ----------------------------------------------------------------------------------- execution
+    def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
+        cfg = self.config
+        shelf: ShelfSpec = ctx.shelf
+        a = PushAction.model_validate({**action.model_dump(), "interior_m": interior_of(shelf)})
+        before = sim.object_poses()
+        u = a.u
+        approach = np.array([a.start[0], cfg.approach_y_m])
+        h = a.height_m
+        def pose(xy: NDArray[np.float64]) -> NDArray[np.float64]:
+            return gripper_pose(xy, h, u, a.palm)
+
+        sim.move_gripper([pose(approach), pose(a.start)], opening_m=0.0, speed_mps=cfg.travel_speed_mps)
+        reached = sim.move_gripper([pose(a.end)], speed_mps=cfg.speed_mps)
+        sim.move_gripper([pose(a.start), pose(approach)], speed_mps=cfg.travel_speed_mps)
+        sim.park_gripper()
+        if cfg.settle_s > 0:
+            sim.step(cfg.settle_s)
+        after = sim.object_poses()
+        disp = {i: float(np.linalg.norm(after[i][:2, 3] - before[i][:2, 3])) for i in before if i in after}
+        fell = []
+        lo, hi = shelf.interior_lower, shelf.interior_upper
+        for i, t0 in before.items():
+            t1 = after.get(i)
+            if t1 is None:
+                fell.append(i)
+                continue
+            tilt = math.degrees(math.acos(float(np.clip(t0[:3, 2] @ t1[:3, 2], -1.0, 1.0))))
+            pos = t1[:3, 3]
+            outside = not (lo[0] <= pos[0] <= hi[0] and lo[1] <= pos[1] <= hi[1]) or pos[2] < lo[2] - 0.02
+            if tilt > cfg.fall_tilt_deg or outside:
+                fell.append(i)
+        miss = float(np.linalg.norm(reached[:2, 3] - a.end))
+        return Outcome(
+            success=miss < 0.02,
+            displacement_m=disp,
+            fell_or_left=fell,
+            info={"tool_end_error_m": miss, "moved": [i for i, d in disp.items() if d > 0.005]},
+        )

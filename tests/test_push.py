@@ -1,0 +1,401 @@
+"""The push skill (UPS sampling, execution), its analytic effect model and the manipulation terms."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from msmem_objectives.entropy import SemanticEntropyTerm
+from msmem_objectives.ig import IGTerm, IGTermConfig
+from msmem_push.effect import AnalyticPushEffect
+from msmem_push.geometry import leading_half_depth, swept_extent, swept_voxels
+from msmem_push.skill import START_FRONT_MARGIN_M, PushAction, PushConfig, PushSkill, interior_of
+from pydantic import ValidationError
+
+from msmem_core.belief import DeltaBeliefs, EvidentialMap
+from msmem_core.camera import CameraConfig
+from msmem_core.errors import PluginError
+from msmem_core.geometry import look_at, quat_to_matrix, yaw_quat
+from msmem_core.grid import GridSpec
+from msmem_core.gripper import GripperSpec
+from msmem_core.groundtruth import interior_mask, voxelize
+from msmem_core.ig import IGService, shelf_wall_mask
+from msmem_core.interfaces import CandidateBatch
+from msmem_core.metrics import occupancy_iou
+from msmem_core.msas import DecisionContext
+from msmem_core.perf import block_scene, integrate_evidence, render_voxels
+from msmem_core.plugins import get_plugin_manager
+from msmem_core.plugins.manager import ComponentRef
+from msmem_core.scene import OBJECT_CLASSES, ObjectSpec, SceneSpec, ShelfSpec
+from msmem_core.viewpoints import ViewpointConfig, generate_viewpoints
+
+SHELF = ShelfSpec()
+GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)
+SMALL_CAM = CameraConfig(width_px=160, height_px=120)
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def synthetic_belief(seed: int, views: int = 3) -> EvidentialMap:
+    """Random blocks on the shelf floor seen from a few views in front (free, seen, hidden voxels)."""
+    rng = np.random.default_rng(seed)
+    occ, cls = block_scene(GRID, SHELF, rng, num_blocks=int(rng.integers(4, 12)))
+    b = EvidentialMap.empty(GRID)
+    for _ in range(views):
+        eye = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.6, -0.4), rng.uniform(0.1, 0.4)])
+        pose = look_at(eye, (rng.uniform(-0.2, 0.2), 0.19, 0.1))
+        b = integrate_evidence(b, render_voxels(occ, cls, GRID, SMALL_CAM, pose), stride=1)
+    return b
+
+
+def box_belief(boxes: list[tuple[tuple[float, float], tuple[float, float], float, int]]) -> EvidentialMap:
+    """Fully known belief: free everywhere, confident boxes ((x0, y0), (x1, y1), height, class)."""
+    b = EvidentialMap.empty(GRID)
+    c = GRID.centers()
+    b.beta[:] = 21.0
+    b.eta[0] = 21.0
+    for (x0, y0), (x1, y1), h, k in boxes:
+        m = (c[..., 0] > x0) & (c[..., 0] < x1) & (c[..., 1] > y0) & (c[..., 1] < y1)
+        m &= (c[..., 2] > 0) & (c[..., 2] < h)
+        b.alpha[m], b.beta[m], b.eta[:, m] = 21.0, 1.0, 1.0
+        b.eta[k, m] = 21.0
+    return b
+
+
+def push(start: tuple[float, float], u: tuple[float, float], length: float, height: float = 0.02) -> PushAction:
+    return PushAction(interior_m=interior_of(SHELF), start_m=start, direction=u, length_m=length, height_m=height,
+                      tool=PushSkill().tool)
+
+
+def support_along(obj: ObjectSpec, pose: np.ndarray, u: np.ndarray) -> float:
+    """How far the object's footprint reaches from its origin along the horizontal unit vector u."""
+    best = -np.inf
+    for part in obj.object_class.parts:
+        centre = pose[:3, 3] + pose[:3, :3] @ np.asarray(part.position_m)
+        rot = pose[:3, :3] @ quat_to_matrix(part.quat_xyzw)
+        reach = np.abs(rot[:2, :2].T @ u) @ (np.asarray(part.size_m[:2]) / 2) if part.kind == "box" else part.size_m[0]
+        best = max(best, float((centre[:2] - pose[:2, 3]) @ u + reach))
+    return best
+
+
+# ------------------------------------------------------------------------------------- configuration
+def test_bad_push_config_and_actions_are_rejected_naming_the_field() -> None:
+    with pytest.raises(ValidationError, match="min_length_m"):
+        PushConfig(min_length_m=-0.05)
+    with pytest.raises(ValidationError, match="max_length_m"):
+        PushConfig(min_length_m=0.2, max_length_m=0.1)
+    with pytest.raises(ValidationError, match="approach_y_m"):
+        PushConfig(approach_y_m=-0.01)
+    with pytest.raises(ValidationError, match="max_samples"):
+        PushConfig(max_samples=0)
+    with pytest.raises(PluginError, match=r"skills\.1\.params\.max_length_m"):
+        get_plugin_manager().build("skill", ComponentRef(name="push", params={"max_length_m": -1.0}), where="skills.1")
+    with pytest.raises(ValidationError, match="length_m"):
+        push((0.0, 0.05), (0.0, 1.0), -0.1)
+    with pytest.raises(ValidationError, match="start_m"):
+        push((0.5, 0.1), (0.0, 1.0), 0.1)  # beyond the right wall
+    with pytest.raises(ValidationError, match="start_m"):
+        push((0.0, -START_FRONT_MARGIN_M - 0.01), (0.0, 1.0), 0.1)
+    with pytest.raises(ValidationError, match="direction"):
+        push((0.0, 0.05), (1.0, 1.0), 0.1)
+    a = push((0.0, 0.05), (0.0, 1.0), 0.1)
+    assert PushAction.model_validate_json(a.model_dump_json()) == a
+    assert a.category == "manipulation"
+    assert a.kind == "push"
+
+
+def test_push_and_its_effect_model_are_registered_and_bound() -> None:
+    pm = get_plugin_manager()
+    spec = pm.skills()["push"]
+    assert spec.effect_model == "push-analytic"
+    assert "effect" in pm.belief_models()["push-analytic"].roles
+    assert "semantic-entropy" in pm.objective_terms()
+
+
+def _ctx(belief: EvidentialMap, allowed: bool = True, ig: IGService | None = None, seed: int = 0) -> DecisionContext:
+    return DecisionContext(5, belief, ig, np.zeros((0, 4, 4)), set(), GRID, SHELF, GripperSpec(),  # type: ignore[arg-type]
+                           np.random.default_rng(seed), allowed, 0.5)
+
+
+def test_no_pushes_outside_the_manipulation_window() -> None:
+    b = synthetic_belief(0)
+    assert PushSkill().propose(_ctx(b))  # the synthetic beliefs do have occluded regions to push at
+    assert PushSkill().propose(_ctx(b, allowed=False)) == []
+    assert PushSkill().propose(_ctx(EvidentialMap.empty(GRID))) == []  # nothing known: nothing to push
+
+
+# ---------------------------------------------------------------------------------------- sampling
+@settings(max_examples=8, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_push_samples_never_start_in_believed_occupancy_nor_sweep_through_a_wall(seed: int) -> None:
+    belief = synthetic_belief(seed)
+    cfg = PushConfig(max_samples=40)
+    actions = PushSkill(cfg).propose(_ctx(belief, seed=seed))
+    assert len(actions) <= cfg.max_samples
+    occupied = (belief.expected_occupancy() > cfg.occupied_threshold).ravel()
+    walls = shelf_wall_mask(GRID, SHELF).ravel()
+    lo_in, hi_in = SHELF.interior_lower, SHELF.interior_upper
+    for a in actions:
+        assert isinstance(a, PushAction)
+        assert cfg.min_length_m <= a.length_m <= cfg.max_length_m
+        assert abs(np.hypot(*a.direction) - 1) < 1e-9
+        at_start = swept_voxels(GRID, a.start, a.u, a.height_m, a.tool)
+        assert not occupied[at_start].any(), "the tool starts inside believed-occupied space"
+        swept = a.swept_volume(GRID).ravel()
+        assert swept.any()
+        assert not (swept & walls).any(), "the push sweeps through a wall voxel"
+        lo, hi = swept_extent(a.start, a.u, a.height_m, a.tool, a.length_m * a.u)
+        assert lo[0] >= lo_in[0]
+        assert hi[0] <= hi_in[0]
+        assert hi[1] <= hi_in[1]
+        assert hi[2] <= hi_in[2]
+        approach = np.array([a.start[0], cfg.approach_y_m])
+        corridor = swept_voxels(GRID, approach, a.u, a.height_m, a.tool, a.start - approach)
+        assert not occupied[corridor].any(), "the approach crosses believed-occupied space"
+
+
+def test_ups_targets_the_occluder_of_a_hidden_region() -> None:
+    # a wide box in front hides the region behind it; nothing else is known there
+    b = EvidentialMap.empty(GRID)
+    c = GRID.centers()
+    front = (c[..., 1] < 0.04) & (c[..., 1] > 0) & (c[..., 2] > 0)
+    b.beta[front], b.eta[0][front] = 21.0, 21.0  # free space in front of the box
+    box = (np.abs(c[..., 0]) < 0.08) & (c[..., 1] > 0.04) & (c[..., 1] < 0.06) & (c[..., 2] > 0) & (c[..., 2] < 0.15)
+    b.alpha[box], b.beta[box], b.eta[:, box] = 21.0, 1.0, 1.0
+    b.eta[3][box] = 21.0
+    around = (np.abs(c[..., 0]) >= 0.08) & (c[..., 1] > 0) & (c[..., 2] > 0)  # the sides are free and known
+    b.beta[around], b.eta[0][around] = 21.0, 21.0
+    actions = PushSkill().propose(_ctx(b))
+    assert actions
+    assert all(a.target_class == 3 for a in actions)
+    starts = np.array([a.start_m for a in actions])
+    assert np.all(starts[:, 1] < 0.06 + 0.03)  # in front of or beside the box
+    dirs = np.array([a.direction for a in actions])
+    assert np.any(dirs[:, 1] > 0.8)
+    assert np.any(np.abs(dirs[:, 0]) > 0.8)
+
+
+# ------------------------------------------------------------------------------------ effect model
+def test_effect_model_moves_a_pushed_box_and_what_is_in_its_way() -> None:
+    # box A (class 3) at y 0.10-0.16, box B (class 5) behind it at y 0.20-0.26, both 8 cm wide
+    b = box_belief([((-0.04, 0.10), (0.04, 0.16), 0.10, 3), ((-0.04, 0.20), (0.04, 0.26), 0.10, 5)])
+    hd = leading_half_depth(PushSkill().tool, 0.02, 0.10)
+    a = push((0.0, 0.10 - 0.01 - hd), (0.0, 1.0), 0.15)  # 1 cm standoff: A moves 14 cm, B 10 cm
+    model = AnalyticPushEffect()
+    pred = model.predict(b, [a])
+    after = pred.beliefs[0]
+    occ0, occ1 = b.expected_occupancy() > 0.5, after.expected_occupancy() > 0.5
+    cls1 = np.argmax(after.eta, axis=0)
+    ys = GRID.centers()[..., 1]
+    a_new, b_new = occ1 & (cls1 == 3), occ1 & (cls1 == 5)
+    assert a_new.sum() == (occ0 & (np.argmax(b.eta, axis=0) == 3)).sum()  # evidence moved, none lost
+    assert ys[a_new].min() == pytest.approx(0.10 + 0.14, abs=0.011)
+    assert ys[b_new].min() == pytest.approx(0.20 + 0.10, abs=0.011)
+    vacated = (ys > 0.10) & (ys < 0.20) & occ0
+    assert np.all(after.expected_occupancy()[vacated] == 0.5), "the box's old place returns to the prior"
+    # the changed mask is exactly where evidence differs; the untouched rest is identical
+    diff = (after.alpha != b.alpha) | (after.beta != b.beta) | np.any(after.eta != b.eta, axis=0)
+    np.testing.assert_array_equal(pred.changed[0], diff)
+    assert isinstance(pred.beliefs, DeltaBeliefs)
+
+
+def test_effect_model_stops_objects_at_the_back_wall_and_is_batched() -> None:
+    b = box_belief([((-0.04, 0.28), (0.04, 0.34), 0.10, 3), ((0.20, 0.10), (0.26, 0.16), 0.05, 7)])
+    model = AnalyticPushEffect()
+    a_back = push((0.0, 0.28 - 0.02), (0.0, 1.0), 0.25)  # only 4 cm of room behind the box
+    moves = model.displacements(b, a_back)
+    assert len(moves) == 1
+    assert moves[0][1] == pytest.approx(0.04, abs=0.011)
+    a_miss = push((-0.3, 0.05), (0.0, 1.0), 0.1)  # touches nothing
+    a_side = push((0.15, 0.13), (1.0, 0.0), 0.08)
+    batch = model.predict(b, [a_back, a_miss, a_side])
+    for k, a in enumerate([a_back, a_miss, a_side]):
+        single = model.predict(b, [a])
+        np.testing.assert_array_equal(batch.changed[k], single.changed[0])
+        np.testing.assert_array_equal(batch.beliefs[k].alpha, single.beliefs[0].alpha)
+    assert model.displacements(b, a_miss) == []
+    # a push that touches nothing changes only the semantic confidence along the tool's path
+    assert np.array_equal(batch.beliefs[1].alpha, b.alpha)
+    assert np.array_equal(batch.beliefs[1].beta, b.beta)
+
+
+# ---------------------------------------------------------------------------------- objective terms
+def _small_ig(seed: int = 0) -> IGService:
+    views = generate_viewpoints(ViewpointConfig(), SHELF)[::15]
+    return IGService(GRID, SMALL_CAM, views, SHELF)
+
+
+def test_manipulation_ig_is_the_best_view_after_the_predicted_belief_and_screening_keeps_finalists_exact() -> None:
+    belief = synthetic_belief(3)
+    ig = _small_ig()
+    ctx = _ctx(belief, ig=ig)
+    actions = PushSkill(PushConfig(max_samples=12)).propose(ctx)
+    assert len(actions) > 4
+    pred = AnalyticPushEffect().predict(belief, actions)
+    batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
+    full = ig.view_ig([ig.prepare(b) for b in pred.beliefs]).max(axis=1)
+    exact = IGTerm(IGTermConfig(screen_ray_step=1)).score(ctx, batch)
+    np.testing.assert_allclose(exact, full, rtol=1e-9)
+    reference = IGTerm(IGTermConfig(incremental=False)).score(ctx, batch)
+    np.testing.assert_allclose(reference, full, rtol=1e-12)
+    screened = IGTerm(IGTermConfig(screen_ray_step=2, finalists=3)).score(ctx, batch)
+    finalists = np.isclose(screened, full, rtol=1e-9)
+    assert finalists.sum() >= 3
+    assert np.all(screened[~finalists] <= screened[finalists].min() + 1e-9)
+
+
+def test_semantic_entropy_term_is_the_clipped_entropy_difference() -> None:
+    belief = synthetic_belief(4)
+    actions = PushSkill(PushConfig(max_samples=10)).propose(_ctx(belief))
+    pred = AnalyticPushEffect().predict(belief, actions)
+    ctx = _ctx(belief)
+    batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
+    term = SemanticEntropyTerm()
+    assert term.applies_to == frozenset({"manipulation"})
+    sparse = term.score(ctx, batch)
+    h0 = belief.total_semantic_entropy()
+    want = np.array([min(0.0, h0 - b.total_semantic_entropy()) for b in pred.beliefs])
+    np.testing.assert_allclose(sparse, want, rtol=1e-6, atol=1e-3)
+    dense = type(pred)(list(pred.beliefs), pred.changed)
+    dense_batch = CandidateBatch("push", "manipulation", list(actions), prediction=dense)
+    np.testing.assert_allclose(term.score(_ctx(belief), dense_batch), want, rtol=1e-9)
+    assert np.all(sparse <= 0.0)
+    assert np.any(sparse < 0.0)
+    # a prediction that only adds confidence is not rewarded
+    sharper = belief.copy()
+    sharper.eta[0] += 5.0
+    sharp_batch = CandidateBatch("push", "manipulation", list(actions[:1]),
+                                 prediction=type(pred)([sharper], np.ones((1, *GRID.shape), bool)))
+    assert term.score(_ctx(belief), sharp_batch)[0] == 0.0
+
+
+# ---------------------------------------------------------------------------------- physics (PyBullet)
+@pytest.fixture(scope="module")
+def sim():  # type: ignore[no-untyped-def]
+    from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
+
+    s = PyBulletSimulator(PyBulletConfig(label_noise=0.0))
+    yield s
+    s.close()
+
+
+def commanded_pushes(sim, skill: PushSkill, n: int = 20, seed: int = 2024) -> tuple[int, int, int, list[str]]:  # type: ignore[no-untyped-def]
+    """n seeded single-object pushes (random class, yaw, direction, length) through ``skill.execute``,
+    the tool starting ``standoff_m`` from the object along the line through its origin. Returns how
+    many moved the commanded length (length - standoff) within 30 % or 2 cm, how many fell, how many
+    times the tool reached the end of its push, and a log."""
+    cfg = skill.config
+    rng = np.random.default_rng(seed)
+    good, fell, reached, rows = 0, 0, 0, []
+    for _ in range(n):
+        cls = OBJECT_CLASSES[int(rng.integers(len(OBJECT_CLASSES)))]
+        into = rng.random() < 0.6
+        ang = np.pi / 2 + rng.uniform(-0.3, 0.3) if into else rng.choice([0.0, np.pi]) + rng.uniform(-0.2, 0.2)
+        u = np.array([np.cos(ang), np.sin(ang)])
+        x = rng.uniform(-0.2, 0.2) if into else -0.1 * np.sign(u[0])
+        y = rng.uniform(0.08, 0.15) if into else rng.uniform(0.12, 0.25)
+        obj = ObjectSpec(id=3, class_name=cls.name, position_m=(float(x), float(y), 0.0),
+                         quat_xyzw=tuple(float(q) for q in yaw_quat(rng.uniform(-np.pi, np.pi))))
+        sim.reset(SceneSpec(objects=(obj,)))
+        pose = sim.object_poses()[3]
+        top = max(p.position_m[2] + p.half_height_m for p in cls.parts)
+        height = max(cfg.min_tool_height_m, min(cfg.tool_height_m, cfg.low_object_fraction * top))
+        lead = leading_half_depth(skill.tool, height, top)
+        start = pose[:2, 3] - (support_along(obj, pose, -u) + cfg.standoff_m + lead) * u
+        length = float(rng.uniform(cfg.min_length_m, 0.2))
+        action = PushAction(interior_m=interior_of(SHELF), start_m=(float(start[0]), float(start[1])),
+                            direction=(float(u[0]), float(u[1])), length_m=length, height_m=height,
+                            palm=cfg.palm, tool=skill.tool)
+        out = skill.execute(sim, action, SimpleNamespace(shelf=SHELF))
+        commanded = length - cfg.standoff_m  # the tool meets the object after the standoff
+        moved = out.displacement_m[3]
+        ok = abs(moved - commanded) <= max(0.3 * commanded, 0.02)
+        good += ok
+        fell += bool(out.fell_or_left)
+        reached += out.success
+        rows.append(f"{cls.name:16s} commanded {commanded:.3f} moved {moved:.3f} fell {out.fell_or_left} ok {ok}")
+        assert sim.gripper_pose()[2, 3] > 1.0, "the gripper is parked after the push"
+    return good, fell, reached, rows
+
+
+def test_pushes_move_objects_by_the_commanded_length(sim) -> None:  # type: ignore[no-untyped-def]
+    good, fell, reached, rows = commanded_pushes(sim, PushSkill())
+    print("\n".join(rows))
+    print(f"pushes within 30% or 2 cm of the commanded length: {good}/20 ({fell} fell)")
+    assert good >= 16
+    assert reached == 20, "the tool did not reach the end of every push"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("palm", "height"), [("along", 0.02), ("along", 0.085), ("across", 0.02), ("across", 0.085)])
+def test_tool_height_and_orientation_survey(sim, palm: str, height: float) -> None:  # type: ignore[no-untyped-def]
+    """The numbers behind the default tool height (docs/push.md); run with -m slow -s."""
+    skill = PushSkill(PushConfig(palm=palm, tool_height_m=height))
+    good, fell, reached, _ = commanded_pushes(sim, skill, n=40, seed=7)
+    print(f"palm {palm}, tool height {height}: {good}/40 within tolerance, {fell} fell, tool blocked {40 - reached}")
+
+
+def test_effect_model_predicts_the_post_push_occupancy_better_than_no_change(sim) -> None:  # type: ignore[no-untyped-def]
+    from msmem_analytic.observation import AnalyticObservationModel
+
+    views = generate_viewpoints(ViewpointConfig(), SHELF)
+    observe, skill, model = AnalyticObservationModel(), PushSkill(), AnalyticPushEffect()
+    inside = interior_mask(SHELF, GRID)
+    results = []
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        objs = (
+            ObjectSpec(id=0, class_name="cracker_box", position_m=(float(rng.uniform(-0.15, 0.15)), 0.06, 0.0)),
+            ObjectSpec(id=1, class_name="tomato_soup_can", position_m=(float(rng.uniform(-0.25, 0.25)), 0.25, 0.0)),
+            ObjectSpec(id=2, class_name="foam_brick", position_m=(float(rng.uniform(-0.3, 0.3)), 0.18, 0.0),
+                       quat_xyzw=tuple(float(q) for q in yaw_quat(rng.uniform(-1, 1)))),
+        )
+        sim.reset(SceneSpec(objects=objs))
+        belief = EvidentialMap.empty(GRID)
+        for v in rng.choice(len(views), 4, replace=False):
+            belief = observe.update(belief, sim.observe(views[v]))
+        actions = skill.sample(belief, SHELF, rng)
+        assert actions
+        predicted = model.predict(belief, actions[:1]).beliefs[0]
+        skill.execute(sim, actions[0], SimpleNamespace(shelf=SHELF))
+        poses = sim.object_poses()
+        gt, _ = voxelize([o for o in objs if o.id in poses], GRID, poses=poses)
+        iou_pred = occupancy_iou(predicted.expected_occupancy() > 0.5, gt, inside)
+        iou_same = occupancy_iou(belief.expected_occupancy() > 0.5, gt, inside)
+        results.append((iou_pred, iou_same))
+    print("post-push occupancy IoU (effect model, no change):", [(round(a, 4), round(b, 4)) for a, b in results])
+    assert all(p > s for p, s in results)
+
+
+# ------------------------------------------------------------------------------------------ episode
+def test_push_only_episode_executes_a_push_and_records_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from msmem_core.config import load_config
+    from msmem_core.runner import build_episode, run_episode
+
+    monkeypatch.setenv("MSMEM_PLUGINS", "bonus=tests.support.manipulation_bonus")
+    scene = SceneSpec(name="two", objects=(
+        ObjectSpec(id=0, class_name="cracker_box", position_m=(-0.1, 0.08, 0.0)),
+        ObjectSpec(id=1, class_name="tomato_soup_can", position_m=(-0.1, 0.25, 0.0)),
+    ))
+    over = {
+        "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 4}, "steps": 3,
+        "msas": {"manipulation_window": [1, 5]},
+        "objective": [{"name": "ig"}, {"name": "semantic-entropy", "weight": 0.2},
+                      {"name": "manipulation-bonus"}],
+    }
+    cfg = load_config("push-only", None, over)
+    assert [s.name for s in cfg.skills] == ["view", "push"]
+    ep = build_episode(cfg, get_plugin_manager(), scene=scene)
+    final = run_episode(ep, tmp_path)
+    steps = [json.loads(line) for line in (tmp_path / "steps.jsonl").read_text().splitlines()]
+    assert [s["skill"] for s in steps] == ["view", "push", "view"]  # the push's associated view follows it
+    rec = steps[1]
+    assert rec["action"]["kind"] == "push"
+    assert rec["candidates"]["push"] > 0
+    assert set(rec["terms"]) == {"ig", "semantic-entropy", "manipulation-bonus"}
+    assert rec["terms"]["semantic-entropy"] <= 0.0
+    assert final["actions"] == {"view": 2, "push": 1}
