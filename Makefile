@@ -6,16 +6,22 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.msmem-installed
 TORCH := torch==2.13.0
 
-.PHONY: setup system-deps demo test test-slow lint perf clean
+.PHONY: setup system-deps demo test test-slow lint perf docs clean sapien test-sapien
 
 setup: system-deps $(STAMP)
 
-# System libraries: open3d needs libusb-1.0. Installed with apt when missing (Debian; root or sudo).
+# System libraries: open3d needs libusb-1.0; the report test renders report.html in headless Chromium.
+# Installed with apt when missing (Debian; root or sudo).
 system-deps:
 	@if ! ldconfig -p | grep -q 'libusb-1.0.so.0'; then \
 	  echo "installing libusb-1.0 (needed by open3d)"; \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+	@if ! command -v chromium >/dev/null 2>&1; then \
+	  echo "installing chromium (headless, for the run report test)"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null; \
 	fi
 
 # The venv; torch is pinned first so pip takes the CPU build instead of pulling a multi-GB CUDA one.
@@ -35,12 +41,28 @@ test: setup
 test-slow: setup
 	$(PY) -m pytest -q -m slow
 
+# Optional SAPIEN backend (not part of `make test`'s install): the extra, and a CPU Vulkan driver
+# (Mesa 25 lavapipe, unpacked into .venv/lavapipe; no system package changes) for SAPIEN's own
+# renderer. Without the driver the backend uses its ray-cast camera. See docs/sapien.md.
+sapien: setup
+	$(PY) -m pip install -q -e ".[dev,sapien]"
+	bash simulators/msmem_sapien/setup_lavapipe.sh || echo "lavapipe not set up: the SAPIEN backend will use its ray-cast camera"
+	$(PY) -m msmem_sapien
+
+test-sapien: sapien
+	$(PY) -m pytest -q tests/test_sapien_sim.py
+
 lint: setup
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/mypy
 
 perf: setup
 	$(VENV)/bin/msmem perf ig
+
+# The generated references (a test fails when they drift from the code).
+docs: setup
+	$(VENV)/bin/msmem docs config > docs/config-reference.md
+	$(VENV)/bin/msmem docs cli > docs/cli.md
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache

@@ -19,6 +19,14 @@ scene_app = typer.Typer(no_args_is_help=True, help="Generate and inspect scenes.
 app.add_typer(config_app, name="config")
 app.add_typer(perf_app, name="perf")
 app.add_typer(scene_app, name="scene")
+docs_app = typer.Typer(no_args_is_help=True, help="Generate reference documentation (docs/*.md).")
+app.add_typer(docs_app, name="docs")
+datagen_app = typer.Typer(no_args_is_help=True, help="Generate training data for the learned models.")
+train_app = typer.Typer(no_args_is_help=True, help="Train the learned models.")
+eval_app = typer.Typer(no_args_is_help=True, help="Evaluate the learned models on held-out data.")
+app.add_typer(datagen_app, name="datagen")
+app.add_typer(train_app, name="train")
+app.add_typer(eval_app, name="eval")
 
 MethodOpt = Annotated[str | None, typer.Option("--method", "-m", help="Method preset: view-only, push-only, grasp-only, no-cdc, ours.")]
 ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML/JSON config file overriding the preset.")]
@@ -78,8 +86,10 @@ def run(
     seed: Annotated[int | None, typer.Option("--seed", help="Root seed of the episode.")] = None,
     out: Annotated[Path | None, typer.Option("--out", help="Run folder (default runs/<method>-scene<N>-seed<S>).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    report: Annotated[bool, typer.Option("--report/--no-report",
+                                         help="Write report.html and PNGs to the run folder.")] = True,
 ) -> None:
-    """Run one mapping episode and write config.json, steps.jsonl and metrics.json to the run folder."""
+    """Run one mapping episode and write config.json, steps.jsonl, metrics.json and the report to the run folder."""
     from msmem_core.config import load_config
     from msmem_core.runner import build_episode, run_episode
 
@@ -119,6 +129,61 @@ def run(
     keys = ("occupancy_iou", "observable_iou", "semantic_miou", "semantic_miou_bev", "position_change_m")
     typer.echo("final: " + ", ".join(f"{k} {final[k]:.3f}" for k in keys))
     typer.echo(f"actions: {final['actions']}  seconds/step: {final['seconds_per_step']:.2f}")
+    if report:
+        from msmem_core.report import write_report
+
+        typer.echo(f"report: {write_report(out_dir)[0]}")
+
+
+@app.command()
+def bench(
+    methods: Annotated[str, typer.Option("--methods", help="Comma-separated method presets.")] = "view-only,push-only",
+    suite: Annotated[str, typer.Option("--suite", help="Scene suite shipped with msmem.")] = "hard25",
+    scenes: Annotated[str | None, typer.Option("--scenes", help="Scene indices, e.g. 0-4,7 (default: all).")] = None,
+    steps: Annotated[int | None, typer.Option("--steps", help="T_max per episode.")] = None,
+    sim: Annotated[str | None, typer.Option("--sim", help="Simulator plugin name.")] = None,
+    config: ConfigOpt = None,
+    executor: Annotated[str, typer.Option("--executor", help="local or ray.")] = "local",
+    workers: Annotated[int, typer.Option("--workers", help="Episodes in parallel.")] = 2,
+    threads: Annotated[int, typer.Option("--threads", help="Threads per episode (numba, torch).")] = 1,
+    address: Annotated[str | None, typer.Option("--address", help="Ray cluster address (executor ray).")] = None,
+    out: Annotated[Path, typer.Option("--out", help="Results folder (rerun to resume).")] = Path("runs/bench"),
+) -> None:
+    """Run methods x scenes episodes; writes episodes/*.json, table.md, results.json and curves.png."""
+    import os
+
+    from msmem_core.bench import parse_range, run_bench, suite_scenes
+    from msmem_core.config import preset
+
+    method_list = [m.strip() for m in methods.split(",") if m.strip()]
+    for m in method_list:
+        preset(m)  # unknown methods fail before any episode starts
+    suite_list = suite_scenes(suite)
+    over: dict[str, Any] = {}
+    if steps is not None:
+        over["steps"] = steps
+    if sim:
+        over["simulator"] = {"name": sim, "params": {}}
+    if address:
+        os.environ["RAY_ADDRESS"] = address
+    summary = run_bench(method_list, suite_list, parse_range(scenes, len(suite_list)), out, over,
+                        str(config) if config else None, executor, workers, threads)
+    typer.echo((out / "table.md").read_text())
+    if summary["errors"]:
+        typer.echo(f"{len(summary['errors'])} episode(s) crashed; see {out / 'results.json'}", err=True)
+
+
+@app.command("report")
+def report_cmd(
+    run_dir: Annotated[Path, typer.Argument(help="Run folder written by `msmem run`.")],
+    png: Annotated[bool, typer.Option("--png/--no-png",
+                                      help="Also write report_metrics.png and report_belief.png.")] = True,
+) -> None:
+    """(Re)write a run folder's report: report.html (interactive 3-D belief, opens offline) and PNG snapshots."""
+    from msmem_core.report import write_report
+
+    for path in write_report(run_dir, png=png):
+        typer.echo(str(path))
 
 
 @scene_app.command("generate")
@@ -141,6 +206,85 @@ def perf_ig(repeats: Annotated[int, typer.Option("--repeats", help="Timed repeat
     from msmem_core.perf import perf_ig as run_perf
 
     run_perf(repeats=repeats)
+
+
+@perf_app.command("push")
+def perf_push(
+    repeats: Annotated[int, typer.Option("--repeats", help="Timed repeats per stage (best is reported).")] = 3,
+    samples: Annotated[int, typer.Option("--samples", help="Push candidates (UPS max_samples).")] = 80,
+    scene_seed: Annotated[int, typer.Option("--scene-seed", help="Generated scene of the belief.")] = 0,
+    reference: Annotated[bool, typer.Option("--reference/--no-reference", help="Also time the full re-score.")] = True,
+) -> None:
+    """Time sampling, effect prediction and scoring of push candidates on all 300 views (mid-episode belief)."""
+    from msmem_core.perf_push import perf_push as run_perf
+
+    run_perf(repeats=repeats, samples=samples, scene_seed=scene_seed, reference=reference)
+
+
+@docs_app.command("config")
+def docs_config() -> None:
+    """Print the configuration reference (docs/config-reference.md), generated from the pydantic models."""
+    from msmem_core.docgen import config_reference
+
+    typer.echo(config_reference(), nl=False)
+
+
+@docs_app.command("cli")
+def docs_cli() -> None:
+    """Print the command-line reference (docs/cli.md), generated from the commands' help."""
+    from msmem_core.docgen import cli_reference
+
+    typer.echo(cli_reference(), nl=False)
+
+
+# Grasp learning (msmem_grasp). Imported inside the commands only, so the core CLI loads without it.
+@datagen_app.command("grasp")
+def datagen_grasp(
+    scenes: Annotated[int, typer.Option("--scenes", help="Number of scenes (seeds SEED .. SEED+N-1).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder: one scene_<seed>.npz per scene.")],
+    workers: Annotated[int, typer.Option("--workers", help="Parallel processes (or Ray tasks in flight).")] = 1,
+    seed: Annotated[int, typer.Option("--seed", help="First scene seed.")] = 0,
+    executor: Annotated[str, typer.Option("--executor", help="local (processes) or ray.")] = "local",
+    points: Annotated[int, typer.Option("--points", help="FPP points per scene.")] = 4096,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+) -> None:
+    """FE-vMF training data: scene -> belief from 3-10 random views -> FPP points -> antipodal labels (resumable)."""
+    from msmem_grasp.commands import datagen_grasp as run_datagen
+
+    run_datagen(scenes=scenes, out=out, workers=workers, seed=seed, executor=executor, points=points, quiet=quiet)
+
+
+@train_app.command("fe-vmf")
+def train_fe_vmf(
+    data: Annotated[Path, typer.Option("--data", help="Folder of shards from `msmem datagen grasp`.")],
+    out: Annotated[Path, typer.Option("--out", help="Weights file (.pt); a .json sidecar is written beside it.")],
+    epochs: Annotated[int, typer.Option("--epochs", help="Training epochs.")] = 20,
+    val_fraction: Annotated[float, typer.Option("--val-fraction", help="Fraction of scenes for validation.")] = 0.1,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the split, initialisation and batches.")] = 0,
+    lr: Annotated[float, typer.Option("--lr", help="AdamW learning rate.")] = 1e-3,
+    threads: Annotated[int, typer.Option("--threads", help="torch threads.")] = 2,
+    max_minutes: Annotated[float | None, typer.Option("--max-minutes", help="Stop after the epoch past this.")] = None,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+) -> None:
+    """Train FE-vMF (AdamW, validation per epoch); keeps the best weights + a JSON sidecar (metrics, sha256)."""
+    from msmem_grasp.commands import train_fe_vmf as run_train
+
+    run_train(data=data, out=out, epochs=epochs, val_fraction=val_fraction, seed=seed, lr=lr, threads=threads,
+              max_minutes=max_minutes, quiet=quiet)
+
+
+@eval_app.command("fe-vmf")
+def eval_fe_vmf(
+    data: Annotated[Path, typer.Option("--data", help="Folder of held-out shards.")],
+    weights: Annotated[Path | None, typer.Option("--weights", help="Weights file (default: the shipped ones).")] = None,
+    plot: Annotated[Path | None, typer.Option("--plot", help="Write the kappa calibration plot (PNG) here.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the metrics as JSON here.")] = None,
+    threads: Annotated[int, typer.Option("--threads", help="torch threads.")] = 2,
+) -> None:
+    """Held-out metrics of FE-vMF and of the geometric antipodal heuristic: AUROC, ECE, NLL, angular errors, P/R."""
+    from msmem_grasp.commands import eval_fe_vmf as run_eval
+
+    run_eval(data=data, weights=weights, plot=plot, json_out=json_out, threads=threads)
 
 
 def main() -> None:

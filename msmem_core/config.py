@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -35,12 +35,14 @@ class GridConfig(_Strict):
     voxel_m: float = Field(0.01, gt=0.001, le=0.05)
     """Voxel edge; the grid covers the shelf interior plus ``margin_voxels`` on every side."""
     margin_voxels: int = Field(1, ge=1, le=10)
+    """Voxels of margin around the shelf interior (they hold the boards the cameras see)."""
 
 
 class SceneConfig(_Strict):
     file: Path | None = None
     """A SceneSpec JSON file; when unset the generator builds one from ``seed``."""
     seed: int = 0
+    """Seed of the generated scene (ignored when ``file`` is set)."""
     generator: SceneGenConfig = SceneGenConfig()
 
 
@@ -48,6 +50,7 @@ class TermRef(ComponentRef):
     """An objective term and its weight in the weighted sum."""
 
     weight: float = 1.0
+    """Weight of the term in the objective's sum."""
 
 
 class SkillRef(ComponentRef):
@@ -62,7 +65,9 @@ class MSASConfig(_Strict):
     manipulation_window: tuple[int, int] = (3, 38)
     """Steps (inclusive) in which manipulation may be chosen ([MEM]: 3 to 38)."""
     conf_cutoff: float = Field(0.85, gt=0.0, lt=1.0)
+    """A BEV cell counts as mapped when its max class probability (MEM's p^1.8 scaling) exceeds this."""
     mapped_fraction: float = Field(0.99, gt=0.0, le=1.0)
+    """Manipulation is disabled once this fraction of BEV cells is mapped ([MEM])."""
     start_view: int | None = None
     """Viewpoint of the initial observation (None: the centre of the middle grid)."""
 
@@ -78,6 +83,7 @@ class RunConfig(_Strict):
     """Everything one episode needs; ``msmem config show`` prints the resolved form."""
 
     method: str = DEFAULT_METHOD
+    """The preset the config was resolved from (view-only, push-only, grasp-only, no-cdc, ours)."""
     seed: int = 0
     """Root seed: every random choice of the episode flows from it."""
     steps: int = Field(40, ge=1, le=1000)
@@ -95,6 +101,14 @@ class RunConfig(_Strict):
     objective: list[TermRef] = Field(default_factory=lambda: [TermRef(name="ig")], min_length=1)
     ig: IGConfig = IGConfig()
     msas: MSASConfig = MSASConfig()
+    report_steps: list[Annotated[int, Field(ge=0)]] | None = None
+    """Steps after which the belief and ground truth are saved (``belief_step{N}.npz``) for the run
+    report; None: the first, middle and last step (0, T/2, T-1). Steps >= ``steps`` are ignored."""
+
+    def snapshot_steps(self) -> list[int]:
+        """The steps whose belief the run folder keeps for the report (sorted, within the episode)."""
+        wanted = self.report_steps if self.report_steps is not None else [0, self.steps // 2, self.steps - 1]
+        return sorted({s for s in wanted if s < self.steps})
 
     def grid_spec(self, shelf: Any) -> GridSpec:
         return GridSpec.around_box(shelf.interior_lower, shelf.interior_upper, self.grid.voxel_m, self.grid.margin_voxels)

@@ -1,7 +1,9 @@
 """Build an episode from a ``RunConfig``, run MSAS on it and write the run folder.
 
-Run folder: ``config.json`` (resolved), ``scene.json``, ``steps.jsonl`` (one record per step) and
-``metrics.json`` (final metrics and action counts).
+Run folder: ``config.json`` (resolved), ``scene.json``, ``steps.jsonl`` (one record per step),
+``metrics.json`` (final metrics and action counts), ``belief_final.npz``, and for the run report
+(``msmem_core.report``) ``belief_step{N}.npz`` (float16 belief and ground truth after the steps of
+``RunConfig.snapshot_steps``) and ``gt_final.npz`` (final ground-truth occupancy and classes).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from msmem_core.metrics import (
 )
 from msmem_core.msas import BoundSkill, Decision, DecisionContext, Objective, run_msas
 from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager
+from msmem_core.report import save_ground_truth, save_snapshot
 from msmem_core.scene import SceneSpec
 from msmem_core.scenegen import generate_scene
 from msmem_core.viewpoints import default_start_view, generate_viewpoints
@@ -123,6 +126,8 @@ class MetricTracker:
     def _refresh(self, poses: dict[int, np.ndarray]) -> None:
         objs = [self.objects[i] for i in poses]
         self.gt_occ, self.gt_cls = voxelize(objs, self.grid, poses=poses)
+        self.gt_occ &= ~self.walls  # metrics are about the shelf interior
+        self.gt_cls[self.walls] = 0
         self.mask = observable_mask(objs, poses, self.ep.scene.shelf, self.ep.viewpoints, self.ep.cfg.camera, self.grid)
         self._gt_poses = {k: v.copy() for k, v in poses.items()}
 
@@ -163,6 +168,7 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None) 
         ep.scene.to_json(out_dir / "scene.json")
         steps_file = (out_dir / "steps.jsonl").open("w")
     counts: Counter[str] = Counter()
+    snapshot_steps = set(cfg.snapshot_steps())
     t_last = time.perf_counter()
 
     def make_ctx(step: int, b: EvidentialMap, visited: set[int], allowed: bool) -> DecisionContext:
@@ -185,6 +191,8 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None) 
         if out_dir is not None:
             steps_file.write(json.dumps(_jsonable(rec)) + "\n")
             steps_file.flush()
+            if step in snapshot_steps:
+                save_snapshot(out_dir / f"belief_step{step}.npz", b, metrics.gt_occ, metrics.gt_cls)
         if progress is not None:
             progress(rec)
 
@@ -208,4 +216,5 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None) 
     if out_dir is not None:
         (out_dir / "metrics.json").write_text(json.dumps(_jsonable(final), indent=2))
         belief.save(out_dir / "belief_final.npz")
+        save_ground_truth(out_dir / "gt_final.npz", grid, metrics.gt_occ, metrics.gt_cls)
     return final

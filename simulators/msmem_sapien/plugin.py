@@ -1,23 +1,24 @@
 """Registers ``sapien`` whether or not the library is installed (habitat-lab's pattern)."""
 
+import warnings
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from msmem_core.errors import PluginError
 from msmem_core.plugins import SimulatorSpec, hookimpl, missing_extra_factory
 from msmem_sapien.config import SapienConfig
 
 
 def _factory() -> Callable[[Any], Any]:
+    """``SapienSimulator`` when sapien imports; else a factory whose call says which extra to install."""
     try:
-        import sapien  # noqa: F401
+        with warnings.catch_warnings():  # "Failed to find system libvulkan": it then uses its bundled loader
+            warnings.simplefilter("ignore", UserWarning)
+            import sapien  # noqa: F401
     except ImportError as e:
         return missing_extra_factory("simulator", "sapien", "sapien", e)
+    from msmem_sapien.simulator import SapienSimulator  # a failure here is a bug, reported as a broken plugin
 
-    def not_yet(_config: Any) -> Any:
-        raise PluginError("simulator 'sapien': the SAPIEN backend is not implemented yet (tracked in issue 7)")
-
-    return not_yet
+    return SapienSimulator
 
 
 @hookimpl
@@ -26,6 +27,7 @@ def msmem_simulators() -> Iterable[SimulatorSpec]:
         name="sapien",
         factory=_factory(),
         config_model=SapienConfig,
-        description="SAPIEN 3 on PhysX CPU (optional extra: pip install 'msmem[sapien]')",
+        description="SAPIEN 3 on PhysX CPU; SAPIEN's renderer when a Vulkan device works, else ray casting "
+        "(optional extra: pip install 'msmem[sapien]')",
         extra="sapien",
     )

@@ -1,0 +1,212 @@
+"""Run independent tasks (benchmark episodes, data-generation shards) on local processes or Ray.
+
+``run_tasks(fn, tasks, executor="local", workers=N)`` calls ``fn(task)`` for every task and returns
+the results in task order. ``fn`` must be a module-level function (it is pickled) and should write
+its own result file atomically, so a killed run resumes by skipping finished tasks.
+
+- ``local``: a ``ProcessPoolExecutor`` with the *spawn* start method (forking a process whose
+  OpenMP / torch thread pools are running can deadlock the child); ``workers=1`` runs in this process.
+- ``ray``: ``ray.remote`` tasks (one CPU each), at most ``workers`` in flight; connects to a running
+  cluster if ``ray.init`` was called (or ``RAY_ADDRESS`` is set), else starts a local one.
+
+Every worker limits torch / numba / OpenMP to ``threads`` threads before it runs a task, so results do
+not depend on where a task ran (DESIGN.md, "Scale and speed"). A task that raises does not stop the
+others: it comes back as a :class:`TaskFailure` (or, with ``on_error="raise"``, the first one raises).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import traceback
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from contextlib import contextmanager
+from dataclasses import dataclass
+from multiprocessing import get_context
+from typing import Any, Literal
+
+from msmem_core.errors import UserError
+
+EXECUTORS = ("local", "ray")
+ExecutorName = Literal["local", "ray"]
+
+
+@dataclass(frozen=True)
+class TaskFailure:
+    """A task whose function raised: the task, ``"ExcType: message"`` and the formatted traceback."""
+
+    index: int
+    task: Any
+    error: str
+    traceback: str
+
+
+class TaskError(RuntimeError):
+    """Raised by ``run_tasks(on_error="raise")`` with the first failure attached."""
+
+    def __init__(self, failure: TaskFailure) -> None:
+        super().__init__(f"task {failure.index} ({failure.task!r}) failed: {failure.error}\n{failure.traceback}")
+        self.failure = failure
+
+
+def limit_threads(threads: int) -> None:
+    """Cap OpenMP/MKL, numba and torch thread pools of this process at ``threads``."""
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ[var] = str(threads)
+    import numba
+    import torch
+
+    numba.set_num_threads(max(1, min(threads, int(numba.config.NUMBA_NUM_THREADS))))  # type: ignore[attr-defined]
+    torch.set_num_threads(threads)
+
+
+@contextmanager
+def _threads_in_this_process(threads: int | None) -> Iterator[None]:
+    """Limit torch/numba threads for a task run in the calling process, then restore them."""
+    if threads is None:
+        yield
+        return
+    import numba
+    import torch
+
+    before = (torch.get_num_threads(), numba.get_num_threads())
+    torch.set_num_threads(threads)
+    numba.set_num_threads(max(1, min(threads, before[1])))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before[0])
+        numba.set_num_threads(before[1])
+
+
+def _call(fn: Callable[[Any], Any], index: int, task: Any, threads: int | None) -> Any:
+    """Run one task; exceptions become a :class:`TaskFailure` (picklable). ``threads`` limits (and
+    afterwards restores) this process's pools; workers are limited once, by their initializer."""
+    try:
+        with _threads_in_this_process(threads):
+            return fn(task)
+    except Exception as e:
+        return TaskFailure(index, task, f"{type(e).__name__}: {e}", traceback.format_exc())
+
+
+def _worker_init(threads: int | None) -> None:
+    if threads is not None:  # before any task imports numba/torch, so the env vars take effect too
+        limit_threads(threads)
+
+
+def _iter_local(
+    fn: Callable[[Any], Any], tasks: Sequence[Any], workers: int, threads: int | None
+) -> Iterator[tuple[int, Any]]:
+    if workers <= 1:
+        for i, t in enumerate(tasks):
+            yield i, _call(fn, i, t, threads)
+        return
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
+                               initializer=_worker_init, initargs=(threads,))
+    try:
+        pending: dict[Future[Any], int] = {pool.submit(_call, fn, i, t, None): i for i, t in enumerate(tasks)}
+        while pending:
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in done:
+                yield pending.pop(fut), fut.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _iter_ray(
+    fn: Callable[[Any], Any], tasks: Sequence[Any], workers: int, threads: int | None
+) -> Iterator[tuple[int, Any]]:
+    try:
+        import ray
+    except ImportError as e:
+        raise UserError("executor 'ray' needs Ray: pip install 'msmem[ray]'") from e
+    if not ray.is_initialized():
+        os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # local runs: no token written to $HOME
+        if os.environ.get("RAY_ADDRESS"):
+            ray.init(address=os.environ["RAY_ADDRESS"], log_to_driver=False)
+        else:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    remote = ray.remote(num_cpus=1)(_call)
+    queue = list(enumerate(tasks))[::-1]
+    in_flight: dict[Any, int] = {}
+    while queue or in_flight:
+        while queue and len(in_flight) < max(1, workers):
+            i, t = queue.pop()
+            in_flight[remote.remote(fn, i, t, threads)] = i
+        done, _ = ray.wait(list(in_flight), num_returns=1)
+        for ref in done:
+            yield in_flight.pop(ref), ray.get(ref)
+
+
+def iter_tasks(
+    fn: Callable[[Any], Any],
+    tasks: Sequence[Any],
+    executor: str = "local",
+    workers: int | None = None,
+    threads: int | None = 1,
+) -> Iterator[tuple[int, Any]]:
+    """``(task index, result or TaskFailure)`` in completion order. ``workers`` defaults to the CPU
+    count; ``threads`` (per task; None leaves the pools alone) defaults to 1."""
+    if executor not in EXECUTORS:
+        raise UserError(f"unknown executor {executor!r}; choose one of: {', '.join(EXECUTORS)}")
+    n = workers or os.cpu_count() or 1
+    if n < 1:
+        raise UserError(f"workers must be >= 1, got {workers}")
+    if executor == "ray":
+        return _iter_ray(fn, tasks, n, threads)
+    return _iter_local(fn, tasks, min(n, max(1, len(tasks))), threads)
+
+
+def run_tasks(
+    fn: Callable[[Any], Any],
+    tasks: Sequence[Any],
+    executor: str = "local",
+    workers: int | None = None,
+    progress: bool = True,
+    threads: int | None = 1,
+    description: str = "tasks",
+    on_error: Literal["collect", "raise"] = "collect",
+    on_result: Callable[[int, Any], None] | None = None,
+) -> list[Any]:
+    """Run ``fn`` over ``tasks``; results (or :class:`TaskFailure` records) in task order.
+
+    ``progress`` shows a rich progress bar with the rate in tasks per minute; ``on_result(index,
+    result)`` is called as each task finishes (e.g. to log).
+    """
+    tasks = list(tasks)
+    results: list[Any] = [None] * len(tasks)
+    stream = iter_tasks(fn, tasks, executor, workers, threads)
+    bar = None
+    if progress and tasks:
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+
+        bar = Progress(TextColumn("{task.description}"), MofNCompleteColumn(), BarColumn(),
+                       TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TimeRemainingColumn())
+        bar.start()
+        bar_id = bar.add_task(description, total=len(tasks), rate="")
+    start = time.perf_counter()
+    try:
+        for done, (i, res) in enumerate(stream, 1):
+            results[i] = res
+            if on_result is not None:
+                on_result(i, res)
+            if bar is not None:
+                rate = 60.0 * done / max(time.perf_counter() - start, 1e-9)
+                bar.update(bar_id, advance=1, rate=f"{rate:.1f}/min")
+            if on_error == "raise" and isinstance(res, TaskFailure):
+                raise TaskError(res)
+    finally:
+        close = getattr(stream, "close", None)
+        if close is not None:
+            close()
+        if bar is not None:
+            bar.stop()
+    return results
