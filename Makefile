@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.msmem-installed
 TORCH := torch==2.13.0
 
-.PHONY: setup system-deps demo test test-slow lint perf docs clean sapien test-sapien
+.PHONY: setup system-deps demo test test-slow lint perf docs clean sapien test-sapien test-ray
 
 setup: system-deps $(STAMP)
 
@@ -51,6 +51,11 @@ sapien: setup
 
 test-sapien: sapien
 	$(PY) -m pytest -q tests/test_sapien_sim.py
+
+# Optional Ray executor: local and Ray runs of the benchmark must give identical tables.
+test-ray: setup
+	$(PY) -m pip install -q -e ".[dev,ray]"
+	$(PY) -m pytest -q tests/test_bench.py -k ray
 
 lint: setup
 	$(VENV)/bin/ruff check .
