@@ -179,3 +179,24 @@ def test_any_sequence_of_observations_keeps_the_belief_valid(obs_list: list[Obse
     chi = b.vacuity()
     assert np.all((chi > 0) & (chi <= 1))
     assert np.all(b.class_probs().sum(axis=0) == pytest.approx(1.0, abs=1e-5))
+
+
+def test_a_voxel_an_object_left_flips_to_free_within_two_views_with_contradiction_decay() -> None:
+    """The object that made a plane at PLANE_Y moved away (the wall is now 5 cm further back)."""
+    pose_a, pose_b = pose_facing_plane(), pose_facing_plane(0.012, -0.007)
+
+    def run(decay: float) -> tuple[np.ndarray, np.ndarray]:
+        model = AnalyticObservationModel(contradiction_decay=decay)
+        b = EvidentialMap.empty(GRID)
+        for pose in (pose_a, pose_b, pose_a, pose_b):  # four agreeing views: well established
+            b = model.update(b, plane_observation(pose, PLANE_Y, label=7))
+        was_occ = b.expected_occupancy() > 0.95
+        for pose in (pose_a, pose_b):  # the object left: two views see through to the back
+            b = model.update(b, plane_observation(pose, PLANE_Y + 0.05, label=3))
+        return was_occ, b.expected_occupancy()
+
+    was_occ, p = run(0.3)
+    cleared = was_occ & (p < 0.5)
+    assert cleared.sum() > 0.9 * was_occ.sum()
+    was_occ_plain, p_plain = run(1.0)  # pure evidence counting keeps the stale surface
+    assert (was_occ_plain & (p_plain < 0.5)).sum() < 0.1 * was_occ_plain.sum()

@@ -48,6 +48,13 @@ class AnalyticObservationConfig(BaseModel):
     a voxel boundary (the shelf floor at z = 0, an object face) marks the voxel behind it, which is
     the voxel the solid touches (the ground-truth rule), not the free voxel in front of it."""
     far_m: float = Field(1.5, gt=0.0)
+    contradiction_decay: float = Field(1.0, ge=0.0, le=1.0)
+    """Where this view contradicts the belief, the contradicted evidence above the prior is scaled by
+    this factor before the new evidence is added: occupied (and object-class) evidence on voxels seen
+    free, free (and background) evidence on voxels seen occupied. Agreeing views are unaffected, so
+    two agreeing views still pass the IG clamp; a voxel an object left flips after about two views
+    instead of many. 1.0 (the default) turns it off: on a push-only episode (scene seed 7, 16 steps)
+    0.3 did not raise the IoU after views (observable IoU 0.35 vs 0.36), so plain counting stays."""
     """Pixels without a return mark free space up to this z-depth (the camera's far plane)."""
 
 
@@ -91,6 +98,12 @@ class AnalyticObservationModel(ObservationModel):
         cfg = self.config
         free, occ, seen = self.masks(belief, observation)
         out = belief.copy()
+        if cfg.contradiction_decay < 1.0:
+            g = np.float32(cfg.contradiction_decay)
+            out.alpha[free] = 1 + (out.alpha[free] - 1) * g
+            out.eta[1:, free] = 1 + (out.eta[1:, free] - 1) * g
+            out.beta[occ] = 1 + (out.beta[occ] - 1) * g
+            out.eta[0, occ] = 1 + (out.eta[0, occ] - 1) * g
         out.alpha += np.float32(cfg.w_occ) * occ
         out.beta += np.float32(cfg.w_free) * free
         out.eta += np.float32(cfg.w_cls) * seen
