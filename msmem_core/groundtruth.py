@@ -31,8 +31,8 @@ from msmem_core.grid import GridSpec
 from msmem_core.meshes import CYLINDER_SECTIONS, object_mesh, part_mesh_local, shelf_meshes
 from msmem_core.scene import ObjectSpec, Part, ShelfSpec
 
-TOUCH_TOLERANCE_M = 5e-4
-"""Minimum overlap depth (metres) for a part to touch a voxel. Half a millimetre: simulated objects
+TOUCH_TOLERANCE_M = 1e-4
+"""Minimum overlap depth (metres) for a part to touch a voxel. A tenth of a millimetre: simulated objects
 settle ~10 um into the floor or a neighbour, which must not count as touching the next voxel layer
 (otherwise metrics would depend on the physics backend)."""
 HIT_NUDGE_VOXELS = 1e-4

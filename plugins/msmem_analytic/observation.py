@@ -48,6 +48,7 @@ class AnalyticObservationConfig(BaseModel):
     a voxel boundary (the shelf floor at z = 0, an object face) marks the voxel behind it, which is
     the voxel the solid touches (the ground-truth rule), not the free voxel in front of it."""
     far_m: float = Field(1.5, gt=0.0)
+    """Pixels without a return mark free space up to this z-depth (the camera's far plane)."""
     contradiction_decay: float = Field(1.0, ge=0.0, le=1.0)
     """Where this view contradicts the belief, the contradicted evidence above the prior is scaled by
     this factor before the new evidence is added: occupied (and object-class) evidence on voxels seen
@@ -55,7 +56,6 @@ class AnalyticObservationConfig(BaseModel):
     two agreeing views still pass the IG clamp; a voxel an object left flips after about two views
     instead of many. 1.0 (the default) turns it off: on a push-only episode (scene seed 7, 16 steps)
     0.3 did not raise the IoU after views (observable IoU 0.35 vs 0.36), so plain counting stays."""
-    """Pixels without a return mark free space up to this z-depth (the camera's far plane)."""
 
 
 class AnalyticObservationModel(ObservationModel):
