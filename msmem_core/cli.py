@@ -287,6 +287,34 @@ def eval_fe_vmf(
     run_eval(data=data, weights=weights, plot=plot, json_out=json_out, threads=threads)
 
 
+@app.command("bench-grasp")
+def bench_grasp(
+    scenes: Annotated[str, typer.Option("--scenes", help="Generated scene seeds, e.g. 0-9.")] = "0-9",
+    trials: Annotated[int, typer.Option("--trials", help="Trials per scene (different views).")] = 2,
+    views: Annotated[int, typer.Option("--views", help="Observations (one FE-UMGF step each) first.")] = 8,
+    random_views: Annotated[bool, typer.Option("--random-views/--nbv", help="Random views, not next-best.")] = False,
+    predictor: Annotated[str, typer.Option("--predictor", help="auto, fe-vmf or geometric.")] = "auto",
+    hard: Annotated[bool, typer.Option("--hard/--any", help="Hard scenes (as episodes) or random ones.")] = False,
+    workers: Annotated[int, typer.Option("--workers", help="Scenes in parallel.")] = 1,
+    out: Annotated[Path, typer.Option("--out", help="Results folder.")] = Path("runs/bench-grasp"),
+) -> None:
+    """Top-1 fused grasp executed in PyBullet per scene and trial: success rate (grasps from the belief only)."""
+    from msmem_grasp.bench import GraspBenchConfig
+    from msmem_grasp.bench import bench_grasp as run_bench_grasp
+
+    from msmem_core.bench import parse_range
+
+    cfg = GraspBenchConfig(scene_seeds=parse_range(scenes, 10**6), trials=trials, views=views,
+                           view_policy="random" if random_views else "nbv", require_hard=hard,
+                           skill={"predictor": predictor})
+    s = run_bench_grasp(cfg, out, workers=workers)["summary"]
+    typer.echo(f"predictor {s['predictor']}: {s['successes']}/{s['executed']} grasps succeeded "
+               f"({100 * s['success_rate']:.0f} %), {s['no_candidate']} of {s['trials']} trials had no executable "
+               f"grasp; held object of the believed class {s['held_believed_class']}/{s['successes']}; "
+               f"mean displacement of the other objects {s['mean_displaced_m']:.3f} m; "
+               f"{s['fell_or_left']} trial(s) with an object fallen or out -> {out}")
+
+
 def main() -> None:
     debug = "--debug" in sys.argv
     try:

@@ -157,6 +157,9 @@ class Prediction:
     """One belief per action (a list, or a lazy ``DeltaBeliefs`` of sparse changes)."""
     changed: NDArray[np.bool_]
     """[K, X, Y, Z] voxels whose evidence differs from the prior belief."""
+    excluded: NDArray[np.bool_] | None = None
+    """[K, X, Y, Z] voxels a disturbance term (CDC) ignores: a grasp's intended removal (the grasped
+    object's region); None: none."""
 
 
 class BeliefModel(ABC):
@@ -195,6 +198,10 @@ class Skill(ABC):
 
     @abstractmethod
     def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome: ...
+
+    def track(self, ctx: Any) -> None:  # noqa: B027 - optional hook
+        """Called once per step before any proposal, also when this skill may not act: skills that
+        accumulate evidence over the episode (the grasp skill's FE-UMGF buffer) update it here."""
 
 
 # ------------------------------------------------------------------------------------------ objective

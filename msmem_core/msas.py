@@ -96,6 +96,7 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective)
     counts: dict[str, int] = {}
     values: dict[str, float] = {}
     for bound in skills:
+        bound.skill.track(ctx)  # every step, also when the skill may not act (e.g. FE-UMGF's grasp buffer)
         if bound.skill.category == "manipulation" and not ctx.manipulation_allowed:
             continue
         actions = bound.skill.propose(ctx)

@@ -229,7 +229,10 @@ def _obb_overlap(ca: F64, ra: F64, ha: F64, cb: F64, rb: F64, hb: F64) -> NDArra
 def gripper_boxes(poses: F64, openings: F64, gripper: GripperSpec) -> tuple[F64, F64, F64]:
     """World (centre [3G, 3], rot [3G, 3, 3], half [3G, 3]) of the left finger, right finger and
     palm of G grasps (grasp-major order)."""
-    local_c = np.array([[c for c, _ in gripper.boxes(float(o))] for o in openings]).reshape(-1, 3, 3)
+    c0 = np.array([c for c, _ in gripper.boxes(0.0)])
+    c1 = np.array([c for c, _ in gripper.boxes(1.0)])
+    # GripperSpec.boxes is affine in the opening: interpolate instead of one call per grasp
+    local_c = c0[None] + np.asarray(openings, dtype=np.float64)[:, None, None] * (c1 - c0)[None]
     half = np.array([h for _, h in gripper.boxes(0.0)])
     rot = poses[:, :3, :3]
     centre = np.einsum("gij,gkj->gki", rot, local_c) + poses[:, None, :3, 3]

@@ -1,0 +1,197 @@
+"""Geometry shared by the grasp skill and its effect model: the gripper as points, its swept volume
+along a path, the voxels a grasp may not touch, and the believed objects (connected components).
+
+Rasterisation rule: a body covers the voxels holding any of its sample points, sampled on a lattice
+of at most half a voxel (in the body's frame, boxes shrunk by a tolerance), and a translation is
+sampled every half voxel; a voxel-sized obstacle therefore cannot slip between two samples.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from msmem_core.belief import EvidentialMap
+from msmem_core.grid import GridSpec
+from msmem_core.gripper import GripperSpec
+from msmem_core.ig import shelf_wall_mask
+from msmem_core.scene import ShelfSpec
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+def box_lattice(centre: F64, half: F64, spacing: float, shrink: float = 0.0) -> F64:
+    """Points [P, 3] of a lattice filling the box (centre, half-extents) shrunk by ``shrink``, with at
+    most ``spacing`` between neighbours and points on every face."""
+    h = np.maximum(np.asarray(half, dtype=np.float64) - shrink, 0.0)
+    axes = [np.linspace(-v, v, max(2, math.ceil(2 * v / spacing) + 1)) if v > 0 else np.zeros(1) for v in h]
+    g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return g + np.asarray(centre, dtype=np.float64)
+
+
+def gripper_points(gripper: GripperSpec, opening_m: float, spacing: float, shrink: float = 0.0) -> F64:
+    """Sample points [P, 3] of the two fingers (at ``opening_m``) and the palm, in the gripper frame."""
+    boxes = gripper.boxes(float(np.clip(opening_m, 0.0, gripper.max_opening_m)))
+    return np.concatenate([box_lattice(c, h, spacing, shrink) for c, h in boxes])
+
+
+def path_offsets(waypoints: F64, spacing: float) -> F64:
+    """Positions [T, 3] along the polyline through ``waypoints`` [W, 3], at most ``spacing`` apart
+    (the waypoints included)."""
+    w = np.asarray(waypoints, dtype=np.float64).reshape(-1, 3)
+    if len(w) == 1:
+        return w.copy()
+    out = [w[:1]]
+    for a, b in itertools.pairwise(w):
+        n = max(1, math.ceil(float(np.linalg.norm(b - a)) / spacing))
+        t = np.arange(1, n + 1)[:, None] / n
+        out.append(a + t * (b - a))
+    return np.concatenate(out)
+
+
+def swept_indices(grid: GridSpec, rotation: F64, local_points: F64, positions: F64) -> I64:
+    """Flat indices (sorted, unique) of the voxels holding the body's points (``local_points`` in a
+    frame with ``rotation``) at every origin of ``positions``; points outside the grid are dropped."""
+    local = np.asarray(local_points) @ np.asarray(rotation).T
+    world = (np.asarray(positions)[:, None, :] + local[None]).reshape(-1, 3)
+    ijk = grid.index_of(world)
+    ii = ijk[grid.contains_index(ijk)]
+    return np.unique((ii[:, 0] * grid.shape[1] + ii[:, 1]) * grid.shape[2] + ii[:, 2])
+
+
+def voxel_centres(grid: GridSpec, flat: I64) -> F64:
+    """World centres [N, 3] of voxels given by flat index."""
+    ijk = np.stack(np.unravel_index(np.asarray(flat, dtype=np.int64), grid.shape), axis=-1)
+    return grid.origin + (ijk + 0.5) * grid.voxel_m
+
+
+def blocked_mask(belief: EvidentialMap, shelf: ShelfSpec, occupied_threshold: float = 0.5,
+                 unknown_vacuity: float = 0.9, unknown_band: float = 0.1) -> NDArray[np.bool_]:
+    """[X, Y, Z]: voxels a gripper may not enter: believed occupied (p > ``occupied_threshold``),
+    unknown (semantic vacuity >= ``unknown_vacuity`` and |p - 0.5| < ``unknown_band``: never seen),
+    or the shelf's boards (``ig.shelf_wall_mask``)."""
+    p = belief.expected_occupancy()
+    unknown = (belief.vacuity() >= unknown_vacuity) & (np.abs(p - 0.5) < unknown_band)
+    return (p > occupied_threshold) | unknown | shelf_wall_mask(belief.grid, shelf)
+
+
+@dataclass
+class Objects:
+    """Believed objects: connected components (26-neighbourhood) of the believed-occupied voxels of
+    one argmax class inside the shelf interior (background-class voxels are the shelf's boards)."""
+
+    labels: NDArray[np.int32]
+    """[X, Y, Z] component per voxel (0: none)."""
+    classes: I64
+    """[L + 1] class of each component (index 0 unused)."""
+    cls: I64
+    """[X, Y, Z] argmax class."""
+
+    @classmethod
+    def of(cls, belief: EvidentialMap, interior: tuple[float, ...], occupied_threshold: float = 0.5) -> Objects:
+        """The components of ``belief`` inside ``interior`` = (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi)."""
+        grid = belief.grid
+        c = grid.centers()
+        inside = np.all((c > np.asarray(interior[:3])) & (c < np.asarray(interior[3:])), axis=-1)
+        k = np.argmax(belief.eta, axis=0)
+        occ = (belief.expected_occupancy() > occupied_threshold) & inside & (k != 0)
+        labels = np.zeros(grid.shape, np.int32)
+        classes = [0]
+        for c_id in np.unique(k[occ]):
+            lab, m = ndimage.label(occ & (k == c_id), structure=np.ones((3, 3, 3), dtype=bool))
+            labels[lab > 0] = lab[lab > 0] + len(classes) - 1
+            classes += [int(c_id)] * m
+        return cls(labels, np.asarray(classes, dtype=np.int64), k)
+
+    def label_at(self, grid: GridSpec, points: F64, target_class: I64 | None = None) -> I64:
+        """Component at each point [N, 3]: that of the nearest voxel of its 3x3x3 neighbourhood (its
+        own voxel first) holding one (of ``target_class`` when given); 0 if none."""
+        ijk = grid.index_of(points)
+        offs = np.stack(np.meshgrid(*([np.arange(-1, 2)] * 3), indexing="ij"), -1).reshape(-1, 3)
+        offs = offs[np.argsort(np.abs(offs).sum(1), kind="stable")]  # the point's own voxel first
+        q = ijk[:, None, :] + offs[None]
+        ok = grid.contains_index(q)
+        qc = np.clip(q, 0, np.asarray(grid.shape) - 1)
+        lab = np.where(ok, self.labels[qc[..., 0], qc[..., 1], qc[..., 2]], 0).astype(np.int64)
+        if target_class is not None:
+            lab = np.where(self.classes[lab] == np.asarray(target_class)[:, None], lab, 0)
+        first = np.argmax(lab > 0, axis=1)
+        return lab[np.arange(len(lab)), first]
+
+    def region(self, grid: GridSpec, label: int, pose: F64, opening_m: float, max_radius_m: float,
+               max_depth_m: float = 0.3) -> I64:
+        """Flat indices of component ``label`` clipped to the gripper's opening box: voxel centres
+        within ``opening_m / 2`` plus half a voxel of the grasp centre along the closing axis, within
+        ``max_radius_m`` across it, and from the palm to ``max_depth_m`` beyond the fingertips along
+        the approach (touching objects of one class stay separate)."""
+        vox = np.flatnonzero(self.labels.reshape(-1) == label)
+        if not len(vox) or label <= 0:
+            return np.zeros(0, np.int64)
+        s = grid.voxel_m
+        local = (voxel_centres(grid, vox) - pose[:3, 3]) @ pose[:3, :3]
+        keep = (np.abs(local[:, 0]) <= opening_m / 2 + s / 2) & (np.abs(local[:, 1]) <= max_radius_m)
+        keep &= (local[:, 2] >= -max_radius_m) & (local[:, 2] <= max_depth_m)
+        return vox[keep]
+
+
+def shift_voxels(grid: GridSpec, vox: I64, di: int, dj: int, dk: int) -> tuple[I64, NDArray[np.bool_]]:
+    """Flat indices of voxels moved by (di, dj, dk) and which of them stay inside the grid."""
+    nx, ny, nz = grid.shape
+    i, j, k = np.unravel_index(vox, grid.shape)
+    i, j, k = i + di, j + dj, k + dk
+    ok = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nz)
+    return np.where(ok, (i * ny + j) * nz + k, 0).astype(np.int64), ok
+
+
+def way_out(grid: GridSpec, vox: I64, lift: int) -> tuple[I64, I64]:
+    """The voxels a body sweeps when lifted by ``lift`` voxels and then carried along -y out of the
+    grid: (flat indices in the grid, step of the sweep at which each is first reached)."""
+    if not len(vox):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    j = np.unravel_index(vox, grid.shape)[1]
+    parts, steps = [], []
+    for dk in range(1, lift + 1):
+        f, ok = shift_voxels(grid, vox, 0, 0, dk)
+        parts.append(f[ok])
+        steps.append(np.full(int(ok.sum()), dk - 1))
+    for m in range(1, int(j.max()) + 2):
+        f, ok = shift_voxels(grid, vox, 0, -m, lift)
+        parts.append(f[ok])
+        steps.append(np.full(int(ok.sum()), lift + m - 1))
+    flat, step = np.concatenate(parts), np.concatenate(steps)
+    order = np.lexsort((step, flat))
+    flat, step = flat[order], step[order]
+    first = np.r_[True, flat[1:] != flat[:-1]]
+    return flat[first], step[first]
+
+
+def fill_down(grid: GridSpec, p: NDArray[np.floating], labels: NDArray[np.int32], vox: I64, label: int,
+              free_threshold: float) -> I64:
+    """``vox`` plus, below the lowest voxel of each of its columns, the voxels down to the floor that
+    are not believed free (p >= ``free_threshold``) and belong to no other object: the hidden lower
+    part of an object standing on the shelf (a view over a low object in front sees only the top of
+    the one behind it)."""
+    if not len(vox):
+        return vox
+    i, j, k = np.unravel_index(vox, grid.shape)
+    col = i * grid.shape[1] + j
+    order = np.lexsort((k, col))
+    first = np.r_[True, col[order][1:] != col[order][:-1]]
+    ci, cj, ck = i[order][first], j[order][first], k[order][first]
+    pz = np.asarray(p)[ci, cj]  # [C, Z]
+    lz = labels[ci, cj]
+    z = np.arange(grid.shape[2])
+    floor = grid.origin[2] + (z + 0.5) * grid.voxel_m > 0.0
+    solid = (pz >= free_threshold) & ((lz == 0) | (lz == label)) & floor[None]
+    below = z[None] < ck[:, None]
+    # the run of solid voxels right below each column's lowest voxel
+    run = np.flip(np.cumprod(np.flip(solid | ~below, axis=1), axis=1), axis=1).astype(bool) & below
+    ii, kk = np.nonzero(run)
+    extra = (ci[ii] * grid.shape[1] + cj[ii]) * grid.shape[2] + kk
+    return np.union1d(vox, extra)

@@ -1,0 +1,490 @@
+"""The grasp skill: Uncertainty-informed Grasp Selection (UGS, paper sec. UGS) and grasp execution
+composed from the ``Simulator`` vocabulary.
+
+Every step (``GraspSkill.track``, called by MSAS before proposals, also when manipulation is not
+allowed): FPP of the current belief from the views visited since the last manipulation plus one
+virtual front camera per viewpoint grid (``fpp.frontier_points``, ``num_points`` points) -> per-point
+evidential grasps (FE-vMF with the shipped weights; if none are installed, the geometric fallback of
+``msmem_grasp.geometric``, logged once as a warning and recorded in every action's ``predictor``)
+-> FE-UMGF buffer update (``msmem_grasp.fusion``). Nothing is ever read from ground truth.
+
+Executable grasps (``GraspSkill.propose``, only when manipulation is allowed), from the fused buffer:
+
+1. *Evidence*: E[q] >= ``min_affordance`` and uncertainty 2/S <= ``max_uncertainty``; the
+   ``preselect`` best by E[q] go on.
+2. *Pose*: approach a = mu_a_hat projected orthogonal to mu_b (eq. proj); centre c + (w/2) b with the
+   fused width w; frame (b, a x b, a) (``fevmf.executable_grasp``); fingers opened to
+   ``w + opening_margin_m`` (at most the gripper's 8 cm).
+3. *Reachable from the open front*: the approach may not point out of the shelf or up
+   (a_y >= -sin 15 deg, a_z <= sin 15 deg). The gripper comes from ``outside_y_m`` in front of the
+   shelf: straight in (+y) to the pre-grasp pose (the first of ``approach_distances_m`` back along
+   a that is free), then along a to the grasp. A top-down grasp thus enters above the objects in
+   front of the target; a grasp from the front slides in. After closing it lifts and retreats
+   straight out of the front (-y) to ``retreat_y_m``, where the object is past the shelf. The lift is
+   ``lift_m`` (3 cm), raised (up to ``max_lift_m`` and the room under the shelf top) to the lowest
+   height at which the object and the gripper leave without meeting a believed object, if any.
+4. *Collision-free in the belief*: the gripper's fingers and palm (``GripperSpec`` boxes, shrunk
+   by ``tolerance_m``), at the grasp and swept along the approach path (sampled every half voxel),
+   may not touch a voxel that is believed occupied (p > 0.5), unknown (vacuity >= 0.9 and
+   |p - 0.5| < 0.1), a shelf board, or outside the grid other than in front of the shelf. On the
+   final stretch along a and at the grasp, the target's own region (its class's connected component
+   at the contact, clipped to the opening box, ``planning.Objects.region``) is exempt: the fingers
+   slide along it and close on it (its voxels reach up to a voxel beyond its surface). The lift and the retreat are
+   not tested against objects (what they disturb is the effect model's prediction) but the lifted
+   target's believed top and the gripper must stay ``clearance_m`` under the shelf top.
+5. *Diversity*: at most ``max_per_object`` grasps per believed object (component), the ``top_k``
+   best by E[q].
+
+Execution (``GraspSkill.execute``): open, approach (travel speed to the pre-grasp, slow along a),
+close (``set_gripper(0)``: the fingers stop on contact and keep squeezing with the gripper's
+force), lift, retreat out of the shelf front, then ``held_object()``: the grasp succeeded only if
+an object is still between both fingers, held by friction alone (no attachment constraint). On
+success the object is taken out of the workspace (``remove_object``). Open, park, settle. The
+outcome reports the XY displacement of every object still present (``object_poses`` before and
+after; the removed object is excluded), the objects that fell (tilted > ``fall_tilt_deg``) or left
+the shelf interior, and the removed object.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from msmem_core.belief import EvidentialMap
+from msmem_core.camera import CameraConfig
+from msmem_core.grid import GridSpec
+from msmem_core.gripper import GripperSpec
+from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
+from msmem_core.scene import ShelfSpec
+from msmem_grasp.fpp import FPPConfig, frontier_points, virtual_front_views
+from msmem_grasp.fusion import FusionConfig, FusionStats, GraspBuffer, GraspHypotheses
+from msmem_grasp.geometric import GeometricConfig, predict_geometric
+from msmem_grasp.planning import (
+    Objects,
+    blocked_mask,
+    fill_down,
+    gripper_points,
+    path_offsets,
+    swept_indices,
+    voxel_centres,
+    way_out,
+)
+
+log = logging.getLogger("msmem.grasp")
+F64 = NDArray[np.float64]
+Vec3 = tuple[float, float, float]
+_SIN15 = math.sin(math.radians(15.0))
+_WARNED: set[str] = set()
+_DEFAULT_INTERIOR = (*ShelfSpec().interior_lower.tolist(), *ShelfSpec().interior_upper.tolist())
+
+
+def interior_of(shelf: ShelfSpec) -> tuple[float, float, float, float, float, float]:
+    """(x_lo, y_lo, z_lo, x_hi, y_hi, z_hi) of a shelf's interior."""
+    lo, hi = shelf.interior_lower, shelf.interior_upper
+    return (float(lo[0]), float(lo[1]), float(lo[2]), float(hi[0]), float(hi[1]), float(hi[2]))
+
+
+class GraspAction(Action):
+    """Grasp with the parallel-jaw gripper at ``pose`` (``GripperSpec`` frame: x = closing axis b,
+    z = approach a, origin between the fingertips), fingers opened to ``opening_m``; reached through
+    ``approach_m`` (gripper origins, orientation of ``pose``), then lift and retreat through ``retreat_m``."""
+
+    kind: str = "grasp"
+    category: Literal["manipulation"] = "manipulation"
+    pose: tuple[tuple[float, float, float, float], ...]
+    """4x4 gripper pose at the grasp (row-major)."""
+    width_m: float = Field(gt=0.0, le=0.3)
+    """Believed object width between the contacts."""
+    opening_m: float = Field(gt=0.0, le=0.3)
+    contact_m: Vec3
+    """The grasp's contact point (FE-UMGF cluster centre)."""
+    target_class: int | None = None
+    """Believed class of the object at the contact."""
+    approach_m: tuple[Vec3, ...] = ()
+    """Gripper origins before the grasp, from outside the shelf to the pre-grasp pose."""
+    retreat_m: tuple[Vec3, ...] = ()
+    """Gripper origins after closing: the lift, then out of the shelf front."""
+    affordance: float = Field(0.0, ge=0.0, le=1.0)
+    """Fused E[q]."""
+    uncertainty: float = Field(1.0, ge=0.0, le=1.0)
+    """Fused 2/S."""
+    predictor: str = ""
+    """What predicted the grasp evidence: ``fe-vmf:<weights>`` or ``geometric``."""
+    gripper: GripperSpec = GripperSpec()
+    interior_m: tuple[float, float, float, float, float, float] = _DEFAULT_INTERIOR
+    """The shelf interior the grasp was planned in: (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi)."""
+
+    @field_validator("pose")
+    @classmethod
+    def _rigid(cls, v: tuple[tuple[float, ...], ...]) -> tuple[tuple[float, ...], ...]:
+        m = np.asarray(v, dtype=np.float64)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise ValueError("pose must be a finite 4x4 matrix")
+        r = m[:3, :3]
+        if np.abs(r.T @ r - np.eye(3)).max() > 1e-5 or np.linalg.det(r) < 0 or np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9:
+            raise ValueError("pose must be a rigid transform (orthonormal rotation, last row 0 0 0 1)")
+        return v
+
+    @property
+    def matrix(self) -> F64:
+        return np.asarray(self.pose, dtype=np.float64)
+
+    def at(self, origin: Vec3 | F64) -> F64:
+        """The grasp's orientation at another gripper origin."""
+        m = self.matrix.copy()
+        m[:3, 3] = origin
+        return m
+
+    def swept_indices(self, grid: GridSpec) -> NDArray[np.int64]:
+        """Flat voxel indices the gripper covers: open along the approach, closed to the width
+        while lifting and retreating (the grasped object's own sweep is not included)."""
+        s = grid.voxel_m
+        r = self.matrix[:3, :3]
+        grasp = self.matrix[:3, 3]
+        app = path_offsets(np.array([*self.approach_m, grasp]), s / 2)
+        ret = path_offsets(np.array([grasp, *self.retreat_m]), s / 2)
+        a = swept_indices(grid, r, gripper_points(self.gripper, self.opening_m, s / 2), app)
+        b = swept_indices(grid, r, gripper_points(self.gripper, self.width_m, s / 2), ret)
+        return np.union1d(a, b)
+
+    def swept_volume(self, grid: GridSpec) -> NDArray[np.bool_]:
+        mask = np.zeros(grid.size, dtype=bool)
+        mask[self.swept_indices(grid)] = True
+        return mask.reshape(grid.shape)
+
+
+class GraspConfig(BaseModel):
+    """Parameters of UGS and of grasp execution (see the module docstring)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    gripper: GripperSpec = GripperSpec()
+    """The run's gripper (filled in by the runner)."""
+    camera: CameraConfig = CameraConfig()
+    """The run's camera (FPP casts its rays)."""
+    seed: int = 0
+    """Seed of the FPP point sampling (the run's seed; each step draws its own from it)."""
+    predictor: Literal["auto", "fe-vmf", "geometric"] = "auto"
+    """auto: FE-vMF with ``weights`` if they exist, else the geometric fallback (logged);
+    fe-vmf: the weights must load; geometric: always the fallback."""
+    weights: Path | None = None
+    """FE-vMF weights (None: the shipped ``msmem_grasp/weights/fe_vmf.pt``)."""
+    num_points: int = Field(3072, ge=16, le=100_000)
+    """FPP points per step (the paper samples 1e4 on a GPU; FE-vMF's training clouds have 4096)."""
+    ray_stride_px: int = Field(4, ge=1, le=64)
+    """FPP casts every n-th pixel of each camera."""
+    fusion: FusionConfig = FusionConfig()
+    geometric: GeometricConfig = GeometricConfig()
+    min_affordance: float = Field(0.5, ge=0.0, le=1.0)
+    """Grasps with a lower fused E[q] are not executed."""
+    max_uncertainty: float = Field(0.5, gt=0.0, le=1.0)
+    """Grasps with 2/S above this are not executed (a single fresh FE-vMF prediction has S >= 2)."""
+    preselect: int = Field(300, ge=1)
+    """Best grasps by E[q] that are checked for reachability and collisions."""
+    top_k: int = Field(40, ge=1)
+    """Executable grasps proposed per step."""
+    max_per_object: int = Field(4, ge=1)
+    """At most this many proposals per believed object."""
+    opening_margin_m: float = Field(0.02, ge=0.0, le=0.1)
+    """Fingers open to the fused width plus this (at most the gripper's opening)."""
+    min_width_m: float = Field(0.015, ge=0.0)
+    """Narrower fused widths (edges, handles) are not executed."""
+    tolerance_m: float = Field(0.003, ge=0.0, le=0.01)
+    """The gripper's boxes are shrunk by this in the collision test (voxelisation slack)."""
+    approach_distances_m: tuple[float, ...] = (0.03, 0.05, 0.08)
+    """The pre-grasp pose is the first of these distances back along the approach that is free."""
+    outside_y_m: float = Field(-0.12, lt=0.0, ge=-1.0)
+    """The approach starts this far in front of the shelf opening (y = 0)."""
+    lift_m: float = Field(0.03, ge=0.0, le=0.2)
+    """Lift after closing (at least); raised up to ``max_lift_m`` (and the room under the shelf top)
+    when that lets the object leave without meeting a believed object."""
+    max_lift_m: float = Field(0.10, ge=0.0, le=0.5)
+    retreat_y_m: float = Field(-0.30, lt=0.0, ge=-2.0)
+    """The gripper retreats to this y: the largest object (16 cm) is then past the opening."""
+    clearance_m: float = Field(0.005, ge=0.0, le=0.05)
+    """The lifted target's believed top stays this far under the shelf top."""
+    occupied_threshold: float = Field(0.5, ge=0.0, lt=1.0)
+    """Expected occupancy above which a voxel is believed occupied (objects, collisions)."""
+    unknown_vacuity: float = Field(0.9, gt=0.0, le=1.0)
+    """A voxel is unknown (the gripper may not enter it) with semantic vacuity at or above this ..."""
+    unknown_band: float = Field(0.1, ge=0.0, le=0.5)
+    """... and expected occupancy within this of 0.5."""
+    travel_speed_mps: float = Field(0.25, gt=0.0, le=2.0)
+    """Speed from in front of the shelf to the pre-grasp pose."""
+    approach_speed_mps: float = Field(0.05, gt=0.0, le=1.0)
+    """Speed along the approach from the pre-grasp pose to the grasp."""
+    lift_speed_mps: float = Field(0.05, gt=0.0, le=1.0)
+    retreat_speed_mps: float = Field(0.1, gt=0.0, le=1.0)
+    """Speed of the retreat out of the shelf with the object."""
+    settle_s: float = Field(0.5, ge=0.0, le=10.0)
+    """Physics after parking, before the poses are read."""
+    fall_tilt_deg: float = Field(30.0, gt=0.0, lt=90.0)
+    """An object whose up axis tilted more has fallen."""
+    max_object_radius_m: float = Field(0.10, gt=0.0, le=1.0)
+    """The target's region reaches at most this far across the closing axis (same-class neighbours
+    touching it stay out)."""
+
+
+class GraspSkill(Skill):
+    category: ClassVar[Category] = "manipulation"
+
+    def __init__(self, config: GraspConfig | None = None) -> None:
+        self.config = config or GraspConfig()
+        self.buffer = GraspBuffer(self.config.fusion)
+        self.last_stats: FusionStats | None = None
+        self._model: Any = None
+        self._predictor: str | None = None
+        self._tracked: tuple[int, EvidentialMap] | None = None
+        """(step, belief) of the last FE-UMGF update."""
+
+    # ------------------------------------------------------------------------------ prediction
+    @property
+    def predictor(self) -> str:
+        """``fe-vmf:<weights file>`` or ``geometric`` (loads the weights on first use)."""
+        if self._predictor is None:
+            cfg = self.config
+            if cfg.predictor == "geometric":
+                self._predictor = "geometric"
+            else:
+                from msmem_grasp.weights import SHIPPED_WEIGHTS, WeightsError, load_fe_vmf
+
+                path = cfg.weights or SHIPPED_WEIGHTS
+                try:
+                    self._model = load_fe_vmf(path)
+                    self._predictor = f"fe-vmf:{Path(path).name}"
+                except WeightsError as e:
+                    if cfg.predictor == "fe-vmf":
+                        raise
+                    if str(path) not in _WARNED:  # once per process and weights file
+                        _WARNED.add(str(path))
+                        log.warning("grasp skill: no usable FE-vMF weights (%s); using the untrained geometric "
+                                    "fallback predictor (msmem_grasp.geometric) on the belief", e)
+                    self._predictor = "geometric"
+        return self._predictor
+
+    def predict(self, belief: EvidentialMap, shelf: ShelfSpec, views: F64, seed: int) -> GraspHypotheses:
+        """Per-point evidential grasps on the FPP cloud of ``belief`` seen from ``views`` [V, 4, 4]."""
+        cfg = self.config
+        fpp = FPPConfig(num_points=cfg.num_points, ray_stride_px=cfg.ray_stride_px, camera=cfg.camera, seed=seed)
+        cloud = frontier_points(belief, views, fpp, shelf=shelf)
+        if not len(cloud):
+            return GraspHypotheses.empty()
+        if self.predictor == "geometric":
+            return predict_geometric(belief, cloud, shelf, cfg.gripper, cfg.geometric)
+        from msmem_grasp.weights import predict_cloud
+
+        return GraspHypotheses.from_prediction(cloud.points, predict_cloud(self._model, cloud))
+
+    def track(self, ctx: Any) -> None:
+        """FE-UMGF step: fuse this step's predictions into the buffer (once per step)."""
+        if self._tracked is not None and self._tracked[0] == ctx.step and self._tracked[1] is ctx.belief:
+            return
+        if ctx.step == 0 or (self._tracked is not None and ctx.step < self._tracked[0]):
+            self.buffer.clear()  # a new episode
+        visited = sorted(v for v in ctx.visited if 0 <= v < len(ctx.viewpoints))
+        views = np.concatenate([np.asarray(ctx.viewpoints)[visited].reshape(-1, 4, 4), virtual_front_views()])
+        seed = int(np.random.default_rng([self.config.seed, int(ctx.step)]).integers(2**31))
+        new = self.predict(ctx.belief, ctx.shelf, views, seed)
+        self.last_stats = self.buffer.update(new, ctx.belief)
+        self._tracked = (int(ctx.step), ctx.belief)
+
+    # -------------------------------------------------------------------------------- proposal
+    def propose(self, ctx: Any) -> list[Action]:
+        self.track(ctx)
+        if not ctx.manipulation_allowed:
+            return []
+        return list(self.executable(ctx.belief, ctx.shelf))
+
+    def executable(self, belief: EvidentialMap, shelf: ShelfSpec) -> list[GraspAction]:
+        """The executable grasps of the fused buffer (steps 1-5 of the module docstring), best first."""
+        cfg = self.config
+        grip = cfg.gripper
+        h = self.buffer.hypotheses()
+        if not len(h):
+            return []
+        q, chi = h.affordance, h.uncertainty
+        idx = np.flatnonzero((q >= cfg.min_affordance) & (chi <= cfg.max_uncertainty))
+        idx = idx[np.argsort(-q[idx], kind="stable")][: cfg.preselect]
+        g = h.subset(idx)
+        a, _ = g.approach()
+        b = g.mu_b
+        keep = (a[:, 1] >= -_SIN15) & (a[:, 2] <= _SIN15) & (g.width >= cfg.min_width_m)
+        g, a, b = g.subset(keep), a[keep], b[keep]
+        if not len(g):
+            return []
+        grid = belief.grid
+        s = grid.voxel_m
+        width = np.minimum(g.width, grip.max_opening_m)
+        opening = np.minimum(width + cfg.opening_margin_m, grip.max_opening_m)
+        from msmem_grasp.fevmf import executable_grasp  # torch: imported on use
+
+        poses: F64 = executable_grasp(g.contact, a, b, width)  # type: ignore[assignment]
+        objects = Objects.of(belief, interior_of(shelf), cfg.occupied_threshold)
+        label = objects.label_at(grid, g.contact + 0.5 * s * b)
+        blocked = blocked_mask(belief, shelf, cfg.occupied_threshold, cfg.unknown_vacuity, cfg.unknown_band).ravel()
+        p = belief.expected_occupancy()
+        top = shelf.interior_upper[2] - cfg.clearance_m
+        out: list[GraspAction] = []
+        per_object: dict[int, int] = {}
+        predictor = self.predictor
+        for i in range(len(g)):  # candidates in order of E[q]; stops at top_k
+            lab = int(label[i])
+            if lab <= 0 or per_object.get(lab, 0) >= cfg.max_per_object:
+                continue
+            pose = poses[i]
+            region = objects.region(grid, lab, pose, opening[i], cfg.max_object_radius_m)
+            approach = self._plan_approach(grid, blocked, region, pose, float(opening[i]))
+            if approach is None:
+                continue
+            lift_m = self._lift(grid, p, objects, lab, region, pose, float(width[i]), top)
+            if lift_m is None:
+                continue  # the lifted object or gripper would hit the shelf top
+            lift = pose[:3, 3] + np.array([0.0, 0.0, lift_m])
+            retreat = (tuple(map(float, lift)), (float(lift[0]), float(min(cfg.retreat_y_m, lift[1])), float(lift[2])))
+            out.append(GraspAction(
+                pose=tuple(tuple(float(v) for v in row) for row in pose),
+                width_m=float(width[i]), opening_m=float(opening[i]),
+                contact_m=tuple(float(v) for v in g.contact[i]),  # type: ignore[arg-type]
+                target_class=int(objects.classes[lab]),
+                approach_m=tuple(tuple(float(v) for v in p) for p in approach),  # type: ignore[misc]
+                retreat_m=retreat, affordance=float(np.clip(g.affordance[i], 0, 1)),
+                uncertainty=float(np.clip(g.uncertainty[i], 0, 1)), predictor=predictor, gripper=grip,
+                interior_m=interior_of(shelf),
+            ))
+            per_object[lab] = per_object.get(lab, 0) + 1
+            if len(out) >= cfg.top_k:
+                break
+        return out
+
+    def _plan_approach(self, grid: GridSpec, blocked: NDArray[np.bool_], region: NDArray[np.int64], pose: F64,
+                       opening: float) -> F64 | None:
+        """Gripper origins [2, 3] before the grasp (in front of the shelf, then the pre-grasp pose
+        ``d`` back along a, for the first d of ``approach_distances_m`` that works), or None if the
+        open gripper would touch a blocked voxel: on the way in and at the pre-grasp pose anything
+        blocked counts; on the final stretch along a (and at the grasp) the target's region does not."""
+        cfg = self.config
+        s = grid.voxel_m
+        pts = gripper_points(cfg.gripper, opening, s / 2, cfg.tolerance_m)
+        r = pose[:3, :3]
+        grasp = pose[:3, 3]
+        if self._hits(grid, blocked, region, r, pts, path_offsets(grasp[None], s)):
+            return None
+        for d in cfg.approach_distances_m:
+            pre = grasp - d * pose[:3, 2]
+            outside = pre.copy()
+            outside[1] = min(cfg.outside_y_m, pre[1])
+            if self._hits(grid, blocked, None, r, pts, path_offsets(np.stack([outside, pre]), s / 2)):
+                continue
+            if self._hits(grid, blocked, region, r, pts, path_offsets(np.stack([pre, grasp]), s / 2)):
+                continue
+            return np.stack([outside, pre])
+        return None
+
+    def _lift(self, grid: GridSpec, p: NDArray[np.floating], objects: Objects, label: int, region: NDArray[np.int64],
+              pose: F64, width: float, top: float) -> float | None:
+        """The lift: ``lift_m`` if at that height the grasped object (its region and the hidden
+        voxels below it, ``planning.fill_down``) and the closed gripper, carried straight out of the
+        front, meet no believed-occupied voxel of another object; else one voxel above the lowest
+        height (in whole voxels, up to ``max_lift_m`` and the room under the shelf top) at which they
+        do not; ``lift_m`` if there is none; None if even ``lift_m`` brings the object's or the
+        gripper's top closer than ``clearance_m`` to the shelf top."""
+        cfg = self.config
+        s = grid.voxel_m
+        pts = gripper_points(cfg.gripper, width, s / 2, cfg.tolerance_m)
+        r = pose[:3, :3]
+        grip_top = float((pts @ r.T)[:, 2].max()) + pose[2, 3]
+        obj_top = float(voxel_centres(grid, region)[:, 2].max()) + s / 2 if len(region) else pose[2, 3]
+        room = top - max(grip_top, obj_top)
+        if room < cfg.lift_m - 1e-9:
+            return None
+        body = fill_down(grid, p, objects.labels, region, label, cfg.geometric.free_threshold)
+        mine = np.zeros(grid.size, dtype=bool)
+        mine[body] = True
+        occupied = (p.reshape(-1) > cfg.occupied_threshold) & ~mine
+        first = max(0, math.ceil(cfg.lift_m / s - 1e-9))
+        last = min(int(np.floor(min(room, cfg.max_lift_m) / s + 1e-9)), first + 20)
+        for k in range(first, max(first, last) + 1):
+            path, _ = way_out(grid, body, k)
+            if occupied[path].any():
+                continue
+            lifted = pose[:3, 3] + np.array([0.0, 0.0, k * s])
+            out = lifted.copy()
+            out[1] = min(cfg.retreat_y_m, lifted[1])
+            if occupied[swept_indices(grid, r, pts, path_offsets(np.stack([pose[:3, 3], lifted, out]), s / 2))].any():
+                continue
+            # one voxel more where there is room: the voxels' heights are only known to a voxel
+            return max(cfg.lift_m, min((k + 1) * s, room)) if k > first else cfg.lift_m
+        return cfg.lift_m
+
+    @staticmethod
+    def _hits(grid: GridSpec, blocked: NDArray[np.bool_], region: NDArray[np.int64] | None, rotation: F64,
+              pts: F64, path: F64) -> bool:
+        """Do the body's points, swept through the positions ``path``, touch a blocked voxel (other
+        than those of ``region``) or blocked space outside the grid (all but in front of it)?"""
+        world = (path[:, None, :] + (pts @ rotation.T)[None]).reshape(-1, 3)
+        ijk = grid.index_of(world)
+        inside = grid.contains_index(ijk)
+        if (~inside & (ijk[:, 1] >= 0)).any():  # beside, behind, above or below the grid: the boards
+            return True
+        ii = ijk[inside]
+        hit = np.unique((ii[:, 0] * grid.shape[1] + ii[:, 1]) * grid.shape[2] + ii[:, 2])
+        hit = hit[blocked[hit]]
+        if region is not None and len(region):
+            hit = np.setdiff1d(hit, region, assume_unique=True)
+        return len(hit) > 0
+
+    # ------------------------------------------------------------------------------- execution
+    def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
+        cfg = self.config
+        shelf: ShelfSpec = ctx.shelf
+        a = action if isinstance(action, GraspAction) else GraspAction.model_validate(action.model_dump())
+        before = sim.object_poses()
+        grasp = a.matrix
+        if a.approach_m:
+            sim.move_gripper([a.at(p) for p in a.approach_m], opening_m=a.opening_m, speed_mps=cfg.travel_speed_mps)
+        reached = sim.move_gripper([grasp], opening_m=a.opening_m, speed_mps=cfg.approach_speed_mps)
+        closed = sim.set_gripper(0.0)
+        touching = sim.held_object()
+        if a.retreat_m:
+            sim.move_gripper([a.at(a.retreat_m[0])], speed_mps=cfg.lift_speed_mps)
+            sim.move_gripper([a.at(p) for p in a.retreat_m[1:]], speed_mps=cfg.retreat_speed_mps)
+        held = sim.held_object()
+        removed = []
+        if held is not None:
+            sim.remove_object(held)
+            removed.append(held)
+        sim.set_gripper(cfg.gripper.max_opening_m)
+        sim.park_gripper()
+        if cfg.settle_s > 0:
+            sim.step(cfg.settle_s)
+        after = sim.object_poses()
+        disp = {i: float(np.linalg.norm(after[i][:2, 3] - before[i][:2, 3])) for i in before if i in after}
+        fell = []
+        lo, hi = shelf.interior_lower, shelf.interior_upper
+        for i, t0 in before.items():
+            if i in removed:
+                continue
+            t1 = after.get(i)
+            if t1 is None:
+                fell.append(i)
+                continue
+            tilt = math.degrees(math.acos(float(np.clip(t0[:3, 2] @ t1[:3, 2], -1.0, 1.0))))
+            pos = t1[:3, 3]
+            outside = not (lo[0] <= pos[0] <= hi[0] and lo[1] <= pos[1] <= hi[1]) or pos[2] < lo[2] - 0.02
+            if tilt > cfg.fall_tilt_deg or outside:
+                fell.append(i)
+        return Outcome(
+            success=held is not None,
+            displacement_m=disp,
+            fell_or_left=fell,
+            removed=removed,
+            info={"held": held, "touching_after_close": touching, "closed_opening_m": closed,
+                  "pose_error_m": float(np.linalg.norm(reached[:3, 3] - grasp[:3, 3])),
+                  "moved": [i for i, d in disp.items() if d > 0.005], "predictor": a.predictor},
+        )

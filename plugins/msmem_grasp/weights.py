@@ -1,0 +1,92 @@
+"""Loading FE-vMF weights: a plain state dict (``torch.load(weights_only=True)``) checked against the
+sha256 and the architecture recorded in its JSON sidecar (written by ``msmem train fe-vmf``).
+
+The shipped weights are ``weights/fe_vmf.pt`` with ``weights/fe_vmf.json`` beside them; how they were
+trained and what they score is in ``weights/MODEL_CARD.md``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from msmem_core.errors import UserError
+from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction, executable_grasp
+from msmem_grasp.fpp import SurfaceCloud
+from msmem_grasp.training import WEIGHTS_FORMAT, sha256_file, sidecar_path
+
+SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "fe_vmf.pt"
+
+
+class WeightsError(UserError):
+    """Weights that are missing, corrupt, or not the ones their sidecar describes."""
+
+
+def read_sidecar(path: str | Path) -> dict[str, Any]:
+    side = sidecar_path(path)
+    if not side.exists():
+        raise WeightsError(f"{path}: no sidecar {side.name} beside the weights (it records the expected sha256 and"
+                           " the architecture); weights written by `msmem train fe-vmf` come with one")
+    try:
+        meta: dict[str, Any] = json.loads(side.read_text())
+    except (OSError, ValueError) as e:
+        raise WeightsError(f"{side}: unreadable sidecar ({e})") from e
+    if meta.get("format") != WEIGHTS_FORMAT or "sha256" not in meta or "model" not in meta:
+        raise WeightsError(f"{side}: not an FE-vMF weights sidecar (format {meta.get('format')!r})")
+    return meta
+
+
+def load_fe_vmf(path: str | Path | None = None, verify: bool = True) -> FEVMF:
+    """FE-vMF with the weights at ``path`` (default: the shipped weights), in eval mode.
+
+    The file's sha256 must equal the sidecar's (``verify=False`` skips the check, for experiments);
+    any mismatch or unreadable file raises one :class:`WeightsError` naming the file and the hash it
+    should have.
+    """
+    path = Path(path) if path is not None else SHIPPED_WEIGHTS
+    if not path.exists():
+        raise WeightsError(f"weights file {path} does not exist")
+    meta = read_sidecar(path)
+    expected = meta["sha256"]
+    hint = (f"{path}: weights are corrupt or not the ones described by {sidecar_path(path).name}: expected"
+            f" sha256 {expected}")
+    if verify:
+        actual = sha256_file(path)
+        if actual != expected:
+            raise WeightsError(f"{hint}, got {actual}. Restore the file (reinstall msmem / git checkout) or retrain"
+                               " with `msmem train fe-vmf`")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        model = FEVMF(FEVMFConfig.model_validate(meta["model"]))
+        model.load_state_dict(state)
+    except Exception as e:  # unpickling errors, missing/unexpected keys, shape mismatches
+        raise WeightsError(f"{hint}; loading failed with {type(e).__name__}: {e}") from e
+    return model.eval()
+
+
+def predict_cloud(model: FEVMF, cloud: SurfaceCloud) -> GraspPrediction:
+    """FE-vMF outputs for an FPP cloud (empty cloud -> empty prediction)."""
+    with torch.no_grad():
+        pts = torch.from_numpy(np.ascontiguousarray(cloud.points, dtype=np.float32))
+        feats = torch.from_numpy(cloud.features()) if model.config.in_features else None
+        return model(pts, feats).detach()
+
+
+def select_grasps(
+    cloud: SurfaceCloud, pred: GraspPrediction, min_affordance: float = 0.5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Executable grasps of the points with E[q] > ``min_affordance``: (poses [K, 4, 4] per
+    ``executable_grasp``, affordance [K], point index [K]), best first. No point -> K = 0."""
+    q = pred.affordance.numpy().astype(np.float64)
+    idx = np.flatnonzero(q > min_affordance)
+    idx = idx[np.argsort(-q[idx], kind="stable")]
+    if len(idx) == 0:
+        return np.zeros((0, 4, 4)), np.zeros(0), idx.astype(np.int64)
+    mu_a, _ = pred.approach()
+    poses = executable_grasp(cloud.points[idx].astype(np.float64), mu_a.numpy()[idx].astype(np.float64),
+                             pred.mu_b.numpy()[idx].astype(np.float64), pred.width.numpy()[idx].astype(np.float64))
+    return np.asarray(poses), q[idx], idx.astype(np.int64)

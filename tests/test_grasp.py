@@ -1,0 +1,428 @@
+"""The grasp skill (UGS: FE-UMGF buffer, executable grasps, execution), its analytic effect model
+(sigma_g) and the grasp-only method."""
+
+from __future__ import annotations
+
+import logging
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from msmem_grasp.effect import AnalyticGraspEffect, GraspEffectConfig
+from msmem_grasp.planning import Objects, fill_down, gripper_points, path_offsets, swept_indices
+from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill, interior_of
+from msmem_grasp.weights import SHIPPED_WEIGHTS
+from pydantic import ValidationError
+
+from msmem_core.belief import DeltaBeliefs, EvidentialMap
+from msmem_core.camera import CameraConfig
+from msmem_core.errors import PluginError
+from msmem_core.geometry import yaw_quat
+from msmem_core.grid import GridSpec
+from msmem_core.gripper import GripperSpec
+from msmem_core.groundtruth import interior_mask, voxelize
+from msmem_core.ig import IGService
+from msmem_core.interfaces import CandidateBatch
+from msmem_core.metrics import occupancy_iou, position_change_m
+from msmem_core.msas import DecisionContext
+from msmem_core.plugins import get_plugin_manager
+from msmem_core.plugins.manager import ComponentRef
+from msmem_core.scene import ObjectSpec, SceneSpec, ShelfSpec
+from msmem_core.testing.conformance import gripper_pose
+from msmem_core.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+
+torch.set_num_threads(1)
+SHELF = ShelfSpec()
+GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)
+INTERIOR = interior_of(SHELF)
+SUGAR, MEAT, FOAM, CRACKER = 2, 9, 13, 1  # class ids
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def box_belief(boxes: list[tuple[tuple[float, float], tuple[float, float], float, int]]) -> EvidentialMap:
+    """Fully known belief: free everywhere, confident boxes ((x0, y0), (x1, y1), height, class)."""
+    b = EvidentialMap.empty(GRID)
+    c = GRID.centers()
+    b.beta[:] = 21.0
+    b.eta[0] = 21.0
+    for (x0, y0), (x1, y1), h, k in boxes:
+        m = (c[..., 0] > x0) & (c[..., 0] < x1) & (c[..., 1] > y0) & (c[..., 1] < y1)
+        m &= (c[..., 2] > 0) & (c[..., 2] < h)
+        b.alpha[m], b.beta[m], b.eta[:, m] = 21.0, 1.0, 1.0
+        b.eta[k, m] = 21.0
+    return b
+
+
+def ctx(belief: EvidentialMap, step: int = 5, allowed: bool = True, ig: IGService | None = None) -> DecisionContext:
+    return DecisionContext(step, belief, ig, np.zeros((0, 4, 4)), set(), GRID, SHELF, GripperSpec(),  # type: ignore[arg-type]
+                           np.random.default_rng(0), allowed, 0.5)
+
+
+def top_grasp(x: float, y: float, z: float, width: float, lift: float = 0.03, cls: int | None = SUGAR,
+              closing: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> GraspAction:
+    """A top-down grasp centred at (x, y, z) closing along ``closing``, approached from the front above."""
+    pose = gripper_pose((x, y, z), (0, 0, -1), closing)
+    b = np.asarray(closing)
+    contact = np.array([x, y, z]) - width / 2 * b
+    pre = np.array([x, y, z + 0.05])
+    lifted = np.array([x, y, z + lift])
+    return GraspAction(
+        pose=tuple(tuple(float(v) for v in row) for row in pose), width_m=width, opening_m=min(width + 0.02, 0.08),
+        contact_m=tuple(float(v) for v in contact), target_class=cls,  # type: ignore[arg-type]
+        approach_m=((x, -0.12, z + 0.05), tuple(float(v) for v in pre)),  # type: ignore[arg-type]
+        retreat_m=(tuple(float(v) for v in lifted), (x, -0.3, float(lifted[2]))),  # type: ignore[arg-type]
+        interior_m=INTERIOR,
+    )
+
+# target sugar-box-like block behind a lower block touching its front, and a bystander far to the side
+TARGET = ((-0.02, 0.18), (0.02, 0.27), 0.17, SUGAR)
+IN_THE_WAY = ((-0.05, 0.12), (0.05, 0.18), 0.08, MEAT)
+BYSTANDER = ((0.20, 0.10), (0.36, 0.16), 0.21, CRACKER)
+
+
+# ------------------------------------------------------------------------------- registration, config
+def test_grasp_skill_and_its_effect_model_are_registered_and_bound() -> None:
+    pm = get_plugin_manager()
+    assert pm.skills()["grasp"].effect_model == "grasp-analytic"
+    assert "effect" in pm.belief_models()["grasp-analytic"].roles
+    skill = pm.build("skill", ComponentRef(name="grasp", params={"top_k": 5}), gripper=GripperSpec(max_opening_m=0.07))
+    assert isinstance(skill, GraspSkill)
+    assert skill.config.top_k == 5
+    assert skill.config.gripper.max_opening_m == 0.07  # the run's gripper fills the unset field
+    with pytest.raises(PluginError, match=r"skills\.1\.params\.top_k"):
+        pm.build("skill", ComponentRef(name="grasp", params={"top_k": 0}), where="skills.1")
+    with pytest.raises(PluginError, match=r"decay"):
+        pm.build("skill", ComponentRef(name="grasp", params={"fusion": {"decay": 1.5}}))
+
+
+def test_grasp_actions_are_json_and_reject_a_non_rigid_pose() -> None:
+    a = top_grasp(0.0, 0.2, 0.14, 0.04)
+    assert GraspAction.model_validate_json(a.model_dump_json()) == a
+    assert (a.kind, a.category) == ("grasp", "manipulation")
+    bad = [list(r) for r in a.pose]
+    bad[0][0] = 2.0
+    with pytest.raises(ValidationError, match="rigid"):
+        GraspAction.model_validate({**a.model_dump(), "pose": bad})
+    with pytest.raises(ValidationError, match="width_m"):
+        GraspAction.model_validate({**a.model_dump(), "width_m": -0.01})
+
+
+def test_the_swept_volume_follows_the_approach_the_lift_and_the_retreat() -> None:
+    a = top_grasp(0.0, 0.2, 0.14, 0.04)
+    vol = a.swept_volume(GRID)
+    ijk = GRID.index_of
+    c = GRID.centers()
+    for p in ([0.0, 0.2, 0.205], [0.0, 0.1, 0.255], [0.0, 0.0, 0.235], [0.025, 0.0, 0.2]):  # palm, fingers
+        i, j, k = ijk(np.array([p]))[0]
+        assert vol[i, j, k], p
+    between = (np.abs(c[..., 0]) < 0.01) & (np.abs(c[..., 1] - 0.2) < 0.005) & (c[..., 2] < 0.13)
+    assert not vol[between].any()  # the object's place between the fingers is not the gripper's
+    assert not vol[c[..., 0] > 0.1].any()
+    # the closed gripper in the retreat is narrower than the open one in the approach
+    assert vol.sum() == len(a.swept_indices(GRID))
+
+
+# ----------------------------------------------------------------------------------------- proposal
+def test_executable_grasps_come_from_the_belief_are_reachable_and_collision_free(caplog) -> None:  # type: ignore[no-untyped-def]
+    if SHIPPED_WEIGHTS.exists():
+        pytest.skip("trained weights are installed: the fallback is not used")
+    belief = box_belief([TARGET, BYSTANDER])
+    skill = GraspSkill()
+    with caplog.at_level(logging.WARNING, logger="msmem.grasp"):
+        grasps = skill.propose(ctx(belief))
+    assert "geometric fallback" in caplog.text  # no weights: the fallback is announced
+    assert grasps
+    assert all(isinstance(g, GraspAction) and g.predictor == "geometric" for g in grasps)
+    assert {g.target_class for g in grasps} <= {SUGAR, CRACKER}
+    assert SUGAR in {g.target_class for g in grasps}
+    assert len(grasps) <= skill.config.top_k
+    assert all(sum(g.target_class == k for g in grasps) <= skill.config.max_per_object for k in (SUGAR, CRACKER))
+    occupied = belief.expected_occupancy().reshape(-1) > 0.5
+    objects = Objects.of(belief, INTERIOR)
+    for g in grasps:
+        m = g.matrix
+        a = m[:3, 2]
+        assert a[1] >= -math.sin(math.radians(15))
+        assert a[2] <= math.sin(math.radians(15))
+        assert g.affordance >= 0.5
+        assert g.uncertainty <= 0.5
+        assert g.approach_m[0][1] < 0.0  # the approach starts outside the shelf
+        # the gripper on its way in touches no believed object, except the target near the end
+        pts = gripper_points(g.gripper, g.opening_m, 0.005, skill.config.tolerance_m)
+        inbound = swept_indices(GRID, m[:3, :3], pts, path_offsets(np.array(g.approach_m), 0.005))
+        assert not occupied[inbound].any()
+        final = swept_indices(GRID, m[:3, :3], pts, path_offsets(np.array([g.approach_m[-1], m[:3, 3]]), 0.005))
+        label = objects.label_at(GRID, np.array([g.contact_m]) + 0.005 * m[:3, 0])[0]
+        assert np.all(objects.labels.reshape(-1)[final[occupied[final]]] == label)
+        assert 0.0 < g.width_m <= g.opening_m <= 0.08
+
+
+def test_with_fe_vmf_weights_the_skill_fuses_the_network_outputs(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    import json
+
+    from msmem_grasp.fevmf import FEVMF
+    from msmem_grasp.training import WEIGHTS_FORMAT, default_model_config, sha256_file, sidecar_path
+    from msmem_grasp.weights import WeightsError
+
+    torch.manual_seed(0)
+    model = FEVMF(default_model_config())  # untrained: the code path, not the quality
+    path = tmp_path / "w.pt"
+    torch.save(model.state_dict(), path)
+    sidecar_path(path).write_text(json.dumps({"format": WEIGHTS_FORMAT, "sha256": sha256_file(path),
+                                              "model": model.config.model_dump()}))
+    skill = GraspSkill(GraspConfig(predictor="fe-vmf", weights=path, num_points=512))
+    belief = box_belief([TARGET, BYSTANDER])
+    grasps = skill.propose(ctx(belief))
+    assert skill.predictor == "fe-vmf:w.pt"
+    assert 0 < len(skill.buffer) <= 512
+    assert all(g.predictor == "fe-vmf:w.pt" for g in grasps)
+    with pytest.raises(WeightsError, match="does not exist"):
+        _ = GraspSkill(GraspConfig(predictor="fe-vmf", weights=tmp_path / "missing.pt")).predictor
+
+
+def test_no_grasps_outside_the_window_or_into_unknown_space() -> None:
+    belief = box_belief([TARGET])
+    assert GraspSkill(GraspConfig(predictor="geometric")).propose(ctx(belief, allowed=False)) == []
+    hidden = belief.copy()
+    c = GRID.centers()
+    behind = (c[..., 1] > 0.18) & (np.abs(c[..., 0]) < 0.15) & ~(belief.expected_occupancy() > 0.5)
+    hidden.beta[behind], hidden.eta[:, behind] = 1.0, 1.0  # never seen around and behind the box
+    assert GraspSkill(GraspConfig(predictor="geometric")).propose(ctx(hidden)) == []
+    assert GraspSkill(GraspConfig(predictor="geometric")).propose(ctx(EvidentialMap.empty(GRID))) == []
+
+
+def test_the_buffer_is_updated_every_step_and_cleared_for_a_new_episode() -> None:
+    belief = box_belief([TARGET])
+    skill = GraspSkill(GraspConfig(predictor="geometric", fusion={"decay": 1.0}))
+    skill.track(ctx(belief, step=0, allowed=False))
+    n0, s0 = len(skill.buffer), float((skill.buffer.alpha + skill.buffer.beta).sum())
+    skill.track(ctx(belief, step=0, allowed=False))  # same step, same belief: no second update
+    assert float((skill.buffer.alpha + skill.buffer.beta).sum()) == s0
+    skill.propose(ctx(belief, step=1, allowed=False))  # not allowed to act, the buffer still fuses
+    assert len(skill.buffer) >= n0
+    assert float((skill.buffer.alpha + skill.buffer.beta).sum()) > 1.5 * s0
+    skill.track(ctx(belief, step=0))  # a new episode
+    assert float((skill.buffer.alpha + skill.buffer.beta).sum()) == pytest.approx(s0)
+
+
+def test_the_lift_rises_over_a_low_object_in_the_way_when_the_shelf_leaves_room() -> None:
+    low = ((-0.05, 0.12), (0.05, 0.18), 0.04, MEAT)
+    short_target = ((-0.02, 0.18), (0.02, 0.27), 0.10, SUGAR)
+    grasps = GraspSkill(GraspConfig(predictor="geometric")).propose(ctx(box_belief([short_target, low])))
+    top_down = [g for g in grasps if g.target_class == SUGAR and g.matrix[2, 2] < -0.9]
+    assert top_down
+    for g in top_down:  # lifted over the 4 cm block: the object's bottom clears it
+        assert g.retreat_m[0][2] - g.pose[2][3] >= 0.05 - 1e-9
+
+
+# ------------------------------------------------------------------------------------- effect model
+def test_the_effect_removes_the_target_and_pushes_out_what_is_in_its_way() -> None:
+    belief = box_belief([TARGET, IN_THE_WAY, BYSTANDER])
+    a = top_grasp(0.0, 0.225, 0.14, 0.04)
+    model = AnalyticGraspEffect()
+    pred = model.predict(belief, [a])
+    assert isinstance(pred.beliefs, DeltaBeliefs)
+    after = pred.beliefs[0]
+    c = GRID.centers()
+
+    def inside(box: tuple) -> np.ndarray:  # type: ignore[type-arg]
+        (x0, y0), (x1, y1), h, _ = box
+        return (c[..., 0] > x0) & (c[..., 0] < x1) & (c[..., 1] > y0) & (c[..., 1] < y1) & (c[..., 2] > 0) & (
+            c[..., 2] < h)
+
+    target, way, by = inside(TARGET), inside(IN_THE_WAY), inside(BYSTANDER)
+    p = after.expected_occupancy()
+    assert np.all(after.alpha[target] == 1.0)
+    assert np.all(after.beta[target] == 1.0)
+    assert pred.excluded is not None
+    assert np.array_equal(pred.excluded[0], target)
+    assert np.all(p[way] < 0.05)
+    assert np.all(np.argmax(after.eta, axis=0)[way] == 0)
+    assert np.all(after.vacuity()[way] < 0.5)
+    assert np.array_equal(after.alpha[by], belief.alpha[by])  # the bystander stays
+    assert np.array_equal(pred.changed[0], target | way)
+    # a CDC term (confident afterwards, class changed from a known one) sees the pushed block only
+    known = belief.vacuity() < 0.5
+    cls0, cls1 = np.argmax(belief.eta, axis=0), np.argmax(after.eta, axis=0)
+    u_diff = known & (after.vacuity() < 0.5) & (cls0 != cls1) & ~pred.excluded[0]
+    assert np.array_equal(u_diff, way)
+    # lifted high enough, the object leaves over the block: nothing else changes
+    high = model.predict(belief, [top_grasp(0.0, 0.225, 0.14, 0.04, lift=0.09)])
+    assert np.array_equal(high.changed[0], target)
+
+
+def test_the_hidden_lower_part_of_the_grasped_object_is_carried_out_too() -> None:
+    belief = box_belief([TARGET, IN_THE_WAY])
+    c = GRID.centers()
+    low = (np.abs(c[..., 0]) < 0.02) & (c[..., 1] > 0.18) & (c[..., 1] < 0.27) & (c[..., 2] > 0) & (c[..., 2] < 0.09)
+    belief.alpha[low], belief.beta[low], belief.eta[:, low] = 1.0, 1.0, 1.0  # seen only above the block
+    objects = Objects.of(belief, INTERIOR)
+    region = np.flatnonzero((objects.labels.reshape(-1) > 0) & (objects.cls.reshape(-1) == SUGAR))
+    label = int(objects.labels.reshape(-1)[region[0]])
+    full = fill_down(GRID, belief.expected_occupancy(), objects.labels, region, label, 0.3)
+    assert set(np.flatnonzero(low.reshape(-1))) <= set(full.tolist())
+    pred = AnalyticGraspEffect().predict(belief, [top_grasp(0.0, 0.225, 0.14, 0.04)])
+    way = (np.abs(c[..., 0]) < 0.05) & (c[..., 1] > 0.12) & (c[..., 1] < 0.18) & (c[..., 2] > 0) & (c[..., 2] < 0.08)
+    assert np.all(pred.changed[0][way])  # the block in front is still predicted pushed out
+
+
+def test_batched_predictions_equal_one_at_a_time_and_other_actions_are_refused() -> None:
+    belief = box_belief([TARGET, IN_THE_WAY, BYSTANDER])
+    actions = [top_grasp(0.0, 0.225, 0.14, 0.04), top_grasp(0.0, 0.225, 0.14, 0.04, lift=0.09),
+               top_grasp(0.28, 0.13, 0.19, 0.06, cls=CRACKER, closing=(0.0, 1.0, 0.0))]
+    model = AnalyticGraspEffect(GraspEffectConfig())
+    batch = model.predict(belief, actions)
+    assert batch.changed.shape == (3, *GRID.shape)
+    for k, a in enumerate(actions):
+        one = model.predict(belief, [a])
+        assert np.array_equal(batch.changed[k], one.changed[0])
+        for name in ("alpha", "beta", "eta"):
+            assert np.array_equal(getattr(batch.beliefs[k], name), getattr(one.beliefs[0], name))
+    from msmem_push.skill import PushAction
+
+    with pytest.raises(TypeError, match="grasp"):
+        model.predict(belief, [PushAction(start_m=(0.0, 0.05), direction=(0.0, 1.0), length_m=0.1, height_m=0.02)])
+
+
+def test_grasp_candidates_are_scored_by_the_ig_and_entropy_terms() -> None:
+    from msmem_objectives.entropy import SemanticEntropyTerm
+    from msmem_objectives.ig import IGTerm, IGTermConfig
+
+    belief = box_belief([TARGET, IN_THE_WAY, BYSTANDER])
+    c = GRID.centers()
+    hidden = (c[..., 1] > 0.27) & (np.abs(c[..., 0]) < 0.1) & (c[..., 2] < 0.2)
+    belief.alpha[hidden], belief.beta[hidden], belief.eta[:, hidden] = 1.0, 1.0, 1.0  # unknown behind the target
+    views = generate_viewpoints(ViewpointConfig(), SHELF)[::15]
+    ig = IGService(GRID, CameraConfig(width_px=160, height_px=120), views, SHELF)
+    actions = [top_grasp(0.0, 0.225, 0.14, 0.04), top_grasp(0.28, 0.13, 0.19, 0.06, cls=CRACKER, closing=(0, 1, 0))]
+    pred = AnalyticGraspEffect().predict(belief, actions)
+    batch = CandidateBatch("grasp", "manipulation", list(actions), prediction=pred)
+    d = ctx(belief, ig=ig)
+    exact = IGTerm(IGTermConfig(screen_ray_step=1)).score(d, batch)
+    full = ig.view_ig([ig.prepare(b) for b in pred.beliefs]).max(axis=1)
+    np.testing.assert_allclose(exact, full, rtol=1e-9)
+    assert np.all(exact > ig.view_ig(ig.prepare(belief)).max())  # removals make the next view more informative
+    dh = SemanticEntropyTerm().score(ctx(belief), batch)
+    assert np.all(dh < 0.0)  # the grasped object's voxels return to the prior: semantic entropy rises
+
+
+# ------------------------------------------------------------------------------ physics (PyBullet)
+def observed_belief(sim, scene: SceneSpec, views: list[int]) -> EvidentialMap:  # type: ignore[no-untyped-def]
+    from msmem_analytic.observation import AnalyticObservationModel
+
+    vps = generate_viewpoints(ViewpointConfig())
+    model = AnalyticObservationModel()
+    b = EvidentialMap.empty(GRID)
+    for v in views:
+        b = model.update(b, sim.observe(vps[v]))
+    return b
+
+
+VIEWS = [default_start_view(ViewpointConfig()), 5, 94, 105, 194, 205, 255, 45]
+"""The episodes' start view and views from the left, middle and right grids, low and high."""
+
+
+def test_a_failed_grasp_counts_in_position_change_and_a_removed_object_does_not() -> None:
+    pytest.importorskip("pybullet")
+    from msmem_pybullet.simulator import PyBulletSimulator
+
+    scene = SceneSpec(name="pc", objects=(
+        ObjectSpec(id=0, class_name="sugar_box", position_m=(-0.15, 0.15, 0.0), quat_xyzw=tuple(yaw_quat(math.pi / 2))),
+        ObjectSpec(id=1, class_name="tomato_soup_can", position_m=(0.12, 0.15, 0.0)),
+    ))
+    sim = PyBulletSimulator(label_noise=0.0)
+    try:
+        sim.reset(scene)
+        initial = sim.object_poses()
+        skill = GraspSkill(GraspConfig(predictor="geometric"))
+        c = SimpleNamespace(shelf=scene.shelf)
+        ok = skill.execute(sim, top_grasp(-0.15, 0.15, 0.145, 0.04), c)  # across the 4 cm box
+        assert ok.success
+        assert ok.removed == [0]
+        assert 0 not in ok.displacement_m
+        assert set(sim.object_poses()) == {1}
+        # a grasp 3 cm off the can's axis: the closing fingers squeeze it out sideways
+        bad = skill.execute(sim, top_grasp(0.15, 0.15, 0.08, 0.066, closing=(0.0, 1.0, 0.0)), c)
+        assert not bad.success
+        assert bad.removed == []
+        final = sim.object_poses()
+    finally:
+        sim.close()
+    moved = float(np.linalg.norm(final[1][:2, 3] - initial[1][:2, 3]))
+    assert moved > 0.005, "the failed grasp should have moved the can"
+    assert bad.displacement_m[1] == pytest.approx(moved, abs=1e-3)  # (measured from before that grasp)
+    assert position_change_m(initial, final) == pytest.approx(moved)  # the removed box is excluded
+
+
+def test_predicted_occupancy_after_a_disturbing_grasp_beats_removal_alone() -> None:
+    pytest.importorskip("pybullet")
+    from msmem_pybullet.simulator import PyBulletSimulator
+
+    q90 = tuple(yaw_quat(math.pi / 2))
+    scene = SceneSpec(name="neighbour-in-the-way", objects=(
+        ObjectSpec(id=0, class_name="sugar_box", position_m=(0.0, 0.22, 0.0), quat_xyzw=q90),
+        ObjectSpec(id=1, class_name="potted_meat_can", position_m=(0.0, 0.22 - 0.045 - 0.0255 - 0.002, 0.0)),
+        ObjectSpec(id=2, class_name="cracker_box", position_m=(0.25, 0.20, 0.0)),
+        ObjectSpec(id=3, class_name="foam_brick", position_m=(-0.22, 0.25, 0.0)),
+    ))
+    sim = PyBulletSimulator(label_noise=0.0)
+    model = AnalyticGraspEffect()
+    inside = interior_mask(SHELF, GRID)
+    compared = 0
+    try:
+        sim.reset(scene)
+        belief = observed_belief(sim, scene, VIEWS)
+        skill = GraspSkill(GraspConfig(predictor="geometric"))
+        grasps = [g for g in skill.propose(ctx(belief)) if g.target_class == SUGAR]
+        assert grasps
+        pred = model.predict(belief, grasps)
+        token = sim.snapshot()
+        for k, g in enumerate(grasps[:4]):
+            pushed = model.displacements(belief, g)["pushed"]
+            sim.restore(token)
+            out = skill.execute(sim, g, SimpleNamespace(shelf=scene.shelf))
+            if not out.success or not pushed:
+                continue
+            poses = sim.object_poses()
+            truth, _ = voxelize([o for o in scene.objects if o.id in poses], GRID, poses=poses)
+            removed_only = belief.copy()
+            region = model.displacements(belief, g)["region"]
+            for name in ("alpha", "beta"):
+                getattr(removed_only, name).reshape(-1)[region] = 1.0
+            removed_only.eta.reshape(belief.num_classes, -1)[:, region] = 1.0
+            ours = occupancy_iou((pred.beliefs[k].expected_occupancy() > 0.5) & inside, truth & inside)
+            base = occupancy_iou((removed_only.expected_occupancy() > 0.5) & inside, truth & inside)
+            assert 1 in out.fell_or_left  # the can in the way was pushed off the shelf
+            assert ours > base, (k, ours, base)
+            compared += 1
+            print("grasp", k, "IoU predicted", round(ours, 3), "removal only", round(base, 3))
+    finally:
+        sim.close()
+    assert compared >= 1, "no successful grasp pushed the can (nothing to compare)"
+
+
+@pytest.mark.slow
+def test_a_grasp_only_episode_executes_a_grasp(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from msmem_core.config import load_config
+    from msmem_core.runner import build_episode, run_episode
+
+    cfg = load_config("grasp-only", overrides={"steps": 8, "scene": {"seed": 1}})
+    ep = build_episode(cfg, get_plugin_manager())
+    final = run_episode(ep, tmp_path)
+    assert final["actions"].get("grasp", 0) >= 1
+    grasps = [r for r in ep.records if r["skill"] == "grasp"]
+    assert any(r["success"] for r in grasps)
+
+
+@pytest.mark.slow
+def test_bench_grasp_success_rate() -> None:
+    """Top-1 fused grasps over 10 generated scenes x 2 trials; run with -m slow -s to see the number."""
+    from msmem_grasp.bench import GraspBenchConfig, bench_grasp
+
+    s = bench_grasp(GraspBenchConfig(), progress=False)["summary"]
+    print(f"\nbench-grasp: {s['successes']}/{s['executed']} succeeded ({s['success_rate']:.2f}), "
+          f"{s['no_candidate']} trials without an executable grasp, predictor {s['predictor']}")
+    assert s["executed"] >= 5
+    assert s["success_rate"] >= 0.8
