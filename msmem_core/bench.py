@@ -1,4 +1,4 @@
-"""Benchmark: methods x scenes episodes on an executor, resumable, summarised as the paper's Table I.
+"""Benchmark: methods x scenes episodes on an executor, resumable, summarised as the paper's Tables I and II.
 
 One result file per (method, scene) is written atomically under ``OUT/episodes/``; rerunning skips
 finished episodes, and a crashed episode is recorded with its error while the rest go on.
@@ -20,7 +20,8 @@ from scipy import stats
 from msmem_core.errors import UserError
 from msmem_core.scene import SceneSpec
 
-SUITES = ("hard25",)
+SUITES = ("hard25", "tune10")
+"""hard25: the benchmark (seeds 25000-25024); tune10: for tuning defaults (seeds 30000-30009), never hard25."""
 TABLE_METRICS = (
     ("occupancy_iou", "occupancy IoU", "higher"),
     ("semantic_miou", "semantic mIoU", "higher"),
@@ -32,6 +33,14 @@ TABLE_METRICS = (
     ("grasps", "grasps", None),
     ("grasp_success", "grasp success", None),
 )
+COUNT_METRICS = (
+    ("correctly_found", "correctly found"),
+    ("misclassified", "misclassified but found"),
+    ("not_found", "not found"),
+    ("hallucinated", "hallucinated"),
+    ("removed", "removed"),
+)
+"""Table II: final object counts (``metrics.object_counts``) plus objects no longer in the shelf."""
 
 
 def suite_scenes(suite: str) -> list[SceneSpec]:
@@ -98,6 +107,7 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
             "scene": ep.scene.name, "status": "ok", "metrics": {
                 **{k: final[k] for k in ("occupancy_iou", "semantic_miou", "observable_iou", "semantic_miou_bev",
                                          "position_change_m")},
+                **{k: int(final[k]) for k, _ in COUNT_METRICS},
                 "views": kinds.count("view"), "pushes": kinds.count("push"), "grasps": kinds.count("grasp"),
                 "grasp_success": float(np.mean(grasp_ok)) if grasp_ok else float("nan"),
             },
@@ -129,6 +139,13 @@ def summarise(results: list[dict[str, Any]], methods: list[str]) -> dict[str, An
         rows = [r for r in ok if r["method"] == m]
         table[m] = {k: mean_ci([r["metrics"][k] for r in rows]) for k, _, _ in TABLE_METRICS}
         table[m]["episodes"] = len(rows)
+        counted = [r for r in rows if all(k in r["metrics"] for k, _ in COUNT_METRICS)]  # older files lack them
+        table[m]["counts"] = {
+            "episodes": len(counted),
+            "sum": {k: sum(int(r["metrics"][k]) for r in counted) for k, _ in COUNT_METRICS},
+            "mean": {k: float(np.mean([r["metrics"][k] for r in counted])) if counted else float("nan")
+                     for k, _ in COUNT_METRICS},
+        }
     paired: dict[str, dict[str, Any]] = {}
     base = methods[0]
     by = {(r["method"], r["scene_index"]): r for r in ok}
@@ -170,6 +187,19 @@ def table_markdown(summary: dict[str, Any]) -> str:
                 star = "*" if not math.isnan(c) and abs(m) > c else ""
                 cells.append(_fmt((m, c)) + star)
             lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    while lines[-1] == "":
+        lines.pop()
+    lines += ["", "## Table II: object counts", "",
+              "Objects at the end of the episode, summed over scenes (mean per scene in brackets); the matching",
+              "rule is `msmem_core.metrics.object_counts`. `removed`: objects no longer in the shelf (grasped out,",
+              "or pushed out), left out of the other four columns.", "",
+              "| method | episodes | " + " | ".join(label for _, label in COUNT_METRICS) + " |",
+              "|---|---|" + "---|" * len(COUNT_METRICS)]
+    for m in summary["methods"]:
+        counts = summary["table"][m].get("counts", {"episodes": 0})
+        n = counts["episodes"]
+        cells = [f"{counts['sum'][k]} ({counts['mean'][k]:.1f})" if n else "-" for k, _ in COUNT_METRICS]
+        lines.append(f"| {m} | {n} | " + " | ".join(cells) + " |")
     if summary["errors"]:
         lines += ["", "Crashed episodes:", ""] + [f"- {e['method']} scene {e['scene_index']}: {e['error']}"
                                                   for e in summary["errors"]]

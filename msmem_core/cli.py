@@ -315,6 +315,15 @@ def bench_grasp(
                f"{s['fell_or_left']} trial(s) with an object fallen or out -> {out}")
 
 
+# Learned CNABU (msmem_cnabu) adds `datagen cnabu`, `train cnabu` and `eval belief-models` (bodies imported on use).
+try:
+    from msmem_cnabu.commands import register as _register_cnabu
+except ImportError:  # the plugin package is not installed
+    pass
+else:
+    _register_cnabu(datagen_app, train_app, eval_app)
+
+
 def main() -> None:
     debug = "--debug" in sys.argv
     try:

@@ -225,3 +225,8 @@ class Term(ABC):
 
     @abstractmethod
     def score(self, ctx: Any, batch: CandidateBatch) -> NDArray[np.float64]: ...
+
+    def refine(self, ctx: Any, batch: CandidateBatch, indices: NDArray[np.int64]) -> NDArray[np.float64] | None:
+        """Exact values for ``indices`` when ``score`` approximated them (e.g. screened at a coarser
+        ray density), else None. MSAS refines a skill's best candidate until its winner is exact."""
+        return None

@@ -111,3 +111,99 @@ def prediction_from_belief(
     occ = p > occ_threshold
     cls = (np.argmax(probs[1:], axis=0) + 1).astype(np.int16)
     return occ, np.where(occ, cls, np.int16(BACKGROUND)).astype(np.int16)
+
+
+OBJECT_COUNT_KEYS = ("correctly_found", "misclassified", "not_found", "hallucinated")
+"""The paper's Table II columns, in its order (see :func:`object_counts`)."""
+
+
+def object_counts(
+    pred_occ: NDArray[np.bool_],
+    pred_cls: NDArray[np.integer],
+    gt_instances: NDArray[np.integer],
+    gt_instance_classes: Mapping[int, int],
+    *,
+    found_fraction: float = 0.2,
+    min_hallucination_voxels: int = 8,
+    exclude: NDArray[np.bool_] | None = None,
+) -> dict[str, int]:
+    """The paper's Table II object counts: correctly found, misclassified, not found, hallucinated.
+
+    Inputs: predicted occupancy (bool) and class (0 = background) per voxel, the ground-truth
+    instance grid of ``groundtruth.voxelize_instances`` (object id per voxel, -1 = free; a voxel two
+    objects share belongs to one of them) over the objects still in the shelf, and the true class of
+    each of those objects (``gt_instance_classes``: object id -> class id; every id in the grid must
+    be a key). ``exclude`` (e.g. the shelf walls) marks voxels ignored on both sides.
+
+    Matching rule:
+
+    - An object is **found** when at least ``found_fraction`` (20%) of its ground-truth voxels are
+      predicted occupied. A found object is **correctly found** when its true class is the most
+      frequent predicted class over its predicted-occupied ground-truth voxels (a tie with another
+      class is not a majority and counts against the object), else **misclassified**. Every other
+      object is **not found**, including one without any ground-truth voxel left (outside the
+      grid or wholly in ``exclude``). So the first three counts sum to ``len(gt_instance_classes)``.
+    - **Hallucinated** counts predicted blobs: per predicted object class, the connected components
+      (26-connectivity) of predicted-occupied voxels of that class with at least
+      ``min_hallucination_voxels`` (8) voxels that touch no ground-truth object voxel even after
+      dilating the ground-truth occupancy by one voxel (3x3x3 cube). A blob next to or on an object,
+      whatever its class, is not a hallucination; smaller specks are ignored as noise.
+    """
+    from scipy import ndimage
+
+    occ = np.asarray(pred_occ, dtype=bool)
+    cls = np.asarray(pred_cls)
+    inst = np.asarray(gt_instances)
+    if occ.ndim != 3:
+        raise ValueError(f"pred_occ must be a 3-D [X, Y, Z] grid, got shape {occ.shape}")
+    for name, a in (("pred_cls", cls), ("gt_instances", inst)):
+        if a.shape != occ.shape:
+            raise ValueError(f"{name} shape {a.shape} differs from pred_occ shape {occ.shape}")
+        if not np.issubdtype(a.dtype, np.integer):
+            raise ValueError(f"{name} must hold integers, got dtype {a.dtype}")
+    if not 0.0 < found_fraction <= 1.0:
+        raise ValueError(f"found_fraction must be in (0, 1], got {found_fraction}")
+    if min_hallucination_voxels < 1:
+        raise ValueError(f"min_hallucination_voxels must be >= 1, got {min_hallucination_voxels}")
+    if inst.size and int(inst.min()) < -1:
+        raise ValueError(f"gt_instances holds {int(inst.min())}; expected object ids >= 0 and -1 for free voxels")
+    if exclude is not None:
+        ex = np.asarray(exclude, dtype=bool)
+        if ex.shape != occ.shape:
+            raise ValueError(f"exclude shape {ex.shape} differs from pred_occ shape {occ.shape}")
+        occ = occ & ~ex
+        inst = np.where(ex, -1, inst)
+    is_obj = inst >= 0
+    obj_ids = inst[is_obj]
+    ids, sizes = np.unique(obj_ids, return_counts=True)
+    voxels_of = dict(zip(ids.tolist(), sizes.tolist(), strict=True))
+    unknown = sorted(set(voxels_of) - {int(k) for k in gt_instance_classes})
+    if unknown:
+        raise ValueError(f"gt_instances holds object ids {unknown} missing from gt_instance_classes")
+
+    counts = dict.fromkeys(OBJECT_COUNT_KEYS, 0)
+    hit = occ[is_obj]
+    hit_ids, hit_cls = obj_ids[hit], cls[is_obj][hit]
+    for oid, true_cls in gt_instance_classes.items():
+        n = voxels_of.get(int(oid), 0)
+        votes_for = hit_cls[hit_ids == oid]
+        if n == 0 or len(votes_for) < found_fraction * n:
+            counts["not_found"] += 1
+            continue
+        voted, votes = np.unique(votes_for, return_counts=True)
+        winners = voted[votes == votes.max()]
+        correct = len(winners) == 1 and int(winners[0]) == int(true_cls)
+        counts["correctly_found" if correct else "misclassified"] += 1
+
+    cube = np.ones((3, 3, 3), dtype=bool)  # 26-connectivity; dilation by one voxel in every direction
+    near_gt = ndimage.binary_dilation(is_obj, structure=cube)
+    for c in np.unique(cls[occ & ~near_gt]):  # a class with no voxel away from the objects has no hallucination
+        if c == BACKGROUND:
+            continue
+        mask = occ & (cls == c)
+        box = ndimage.find_objects(mask.view(np.uint8))[0]  # label only the class's bounding box
+        labels, n = ndimage.label(mask[box], structure=cube)
+        sizes = np.bincount(labels.ravel(), minlength=n + 1)
+        touching = np.bincount(labels[near_gt[box]], minlength=n + 1) > 0
+        counts["hallucinated"] += int(np.count_nonzero((sizes[1:] >= min_hallucination_voxels) & ~touching[1:]))
+    return counts

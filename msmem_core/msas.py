@@ -75,6 +75,30 @@ class Objective:
                 total += weight * parts[name]
         return total, parts
 
+    def best(self, ctx: DecisionContext, batch: CandidateBatch) -> tuple[int, float, dict[str, float], int]:
+        """Argmax of the objective over a batch with the winner scored exactly.
+
+        Terms may approximate (screen) in ``score``; the current argmax is refined through
+        ``Term.refine`` until it is a candidate every term scored exactly, so the value compared
+        across skills is always exact. Returns (index, value, term values, refinements made).
+        """
+        total, parts = self.score(ctx, batch)
+        refined = 0
+        while True:
+            i = int(np.argmax(total))
+            changed = False
+            for name, weight, term in self.terms:
+                if name not in parts:
+                    continue
+                exact = term.refine(ctx, batch, np.array([i]))
+                if exact is not None:
+                    total[i] += weight * (float(exact[0]) - parts[name][i])
+                    parts[name][i] = float(exact[0])
+                    changed = True
+            if not changed:
+                return i, float(total[i]), {k: float(v[i]) for k, v in parts.items()}, refined
+            refined += 1
+
 
 @dataclass
 class Decision:
@@ -104,16 +128,49 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective)
         if not actions:
             continue
         batch = bound.batch(ctx, actions)
-        total, parts = objective.score(ctx, batch)
-        i = int(np.argmax(total))
-        values[bound.name] = float(total[i])
-        if best is None or total[i] > best.value:
-            terms = {k: float(v[i]) for k, v in parts.items()}
-            best = Decision(bound.name, actions[i], float(total[i]), terms, counts, values, batch, i)
+        i, value, terms, _ = objective.best(ctx, batch)
+        values[bound.name] = value
+        if best is None or value > best.value:
+            best = Decision(bound.name, actions[i], value, terms, counts, values, batch, i)
     if best is None:
         raise RuntimeError("no skill proposed an action")
     best.candidates, best.best = counts, values
     return best
+
+
+def bev_confidence(belief: EvidentialMap, interior: NDArray[np.bool_], power: float = 1.8) -> NDArray[np.float64]:
+    """MEM's 2-D (bird's-eye) class confidence ``[X, Y]`` after a 5x5 median filter.
+
+    Per column the class distribution of its highest believed-occupied voxel (expected occupancy
+    > 0.5) inside the shelf interior, or, in a column with none, the mean distribution over its
+    interior voxels (so an observed empty column is confidently background and an unseen one is
+    not). Probabilities are sharpened as ``p^power`` and renormalised ([MEM]), the max taken.
+    """
+    from scipy.ndimage import distance_transform_edt, median_filter
+
+    probs = belief.class_probs().astype(np.float64)  # [C, X, Y, Z]
+    occ = (belief.expected_occupancy() > 0.5) & interior
+    nz = interior.shape[2]
+    top = nz - 1 - np.argmax(occ[:, :, ::-1], axis=2)
+    has_top = occ.any(axis=2)
+    at_top = np.take_along_axis(probs, top[None, :, :, None], axis=3)[..., 0]
+    n_in = np.maximum(interior.sum(axis=2), 1)
+    mean = (probs * interior[None]).sum(axis=3) / n_in
+    col = np.where(has_top[None], at_top, mean)
+    q = col**power
+    total = q.sum(axis=0, keepdims=True)
+    conf = np.divide(q, total, out=np.zeros_like(q), where=total > 0).max(axis=0)
+    cols = interior.any(axis=2)
+    if cols.any() and not cols.all():  # cells off the shelf take their nearest shelf cell's value,
+        _, (ix, iy) = distance_transform_edt(~cols, return_indices=True)  # so the filter sees only the shelf
+        conf = conf[ix, iy]
+    return median_filter(conf, size=5, mode="nearest")
+
+
+def mapped_fraction(belief: EvidentialMap, interior: NDArray[np.bool_], conf_cutoff: float) -> float:
+    """Fraction of the shelf's BEV cells whose (filtered) class confidence exceeds ``conf_cutoff``."""
+    cols = interior.any(axis=2)
+    return float((bev_confidence(belief, interior)[cols] > conf_cutoff).mean())
 
 
 StepCallback = Callable[[int, Decision, Outcome, "EvidentialMap"], None]
@@ -132,13 +189,22 @@ def run_msas(
 ) -> EvidentialMap:
     """The MSAS loop of the paper: T_max actions; after a manipulation the belief becomes the effect
     model's prediction, visited views are cleared and the manipulation's associated best view is
-    executed (both count towards T_max). Manipulation stops for good once an object falls or leaves."""
+    executed (both count towards T_max). Manipulation stops for good once an object falls or leaves,
+    and is not allowed once ``cfg.mapped_fraction`` of the BEV cells are mapped (``mapped_fraction``)."""
+    from msmem_core.groundtruth import interior_mask
+
     visited: set[int] = set()
+    interior: NDArray[np.bool_] | None = None
     manipulation_ok, just_manipulated = True, False
     lo, hi = cfg.manipulation_window
     for step in range(steps):
         # right after a manipulation only views compete: the argmax is its associated next-best view
         allowed = manipulation_ok and lo <= step <= hi and not just_manipulated
+        if allowed and cfg.mapped_fraction < 1.0:
+            if interior is None:
+                probe = make_ctx(step, belief, visited, False)
+                interior = interior_mask(probe.shelf, probe.grid)
+            allowed = mapped_fraction(belief, interior, cfg.conf_cutoff) < cfg.mapped_fraction
         ctx = make_ctx(step, belief, visited, allowed)
         decision = decide(ctx, skills, objective)
         skill = next(b for b in skills if b.name == decision.skill).skill

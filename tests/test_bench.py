@@ -10,7 +10,15 @@ from pathlib import Path
 
 import pytest
 
-from msmem_core.bench import BenchTask, parse_range, run_bench, run_bench_task, suite_scenes
+from msmem_core.bench import (
+    BenchTask,
+    parse_range,
+    run_bench,
+    run_bench_task,
+    suite_scenes,
+    summarise,
+    table_markdown,
+)
 from msmem_core.errors import UserError
 from msmem_core.executors import run_tasks
 
@@ -39,8 +47,34 @@ def test_a_crashing_episode_is_recorded_and_the_others_go_on(tmp_path):
     run_tasks(run_bench_task, [bad, good], workers=1, progress=False)
     bad_rec = json.loads((tmp_path / "bad.json").read_text())
     good_rec = json.loads((tmp_path / "good.json").read_text())
-    assert bad_rec["status"] == "error" and "no simulator named 'nosuch'" in bad_rec["error"]
-    assert good_rec["status"] == "ok" and good_rec["metrics"]["views"] == 2
+    assert bad_rec["status"] == "error"
+    assert "no simulator named 'nosuch'" in bad_rec["error"]
+    assert good_rec["status"] == "ok"
+    assert good_rec["metrics"]["views"] == 2
+    counts = [good_rec["metrics"][k] for k in ("correctly_found", "misclassified", "not_found", "removed")]
+    assert sum(counts) == len(suite_scenes("hard25")[0].objects)
+
+
+def _result(method: str, scene: int, counts: tuple[int, ...] | None) -> dict:
+    metrics = {"occupancy_iou": 0.2, "semantic_miou": 0.1, "position_change_m": 0.0, "observable_iou": 0.5,
+               "semantic_miou_bev": 0.4, "views": 2, "pushes": 0, "grasps": 0, "grasp_success": float("nan")}
+    if counts is not None:
+        metrics.update(zip(("correctly_found", "misclassified", "not_found", "hallucinated", "removed"), counts,
+                           strict=True))
+    return {"method": method, "scene_index": scene, "status": "ok", "metrics": metrics}
+
+
+def test_table_ii_sums_the_object_counts_over_scenes():
+    results = [_result("a", 0, (5, 2, 7, 1, 0)), _result("a", 1, (6, 1, 6, 0, 1)),
+               _result("b", 0, None)]  # a result file written before the counts existed
+    summary = summarise(results, ["a", "b"])
+    assert summary["table"]["a"]["counts"]["sum"]["correctly_found"] == 11
+    assert summary["table"]["a"]["counts"]["mean"]["not_found"] == 6.5
+    text = table_markdown(summary)
+    assert text.startswith("| method |")
+    table2 = text[text.index("## Table II"):]
+    assert "| a | 2 | 11 (5.5) | 3 (1.5) | 13 (6.5) | 1 (0.5) | 1 (0.5) |" in table2
+    assert "| b | 0 | - | - | - | - | - |" in table2
 
 
 def test_kill_and_resume_loses_at_most_the_inflight_episode(tmp_path):

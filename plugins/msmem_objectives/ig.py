@@ -46,35 +46,47 @@ def _deltas(ctx: Any, batch: CandidateBatch) -> list[IGDelta]:
     return [ctx.ig.field_delta(base, ctx.ig.prepare(b)) for b in beliefs]
 
 
+def _manipulation_state(ctx: Any, batch: CandidateBatch, cfg: IGTermConfig) -> dict[str, Any]:
+    """Per-batch cache: the candidates' values, which of them are exact, and their IG deltas."""
+    assert batch.prediction is not None
+    key = ("manipulation_ig", id(batch.prediction), cfg.incremental, cfg.screen_ray_step, cfg.finalists)
+    if key in ctx.cache:
+        return ctx.cache[key]
+    beliefs = batch.prediction.beliefs
+    state: dict[str, Any] = {"deltas": None}
+    if not cfg.incremental:
+        out = np.asarray(ctx.ig.view_ig([ctx.ig.prepare(b) for b in beliefs]), dtype=np.float64).max(axis=1)
+        exact = np.ones(len(out), dtype=bool)
+    else:
+        deltas = state["deltas"] = _deltas(ctx, batch)
+        exact = np.ones(len(deltas), dtype=bool)
+        if cfg.screen_ray_step > 1 and len(deltas) > cfg.finalists:
+            coarse = ctx.ig.view_ig_delta(ctx.field, deltas, ray_step=cfg.screen_ray_step).max(axis=1)
+            top = np.argsort(-coarse, kind="stable")[: cfg.finalists]
+            full = ctx.ig.view_ig_delta(ctx.field, [deltas[i] for i in top]).max(axis=1)
+            ratio = float(np.median(full / np.maximum(coarse[top], 1e-12)))
+            out = np.minimum(coarse * ratio, full.min())
+            out[top] = full
+            exact[:] = False
+            exact[top] = True
+        else:
+            out = ctx.ig.view_ig_delta(ctx.field, deltas).max(axis=1)
+    state["values"], state["exact"] = out, exact
+    ctx.cache[key] = state
+    return state
+
+
 def manipulation_ig(ctx: Any, batch: CandidateBatch, config: IGTermConfig | None = None) -> NDArray[np.float64]:
     """``max_v IG(v | predicted belief)`` per manipulation candidate [K] (cached per batch in ``ctx.cache``).
 
     With screening (``screen_ray_step > 1`` and more than ``finalists`` candidates), the finalists
     get their exact full-density value; every other candidate gets its screened value times the
     median full/screened ratio of the finalists, capped at the lowest finalist value, so the
-    screening order stands and no non-finalist out-scores a finalist on IG.
+    screening order stands and no non-finalist out-scores a finalist on IG. A screened candidate
+    that still wins the objective (through other terms) is re-scored exactly by :meth:`IGTerm.refine`
+    before it is compared with other skills.
     """
-    cfg = config or IGTermConfig()
-    assert batch.prediction is not None
-    key = ("manipulation_ig", id(batch.prediction), cfg.incremental, cfg.screen_ray_step, cfg.finalists)
-    if key in ctx.cache:
-        return ctx.cache[key]
-    beliefs = batch.prediction.beliefs
-    if not cfg.incremental:
-        out = np.asarray(ctx.ig.view_ig([ctx.ig.prepare(b) for b in beliefs]), dtype=np.float64).max(axis=1)
-    else:
-        deltas = _deltas(ctx, batch)
-        if cfg.screen_ray_step > 1 and len(deltas) > cfg.finalists:
-            coarse = ctx.ig.view_ig_delta(ctx.field, deltas, ray_step=cfg.screen_ray_step).max(axis=1)
-            top = np.argsort(-coarse, kind="stable")[: cfg.finalists]
-            exact = ctx.ig.view_ig_delta(ctx.field, [deltas[i] for i in top]).max(axis=1)
-            ratio = float(np.median(exact / np.maximum(coarse[top], 1e-12)))
-            out = np.minimum(coarse * ratio, exact.min())
-            out[top] = exact
-        else:
-            out = ctx.ig.view_ig_delta(ctx.field, deltas).max(axis=1)
-    ctx.cache[key] = out
-    return out
+    return _manipulation_state(ctx, batch, config or IGTermConfig())["values"].copy()
 
 
 class IGTerm(Term):
@@ -95,3 +107,16 @@ class IGTerm(Term):
         if not batch.actions:
             return np.zeros(0)
         return manipulation_ig(ctx, batch, self.config)
+
+    def refine(self, ctx: Any, batch: CandidateBatch, indices: NDArray[np.int64]) -> NDArray[np.float64] | None:
+        """Exact (full-density) values of screened manipulation candidates; None when all are exact."""
+        if batch.category != "manipulation":
+            return None
+        state = _manipulation_state(ctx, batch, self.config)
+        todo = [int(i) for i in indices if not state["exact"][i]]
+        if not todo:
+            return None
+        full = ctx.ig.view_ig_delta(ctx.field, [state["deltas"][i] for i in todo]).max(axis=1)
+        state["values"][todo] = full
+        state["exact"][todo] = True
+        return state["values"][np.asarray(indices)].copy()

@@ -1,6 +1,7 @@
 from collections.abc import Iterable
 
 from msmem_core.plugins import ObjectiveTermSpec, hookimpl
+from msmem_objectives.cdc import CDCConfig, CDCTerm
 from msmem_objectives.entropy import SemanticEntropyConfig, SemanticEntropyTerm
 from msmem_objectives.ig import IGTerm, IGTermConfig
 
@@ -18,4 +19,10 @@ def msmem_objective_terms() -> Iterable[ObjectiveTermSpec]:
         factory=SemanticEntropyTerm,
         config_model=SemanticEntropyConfig,
         description="Delta-H: min(0, H(before) - H(after)) of the summed semantic entropy, manipulation only",
+    )
+    yield ObjectiveTermSpec(
+        name="cdc",
+        factory=CDCTerm,
+        config_model=CDCConfig,
+        description="Collateral disturbance: -|U_diff|, confident voxels whose known class the action changes (DOIG)",
     )

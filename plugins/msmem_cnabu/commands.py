@@ -1,0 +1,138 @@
+"""The ``msmem datagen cnabu``, ``msmem train cnabu`` and ``msmem eval belief-models`` commands.
+
+``register(datagen_app, train_app, eval_app)`` adds them to msmem's typer groups (called by
+``msmem_core.cli`` when this package is installed). Importing this module is cheap (typer only);
+everything heavy is imported inside the command bodies.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from msmem_core.errors import UserError
+
+KIND_HELP = "observe, push or grasp."
+
+
+def _kind(kind: str) -> str:
+    kinds = ("observe", "push", "grasp")
+    if kind not in kinds:
+        raise UserError(f"--kind must be one of {', '.join(kinds)}, got {kind!r}")
+    return kind
+
+
+def datagen_cnabu(
+    kind: Annotated[str, typer.Option("--kind", help=KIND_HELP)],
+    scenes: Annotated[int, typer.Option("--scenes", help="Number of scenes (seeds SEED .. SEED+N-1).")],
+    out: Annotated[Path, typer.Option("--out", help="Output folder: one scene_<seed>.npz per scene.")],
+    workers: Annotated[int, typer.Option("--workers", help="Parallel processes (or Ray tasks in flight).")] = 1,
+    seed: Annotated[int, typer.Option("--seed", help="First scene seed (every random choice flows from it).")] = 0,
+    executor: Annotated[str, typer.Option("--executor", help="local (processes) or ray.")] = "local",
+    voxel: Annotated[float, typer.Option("--voxel", help="Voxel edge in metres (the networks are per grid).")] = 0.01,
+    states: Annotated[int, typer.Option("--states", help="push/grasp: belief states per scene.")] = 2,
+    actions: Annotated[int, typer.Option("--actions", help="push/grasp: candidates executed per state.")] = 4,
+    samples: Annotated[int, typer.Option("--samples", help="observe: views recorded per scene.")] = 6,
+    min_views: Annotated[int, typer.Option("--min-views", help="Random views before the first sample (min).")] = 1,
+    max_views: Annotated[int, typer.Option("--max-views", help="Random views before the first sample (max).")] = 6,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+) -> None:
+    """CNABU training data: belief before, action, PyBullet ground truth after (sharded, resumable)."""
+    from pydantic import ValidationError
+
+    from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset
+
+    kind = _kind(kind)
+    if scenes < 1:
+        raise UserError(f"--scenes must be >= 1, got {scenes}")
+    if seed < 0:
+        raise UserError(f"--seed must be >= 0, got {seed}")
+    try:
+        cfg = CNABUDataConfig(kind=kind, voxel_m=voxel, states=states, actions_per_state=actions,
+                              observe_samples=samples, min_views=min_views, max_views=max_views)
+    except ValidationError as e:
+        err = e.errors()[0]
+        raise UserError(f"invalid option ({'.'.join(str(x) for x in err['loc']) or 'views'}): {err['msg']}") from e
+    seeds = list(range(seed, seed + scenes))
+    typer.echo(f"msmem datagen cnabu: {kind}, {scenes} scenes (seeds {seeds[0]}..{seeds[-1]}) -> {out}, "
+               f"{workers} worker(s), executor {executor}")
+    summary = generate_dataset(out, seeds, cfg, executor=executor, workers=workers, progress=not quiet,
+                               log=lambda m: typer.echo(m, err=True))
+    gen = summary.generated
+    line = f"generated {len(gen)}, skipped {len(summary.skipped)} (already done)"
+    if summary.corrupt:
+        line += f", regenerated {len(summary.corrupt)} corrupt"
+    if gen:
+        per = sum(g["seconds"] for g in gen) / len(gen)
+        n = sum(g["samples"] for g in gen)
+        size = sum(g["bytes"] for g in gen) / len(gen)
+        line += (f" in {summary.seconds:.0f} s: {n} samples, {per:.1f} s per scene per worker "
+                 f"({sum(g['sim_execute_s'] for g in gen) / len(gen):.1f} s of it executing actions), "
+                 f"{size / 1e6:.2f} MB per shard")
+    typer.echo(line)
+    if summary.failed:
+        raise UserError(f"{len(summary.failed)} scene(s) failed (see above); rerun the same command to retry them")
+
+
+def train_cnabu(
+    kind: Annotated[str, typer.Option("--kind", help=KIND_HELP)],
+    data: Annotated[Path, typer.Option("--data", help="Folder of shards from `msmem datagen cnabu`.")],
+    out: Annotated[Path, typer.Option("--out", help="Weights file (.pt); a .json sidecar is written beside it.")],
+    epochs: Annotated[int, typer.Option("--epochs", help="Training epochs.")] = 10,
+    val_fraction: Annotated[float, typer.Option("--val-fraction", help="Fraction of scenes for validation.")] = 0.1,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the split, initialisation and batches.")] = 0,
+    lr: Annotated[float, typer.Option("--lr", help="AdamW learning rate.")] = 2e-3,
+    batch_size: Annotated[int, typer.Option("--batch-size", help="Samples per step.")] = 4,
+    width: Annotated[int, typer.Option("--width", help="U-Net width (channels of the first level).")] = 24,
+    threads: Annotated[int, typer.Option("--threads", help="torch threads.")] = 2,
+    max_minutes: Annotated[float | None, typer.Option("--max-minutes", help="Stop after the epoch past this.")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT.ckpt.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+) -> None:
+    """Train a CNABU network (AdamW, validation per epoch); keeps the best weights + a JSON sidecar (sha256)."""
+    from msmem_cnabu.training import TrainConfig, train
+
+    kind = _kind(kind)
+    cfg = TrainConfig(epochs=epochs, val_fraction=val_fraction, seed=seed, lr=lr, batch_size=batch_size,
+                      width=width, threads=threads, max_minutes=max_minutes, resume=resume)
+    result = train(kind, data, out, cfg, progress=not quiet, log=typer.echo)
+    best = result["best"]
+    val = best["val"]
+    extra = f", occ NLL {val['occ_nll']:.4f}" if val else ""
+    typer.echo(f"best epoch {best['epoch']}: loss {best['score']:.4f}{extra}; {result['train_seconds'] / 60:.1f} min, "
+               f"{result['bytes'] / 1e6:.2f} MB -> {out} (sha256 {result['sha256'][:12]}...)")
+
+
+def eval_belief_models(
+    kind: Annotated[str, typer.Option("--kind", help=KIND_HELP)],
+    data: Annotated[Path, typer.Option("--data", help="Folder of held-out shards from `msmem datagen cnabu`.")],
+    weights: Annotated[Path | None, typer.Option("--weights", help="Weights file (default: the shipped ones).")] = None,
+    change_threshold: Annotated[float, typer.Option("--change-threshold", help="p_change threshold.")] = 0.5,
+    timing: Annotated[bool, typer.Option("--timing/--no-timing", help="Also time predictions vs "
+                                                                      "simulate-and-remap.")] = True,
+    candidates: Annotated[int, typer.Option("--candidates", help="Candidates per timed prediction.")] = 40,
+    repeats: Annotated[int, typer.Option("--repeats", help="Timed repeats (simulate-and-remap: candidates).")] = 3,
+    threads: Annotated[int, typer.Option("--threads", help="torch threads.")] = 2,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the metrics as JSON here.")] = None,
+) -> None:
+    """NLL, Brier, ECE of learned vs analytic vs no-change beliefs against the real ground truth; speed."""
+    from msmem_cnabu.evaluation import evaluate, format_table
+
+    kind = _kind(kind)
+    r = evaluate(kind, data, weights, change_threshold=change_threshold, timing=timing, candidates=candidates,
+                 repeats=repeats, threads=threads, log=typer.echo)
+    typer.echo(format_table(r))
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(r, indent=2))
+        typer.echo(f"metrics: {json_out}")
+
+
+def register(datagen_app: Any, train_app: Any, eval_app: Any) -> None:
+    """Add the commands to msmem's ``datagen``, ``train`` and ``eval`` groups."""
+    datagen_app.command("cnabu")(datagen_cnabu)
+    train_app.command("cnabu")(train_cnabu)
+    eval_app.command("belief-models")(eval_belief_models)

@@ -1,0 +1,41 @@
+"""Config models of the learned belief models (no torch import: the plugin registers them cheaply)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class CNABUObserveConfig(BaseModel):
+    """Parameters of the learned observation update."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    weights: Path | None = None
+    """Weights file (None: the shipped ``msmem_cnabu/weights/cnabu_observe.pt``)."""
+    margin_voxels: int = Field(1, ge=1, le=10)
+    """The grid's margin around the shelf interior (``grid.margin_voxels``): the boards are never changed."""
+    pixel_stride: int = Field(2, gt=0)
+    """Ray masks from every n-th pixel (as ``analytic-observation``)."""
+    surface_offset_m: float = Field(0.001, ge=0.0)
+    """Depth returns are moved this far into the surface (as ``analytic-observation``)."""
+    far_m: float = Field(1.5, gt=0.0)
+    """Pixels without a return mark free space up to this z-depth."""
+    threads: int | None = Field(None, ge=1)
+    """torch threads while predicting (None: leave the process's setting)."""
+
+
+class CNABUEffectConfig(BaseModel):
+    """Parameters of a learned effect model."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    weights: Path | None = None
+    """Weights file (None: the shipped ``msmem_cnabu/weights/cnabu_<kind>.pt``)."""
+    change_threshold: float = Field(0.5, gt=0.0, lt=1.0)
+    """A voxel changes where the predicted change probability exceeds this; elsewhere the prior is copied."""
+    batch: int = Field(20, ge=1, le=1000)
+    """Candidates per forward pass."""
+    threads: int | None = Field(None, ge=1)
+    """torch threads while predicting (None: leave the process's setting)."""

@@ -1,0 +1,517 @@
+"""Training data for the CNABU networks: belief before, action, simulator ground truth after.
+
+Per scene seed (every random choice from ``np.random.default_rng([seed, kind])``, the scene and the
+simulator's segmentation noise from the seed): generate a shelf scene (``msmem_core.scenegen``),
+reset PyBullet, observe the episode's start view and ``min_views``-``max_views`` random views into an
+analytic belief (``msmem_analytic``), then by kind:
+
+- ``observe``: ``observe_samples`` times: a random unvisited view is rendered; its ray masks
+  (free / occupied / class seen, ``AnalyticObservationModel.masks``) are the action; the belief
+  before and the ground truth (objects do not move) are recorded; the view is integrated.
+- ``push`` / ``grasp``: ``states`` belief states; in each the skill proposes candidates from the
+  belief (UPS sampler of ``msmem_push``; UGS of ``msmem_grasp`` with its FE-UMGF buffer, FE-vMF
+  weights if installed, else its geometric fallback) and ``actions_per_state`` of them, drawn at
+  random, are each executed under physics from a ``snapshot`` and the ground truth after it is
+  voxelised from the simulator's object poses (``groundtruth.voxelize``); then ``restore``.
+  Between states one of the candidates is executed for real (the world changes, the belief keeps
+  its now partly stale evidence as in an episode) and ``views_between`` more views are integrated.
+
+Shards: one ``scene_<seed>.npz`` per scene, written atomically (tmp + rename); a rerun skips the
+shards that exist and load, and regenerates corrupt ones. Evidence is stored as float16 (the
+analytic counts are small integers), masks as bool, compressed. Fields (S states, N samples):
+
+| field | shape | content |
+| --- | --- | --- |
+| ``alpha``, ``beta`` | [S, X, Y, Z] f16 | belief evidence before |
+| ``eta`` | [S, C, X, Y, Z] f16 | |
+| ``gt_occ_before``, ``gt_cls_before`` | [S, X, Y, Z] bool / int8 | ground truth at the state |
+| ``state`` | [N] | state of each sample |
+| ``act_vox`` | [N, A, X, Y, Z] bool | the action's voxel channels (``features``) |
+| ``act_scalars`` | [N, M] f32 | the action's scalar channels |
+| ``gt_occ``, ``gt_cls`` | [N, X, Y, Z] bool / int8 | ground truth after the action |
+| ``actions`` | [N] str | the action's JSON (observe: the view index and camera pose) |
+| ``success``, ``moved`` | [N] | the skill's outcome, objects moved > 5 mm |
+| ``state_view`` | [S] | the last view integrated before the state (re-observed by eval's timing) |
+| ``interior``, ``grid``, ``kind``, ``seed``, ``version`` | | |
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import zipfile
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from msmem_cnabu.network import KINDS, Kind, action_channel_counts
+from msmem_core.errors import UserError
+from msmem_core.grid import GridSpec
+
+SHARD_VERSION = 1
+SHARD_GLOB = "scene_*.npz"
+MANIFEST = "dataset.json"
+
+
+class CNABUDataConfig(BaseModel):
+    """How one scene's CNABU samples are made (see the module docstring)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Kind
+    voxel_m: float = Field(0.01, gt=0.001, le=0.05)
+    margin_voxels: int = Field(1, ge=1, le=10)
+    require_hard: bool = False
+    """Hard scenes take ~10x longer to generate; random 30-45 % occupancy shelves are used."""
+    min_views: int = Field(1, ge=0)
+    max_views: int = Field(6, ge=0)
+    """Random views integrated (after the start view) before the first sample."""
+    observe_samples: int = Field(6, ge=1)
+    """observe: consecutive views recorded per scene."""
+    states: int = Field(2, ge=1)
+    """push/grasp: belief states per scene."""
+    actions_per_state: int = Field(4, ge=1)
+    """push/grasp: candidates executed (each from a snapshot) per state."""
+    propose_tries: int = Field(3, ge=1)
+    """push/grasp: when the skill proposes nothing, two more views are integrated and it is asked
+    again, up to this many times per state."""
+    views_between: tuple[int, int] = (1, 3)
+    """push/grasp: views integrated after the real action between two states (uniform, inclusive)."""
+    label_noise: float = Field(0.05, ge=0.0, le=1.0)
+    """The simulator's structured segmentation noise (its default)."""
+
+    @model_validator(mode="after")
+    def _views(self) -> CNABUDataConfig:
+        if self.min_views > self.max_views:
+            raise ValueError(f"min_views {self.min_views} > max_views {self.max_views}")
+        lo, hi = self.views_between
+        if lo < 0 or hi < lo:
+            raise ValueError("views_between must be (lo, hi) with 0 <= lo <= hi")
+        return self
+
+
+class ShardError(UserError):
+    """A shard is missing fields, inconsistent or unreadable."""
+
+
+# ------------------------------------------------------------------------------------------ shards
+@dataclass
+class CNABUShard:
+    """One scene's samples (see the module docstring for the fields)."""
+
+    kind: str
+    seed: int
+    grid: GridSpec
+    interior: NDArray[np.float64]
+    alpha: NDArray[np.float16]
+    beta: NDArray[np.float16]
+    eta: NDArray[np.float16]
+    gt_occ_before: NDArray[np.bool_]
+    gt_cls_before: NDArray[np.int8]
+    state: NDArray[np.int64]
+    act_vox: NDArray[np.bool_]
+    act_scalars: NDArray[np.float32]
+    gt_occ: NDArray[np.bool_]
+    gt_cls: NDArray[np.int8]
+    actions: NDArray[np.str_]
+    success: NDArray[np.bool_]
+    moved: NDArray[np.int64]
+    state_view: NDArray[np.int64]
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.state)
+
+    @property
+    def num_states(self) -> int:
+        return len(self.alpha)
+
+    def belief(self, s: int) -> Any:
+        """State ``s``'s belief as a float32 ``EvidentialMap``."""
+        from msmem_core.belief import EvidentialMap
+
+        return EvidentialMap(self.grid, self.alpha[s].astype(np.float32), self.beta[s].astype(np.float32),
+                             self.eta[s].astype(np.float32))
+
+    def action(self, i: int) -> Any:
+        """Sample ``i``'s action as the skill's pydantic model (push / grasp) or a dict (observe)."""
+        data = json.loads(str(self.actions[i]))
+        if self.kind == "push":
+            from msmem_push.skill import PushAction
+
+            return PushAction.model_validate(data)
+        if self.kind == "grasp":
+            from msmem_grasp.skill import GraspAction
+
+            return GraspAction.model_validate(data)
+        return data
+
+    def masks(self, i: int) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_]]:
+        """observe: (free, occ, seen [C, ...]) of sample ``i``."""
+        v = self.act_vox[i]
+        return v[0], v[1], v[2:]
+
+    def arrays(self) -> dict[str, Any]:
+        out: dict[str, Any] = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("grid", "info")}
+        out["grid"] = np.asarray(self.grid.model_dump_json())
+        out["info"] = np.asarray(json.dumps(self.info))
+        out["kind"] = np.asarray(self.kind)
+        out["seed"] = np.asarray(self.seed)
+        out["version"] = np.asarray(SHARD_VERSION)
+        return out
+
+
+_NAMES = [f.name for f in fields(CNABUShard)]
+
+
+def _fail(path: Path, what: str, kind: str = "KIND") -> ShardError:
+    return ShardError(f"{path}: {what}; rerun `msmem datagen cnabu --kind {kind}` with the same arguments to "
+                      "regenerate it (finished shards are kept)")
+
+
+def _check(z: dict[str, Any], path: Path) -> None:
+    kind = str(z["kind"])
+    if kind not in KINDS:
+        raise _fail(path, f"unknown kind {kind!r}")
+    grid = GridSpec.model_validate_json(str(z["grid"]))
+    shape = tuple(grid.shape)
+    s, n = z["alpha"].shape[0], z["state"].shape[0]
+    c = z["eta"].shape[1] if z["eta"].ndim == 5 else -1
+    a, m = action_channel_counts(kind, c)
+    expected = {
+        "alpha": (s, *shape), "beta": (s, *shape), "eta": (s, c, *shape), "gt_occ_before": (s, *shape),
+        "gt_cls_before": (s, *shape), "state": (n,), "act_vox": (n, a, *shape), "act_scalars": (n, m),
+        "gt_occ": (n, *shape), "gt_cls": (n, *shape), "actions": (n,), "success": (n,), "moved": (n,),
+        "state_view": (s,), "interior": (6,),
+    }
+    for key, shp in expected.items():
+        if tuple(z[key].shape) != shp:
+            raise _fail(path, f"field {key!r} has shape {tuple(z[key].shape)}, expected {shp}: inconsistent shard",
+                        kind)
+    if n and (z["state"].min() < 0 or z["state"].max() >= s):
+        raise _fail(path, f"state index out of range [0, {s})", kind)
+
+
+def load_shard(path: str | Path) -> CNABUShard:
+    """Read and validate a shard; any problem raises :class:`ShardError` naming the file."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as f:
+            missing = [k for k in [*_NAMES, "version"] if k not in f.files]
+            if missing:
+                raise _fail(path, f"not a CNABU shard (missing {', '.join(missing)})")
+            z = {k: f[k] for k in f.files}
+    except ShardError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, KeyError) as e:
+        raise _fail(path, f"corrupt shard ({type(e).__name__}: {e})") from e
+    if int(z["version"]) != SHARD_VERSION:
+        raise _fail(path, f"shard version {int(z['version'])}, this msmem reads {SHARD_VERSION}", str(z["kind"]))
+    _check(z, path)
+    return CNABUShard(
+        kind=str(z["kind"]), seed=int(z["seed"]), grid=GridSpec.model_validate_json(str(z["grid"])),
+        interior=z["interior"].astype(np.float64), alpha=z["alpha"], beta=z["beta"], eta=z["eta"],
+        gt_occ_before=z["gt_occ_before"].astype(bool), gt_cls_before=z["gt_cls_before"].astype(np.int8),
+        state=z["state"].astype(np.int64), act_vox=z["act_vox"].astype(bool),
+        act_scalars=z["act_scalars"].astype(np.float32), gt_occ=z["gt_occ"].astype(bool),
+        gt_cls=z["gt_cls"].astype(np.int8), actions=z["actions"], success=z["success"].astype(bool),
+        moved=z["moved"].astype(np.int64), state_view=z["state_view"].astype(np.int64),
+        info=json.loads(str(z["info"])),
+    )
+
+
+def save_shard(path: str | Path, shard: CNABUShard) -> None:
+    """Write atomically: a temporary file in the same folder, then rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **shard.arrays())
+    os.replace(tmp, path)
+
+
+def shard_path(out_dir: str | Path, seed: int) -> Path:
+    return Path(out_dir) / f"scene_{seed:06d}.npz"
+
+
+def list_shards(data_dir: str | Path, kind: str | None = None) -> list[Path]:
+    """The shards of a data folder, sorted; a missing or empty folder (or one of another kind, per
+    its ``dataset.json``) is a clear error."""
+    d = Path(data_dir)
+    k = kind or "KIND"
+    if not d.is_dir():
+        raise UserError(f"data folder {d} does not exist; create it with `msmem datagen cnabu --kind {k} --out {d}`")
+    paths = sorted(d.glob(SHARD_GLOB))
+    if not paths:
+        raise UserError(f"no {SHARD_GLOB} shards in {d}; create them with `msmem datagen cnabu --kind {k} --out {d}`")
+    manifest = d / MANIFEST
+    if kind is not None and manifest.exists():
+        have = json.loads(manifest.read_text()).get("config", {}).get("kind")
+        if have is not None and have != kind:
+            raise UserError(f"{d} holds {have!r} data (see {manifest}), not {kind!r}")
+    return paths
+
+
+# ------------------------------------------------------------------------------------ one scene
+class _Recorder:
+    """Collects states and samples of one scene."""
+
+    def __init__(self) -> None:
+        self.states: list[tuple[Any, NDArray[np.bool_], NDArray[np.int16], int]] = []
+        self.samples: list[dict[str, Any]] = []
+
+    def state(self, belief: Any, gt: tuple[NDArray[np.bool_], NDArray[np.int16]], view: int) -> int:
+        self.states.append((belief.copy(), gt[0], gt[1], view))
+        return len(self.states) - 1
+
+    def sample(self, state: int, vox: NDArray[np.bool_], scalars: NDArray[np.float32],
+               gt: tuple[NDArray[np.bool_], NDArray[np.int16]], action: str, success: bool, moved: int) -> None:
+        self.samples.append({"state": state, "vox": vox, "scalars": scalars, "gt_occ": gt[0], "gt_cls": gt[1],
+                             "action": action, "success": success, "moved": moved})
+
+    def shard(self, kind: str, seed: int, grid: GridSpec, interior: Sequence[float], info: dict[str, Any]
+              ) -> CNABUShard:
+        used = sorted({s["state"] for s in self.samples})
+        remap = {s: i for i, s in enumerate(used)}
+        states = [self.states[s] for s in used]
+        a, m = action_channel_counts(kind, states[0][0].num_classes if states else 15)
+        shape = tuple(grid.shape)
+        ns = len(self.samples)
+
+        def stack(xs: list[Any], dtype: Any, empty: tuple[int, ...]) -> NDArray[Any]:
+            return np.stack(xs).astype(dtype) if xs else np.zeros(empty, dtype)
+
+        c = states[0][0].num_classes if states else 15
+        return CNABUShard(
+            kind=kind, seed=seed, grid=grid, interior=np.asarray(interior, np.float64),
+            alpha=stack([b.alpha for b, *_ in states], np.float16, (0, *shape)),
+            beta=stack([b.beta for b, *_ in states], np.float16, (0, *shape)),
+            eta=stack([b.eta for b, *_ in states], np.float16, (0, c, *shape)),
+            gt_occ_before=stack([g for _, g, _, _ in states], bool, (0, *shape)),
+            gt_cls_before=stack([g for _, _, g, _ in states], np.int8, (0, *shape)),
+            state=np.array([remap[s["state"]] for s in self.samples], np.int64),
+            act_vox=stack([s["vox"] for s in self.samples], bool, (0, a, *shape)),
+            act_scalars=stack([s["scalars"] for s in self.samples], np.float32, (0, m)),
+            gt_occ=stack([s["gt_occ"] for s in self.samples], bool, (0, *shape)),
+            gt_cls=stack([s["gt_cls"] for s in self.samples], np.int8, (0, *shape)),
+            actions=np.array([s["action"] for s in self.samples], dtype=np.str_) if ns else np.zeros(0, np.str_),
+            success=np.array([s["success"] for s in self.samples], bool),
+            moved=np.array([s["moved"] for s in self.samples], np.int64),
+            state_view=np.array([v for *_, v in states], np.int64),
+            info=info,
+        )
+
+
+def _ground_truth(sim: Any, scene: Any, grid: GridSpec) -> tuple[NDArray[np.bool_], NDArray[np.int16]]:
+    from msmem_core.groundtruth import voxelize
+
+    poses = sim.object_poses()
+    objects = {o.id: o for o in scene.objects}
+    return voxelize([objects[i] for i in poses if i in objects], grid, poses=poses)
+
+
+def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
+    """Simulate one scene and record its samples (see the module docstring)."""
+    from msmem_analytic.observation import AnalyticObservationModel
+    from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
+
+    from msmem_core.belief import EvidentialMap
+    from msmem_core.scenegen import SceneGenConfig, generate_scene
+    from msmem_core.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+
+    cfg = config
+    rng = np.random.default_rng([seed, KINDS.index(cfg.kind)])
+    scene = generate_scene(seed, SceneGenConfig(require_hard=cfg.require_hard))
+    grid = GridSpec.around_box(scene.shelf.interior_lower, scene.shelf.interior_upper, cfg.voxel_m, cfg.margin_voxels)
+    lo, hi = scene.shelf.interior_lower, scene.shelf.interior_upper
+    interior = (*map(float, lo), *map(float, hi))
+    vp_cfg = ViewpointConfig()
+    viewpoints = generate_viewpoints(vp_cfg, scene.shelf)
+    model = AnalyticObservationModel()
+    sim = PyBulletSimulator(PyBulletConfig(seed=seed, label_noise=cfg.label_noise))
+    rec = _Recorder()
+    visited: list[int] = []
+    t_sim = 0.0
+
+    def fresh_views(k: int) -> list[int]:
+        free = np.setdiff1d(np.arange(len(viewpoints)), visited)
+        return [int(v) for v in rng.choice(free, size=min(k, len(free)), replace=False)]
+
+    def look(belief: EvidentialMap, views: Sequence[int]) -> EvidentialMap:
+        for v in views:
+            belief = model.update(belief, sim.observe(viewpoints[v]))
+            visited.append(int(v))
+        return belief
+
+    try:
+        sim.reset(scene)
+        belief = look(EvidentialMap.empty(grid), [default_start_view(vp_cfg)])
+        belief = look(belief, fresh_views(int(rng.integers(cfg.min_views, cfg.max_views + 1))))
+        if cfg.kind == "observe":
+            gt = _ground_truth(sim, scene, grid)
+            from msmem_cnabu.features import observe_channels
+
+            for v in fresh_views(cfg.observe_samples):
+                obs = sim.observe(viewpoints[v])
+                free, occ, seen = model.masks(belief, obs)
+                s = rec.state(belief, gt, visited[-1])
+                pose = np.asarray(viewpoints[v]).round(6).tolist()
+                rec.sample(s, observe_channels(free, occ, seen), np.zeros(0, np.float32), gt,
+                           json.dumps({"view": v, "camera_to_world": pose}), True, 0)
+                belief = model.update(belief, obs)
+                visited.append(v)
+        else:
+            skill = _skill(cfg.kind, seed)
+            ctx = SimpleNamespace(shelf=scene.shelf)
+            step = 0
+            for state_i in range(cfg.states):
+                actions: list[Any] = []
+                for _ in range(cfg.propose_tries):  # no candidate yet: look again (as an episode would)
+                    actions = _propose(cfg.kind, skill, belief, scene.shelf, viewpoints, visited, rng, seed, step)
+                    step += 1
+                    if actions:
+                        break
+                    belief = look(belief, fresh_views(2))
+                if actions:
+                    gt0 = _ground_truth(sim, scene, grid)
+                    s = rec.state(belief, gt0, visited[-1])
+                    pick = rng.choice(len(actions), size=min(cfg.actions_per_state, len(actions)), replace=False)
+                    from msmem_cnabu.features import manipulation_channels
+
+                    chosen = [actions[int(i)] for i in pick]
+                    vox, scalars, _ = manipulation_channels(cfg.kind, belief, chosen)
+                    for a, av, sc in zip(chosen, vox, scalars, strict=True):
+                        token = sim.snapshot()
+                        t0 = time.perf_counter()
+                        out = skill.execute(sim, a, ctx)
+                        t_sim += time.perf_counter() - t0
+                        rec.sample(s, av, sc, _ground_truth(sim, scene, grid), a.model_dump_json(), bool(out.success),
+                                   len(out.info.get("moved", [])))
+                        sim.restore(token)
+                    if state_i + 1 < cfg.states:  # the world moves on: one candidate for real
+                        skill.execute(sim, actions[int(rng.integers(len(actions)))], ctx)
+                if state_i + 1 < cfg.states:
+                    lo_v, hi_v = cfg.views_between
+                    belief = look(belief, fresh_views(int(rng.integers(lo_v, hi_v + 1))))
+    finally:
+        sim.close()
+    info = {"scene": scene.name, "objects": len(scene.objects), "views": visited, "sim_execute_s": t_sim,
+            "config": cfg.model_dump(mode="json")}
+    return rec.shard(cfg.kind, seed, grid, interior, info)
+
+
+def _skill(kind: str, seed: int) -> Any:
+    if kind == "push":
+        from msmem_push.skill import PushConfig, PushSkill
+
+        return PushSkill(PushConfig())
+    from msmem_grasp.skill import GraspConfig, GraspSkill
+
+    return GraspSkill(GraspConfig(seed=seed))
+
+
+def _propose(kind: str, skill: Any, belief: Any, shelf: Any, viewpoints: NDArray[np.float64], visited: list[int],
+             rng: np.random.Generator, seed: int, step: int) -> list[Any]:
+    """The skill's candidates from the belief (as in an episode step)."""
+    if kind == "push":
+        return list(skill.sample(belief, shelf, rng))
+    from msmem_grasp.fpp import virtual_front_views
+
+    views = np.concatenate([viewpoints[sorted(set(visited))].reshape(-1, 4, 4), virtual_front_views()])
+    hyp = skill.predict(belief, shelf, views, int(np.random.default_rng([seed, step, 7]).integers(2**31)))
+    skill.buffer.update(hyp, belief)
+    return list(skill.executable(belief, shelf))
+
+
+# ---------------------------------------------------------------------------------------- dataset
+@dataclass(frozen=True)
+class ShardTask:
+    """One unit of work for the executor (picklable)."""
+
+    seed: int
+    out: str
+    config_json: str
+
+
+def run_shard_task(task: ShardTask) -> dict[str, Any]:
+    """Executor entry point: make and write one shard; returns a small summary."""
+    t0 = time.perf_counter()
+    cfg = CNABUDataConfig.model_validate_json(task.config_json)
+    shard = make_shard(task.seed, cfg)
+    path = shard_path(task.out, task.seed)
+    save_shard(path, shard)
+    return {"seed": task.seed, "samples": len(shard), "states": shard.num_states,
+            "seconds": time.perf_counter() - t0, "sim_execute_s": shard.info.get("sim_execute_s", 0.0),
+            "bytes": path.stat().st_size}
+
+
+@dataclass
+class DatagenSummary:
+    generated: list[dict[str, Any]]
+    skipped: list[int]
+    corrupt: list[str]
+    failed: list[str]
+    seconds: float
+
+    @property
+    def scenes_per_min(self) -> float:
+        return 60.0 * len(self.generated) / max(self.seconds, 1e-9)
+
+
+def generate_dataset(
+    out_dir: str | Path,
+    seeds: Sequence[int],
+    config: CNABUDataConfig,
+    executor: str = "local",
+    workers: int = 1,
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+) -> DatagenSummary:
+    """Make the shards of ``seeds`` in ``out_dir`` that are missing (or corrupt), in parallel."""
+    from msmem_core.executors import TaskFailure, run_tasks
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    manifest_path = out / MANIFEST
+    if manifest_path.exists():
+        old = json.loads(manifest_path.read_text())
+        if old.get("config", {}).get("kind") not in (None, config.kind):
+            raise UserError(f"{out} already holds {old['config']['kind']!r} data (see {manifest_path}); "
+                            f"use another --out for {config.kind!r}")
+    todo, skipped, corrupt = [], [], []
+    for s in seeds:
+        path = shard_path(out, s)
+        if path.exists():
+            try:
+                if load_shard(path).kind != config.kind:
+                    raise _fail(path, f"not a {config.kind!r} shard", config.kind)
+                skipped.append(int(s))
+                continue
+            except ShardError as e:
+                corrupt.append(str(e))
+                log(f"warning: {e}; regenerating it")
+        todo.append(ShardTask(int(s), str(out), config.model_dump_json()))
+    seeds_all = {int(s) for s in seeds}
+    if manifest_path.exists():  # a folder grown by several runs lists every seed
+        seeds_all |= {int(s) for s in json.loads(manifest_path.read_text()).get("seeds", [])}
+    manifest = {"config": config.model_dump(mode="json"), "seeds": sorted(seeds_all), "version": SHARD_VERSION}
+    tmp = out / f".{MANIFEST}.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(manifest, indent=1))
+    os.replace(tmp, manifest_path)
+    t0 = time.perf_counter()
+    results = run_tasks(run_shard_task, todo, executor=executor, workers=workers, progress=progress,
+                        threads=1, description=f"{config.kind} scenes")
+    seconds = time.perf_counter() - t0
+    failed = [f"seed {r.task.seed}: {r.error}" for r in results if isinstance(r, TaskFailure)]
+    for f in failed:
+        log(f"error: {f}")
+    generated = [r for r in results if not isinstance(r, TaskFailure)]
+    return DatagenSummary(generated, skipped, corrupt, failed, seconds)

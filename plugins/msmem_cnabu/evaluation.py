@@ -1,0 +1,317 @@
+"""``msmem eval belief-models``: calibration of predicted beliefs against the real ground truth after
+the action, for the learned CNABU model, its analytic twin and "no change", and prediction speed.
+
+Models (all through their belief-model classes, exactly as ``msmem run`` uses them):
+
+| kind | learned | analytic twin | no change |
+| --- | --- | --- | --- |
+| observe | ``cnabu-observe`` | ``analytic-observation`` (on the same ray masks) | the belief before |
+| push | ``cnabu-push`` | ``push-analytic`` | the belief before |
+| grasp | ``cnabu-grasp`` | ``grasp-analytic`` | the belief before |
+
+Metrics per voxel, pooled over every sample of the held-out shards, on two regions:
+``all`` (every voxel but the shelf's boards) and ``affected`` (the GT change and the action's own
+voxels, dilated by one voxel, without the boards: where the models differ).
+
+- occupancy: NLL ``-log p(y)`` (p = alpha / (alpha + beta), clipped to [1e-6, 1 - 1e-6]), Brier
+  ``(p - y)^2``, ECE of the top label (confidence max(p, 1 - p), 15 equal-width bins);
+- semantics: NLL ``-log q_y`` of the expected class probabilities (GT class 0 = free/background),
+  Brier ``sum_c (q_c - y_c)^2``, top-label ECE (15 bins).
+
+Timing (push, grasp): the learned model and the twin predict ``candidates`` candidates (the first
+held-out state's actions, repeated) in one call, best of ``repeats``; simulate-and-remap of one
+candidate = PyBullet snapshot, execute the action under physics, re-observe from the state's last
+view, integrate it (analytic update), restore; mean over ``repeats`` candidates on the shard's
+scene. Speed-up = simulate-and-remap of one candidate / learned prediction time per candidate (and
+per the whole batch). Observe: learned vs analytic update time per view on the same masks.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard
+from msmem_cnabu.features import dilate, wall_mask
+from msmem_core.errors import UserError
+
+BINS = 15
+MODELS = ("learned", "analytic", "no-change")
+REGIONS = ("affected", "all")
+
+
+class Calibration:
+    """Pooled NLL, Brier and top-label ECE of occupancy and semantics over many voxels."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.sums = {"occ_nll": 0.0, "occ_brier": 0.0, "sem_nll": 0.0, "sem_brier": 0.0}
+        self.bins = {k: np.zeros((3, BINS)) for k in ("occ", "sem")}  # count, confidence sum, correct sum
+
+    def _bin(self, key: str, conf: NDArray[np.float64], correct: NDArray[np.bool_]) -> None:
+        b = np.minimum((conf * BINS).astype(np.int64), BINS - 1)
+        self.bins[key][0] += np.bincount(b, minlength=BINS)
+        self.bins[key][1] += np.bincount(b, weights=conf, minlength=BINS)
+        self.bins[key][2] += np.bincount(b, weights=correct.astype(np.float64), minlength=BINS)
+
+    def add(self, p: NDArray[np.floating], y: NDArray[np.bool_], q: NDArray[np.floating],
+            c: NDArray[np.integer]) -> None:
+        """``p`` [N] expected occupancy, ``y`` [N] GT occupancy, ``q`` [C, N] class probabilities,
+        ``c`` [N] GT class."""
+        if len(p) == 0:
+            return
+        p = np.clip(np.asarray(p, np.float64), 1e-6, 1 - 1e-6)
+        yf = np.asarray(y, np.float64)
+        q = np.asarray(q, np.float64)
+        c = np.asarray(c, np.int64)
+        n = len(p)
+        self.n += n
+        self.sums["occ_nll"] += float(-(yf * np.log(p) + (1 - yf) * np.log(1 - p)).sum())
+        self.sums["occ_brier"] += float(((p - yf) ** 2).sum())
+        qy = np.clip(q[c, np.arange(n)], 1e-6, 1.0)
+        self.sums["sem_nll"] += float(-np.log(qy).sum())
+        self.sums["sem_brier"] += float(((q**2).sum(0) - 2 * q[c, np.arange(n)] + 1.0).sum())
+        self._bin("occ", np.maximum(p, 1 - p), (p > 0.5) == (yf > 0.5))
+        self._bin("sem", q.max(0), q.argmax(0) == c)
+
+    def result(self) -> dict[str, float]:
+        out = {k: v / max(self.n, 1) for k, v in self.sums.items()}
+        for key in ("occ", "sem"):
+            cnt, conf, corr = self.bins[key]
+            out[f"{key}_ece"] = float(np.abs(conf - corr).sum() / max(cnt.sum(), 1.0))
+        out["voxels"] = float(self.n)
+        return out
+
+
+def _score(cal: dict[str, Calibration], belief: Any, gt_occ: NDArray[np.bool_], gt_cls: NDArray[np.integer],
+           regions: dict[str, NDArray[np.bool_]]) -> None:
+    p = belief.expected_occupancy().reshape(-1)
+    q = belief.class_probs().reshape(belief.num_classes, -1)
+    y, c = gt_occ.reshape(-1), gt_cls.reshape(-1).astype(np.int64)
+    for name, m in regions.items():
+        i = np.flatnonzero(m.reshape(-1))
+        cal[name].add(p[i], y[i], q[:, i], c[i])
+
+
+class _ReplayObservation:
+    """``analytic-observation`` fed with stored ray masks (its own ``update`` code, exact)."""
+
+    def __init__(self) -> None:
+        from msmem_analytic.observation import AnalyticObservationModel
+
+        class Replay(AnalyticObservationModel):
+            masks_given: tuple[Any, Any, Any] = (None, None, None)
+
+            def masks(self, belief: Any, observation: Any) -> tuple[Any, Any, Any]:
+                return self.masks_given
+
+        self.model = Replay()
+
+    def update(self, belief: Any, masks: tuple[Any, Any, Any]) -> Any:
+        self.model.masks_given = masks
+        return self.model.update(belief, None)  # type: ignore[arg-type]
+
+
+def build_models(kind: str, weights: Path | None, change_threshold: float) -> tuple[Any, Any]:
+    """(learned, analytic twin) belief models of ``kind``."""
+    from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
+
+    if kind == "observe":
+        from msmem_cnabu.models import CNABUObservationModel
+
+        return CNABUObservationModel(CNABUObserveConfig(weights=weights)), _ReplayObservation()
+    if kind == "push":
+        from msmem_push.effect import AnalyticPushEffect
+
+        from msmem_cnabu.models import CNABUPushEffect
+
+        return CNABUPushEffect(CNABUEffectConfig(weights=weights, change_threshold=change_threshold)), \
+            AnalyticPushEffect()
+    from msmem_grasp.effect import AnalyticGraspEffect
+
+    from msmem_cnabu.models import CNABUGraspEffect
+
+    return CNABUGraspEffect(CNABUEffectConfig(weights=weights, change_threshold=change_threshold)), \
+        AnalyticGraspEffect()
+
+
+def _predict_state(kind: str, learned: Any, twin: Any, shard: CNABUShard, samples: list[int], belief: Any
+                   ) -> dict[str, list[Any]]:
+    if kind == "observe":
+        return {
+            "learned": [learned.update_masks(belief, *shard.masks(i)) for i in samples],
+            "analytic": [twin.update(belief, shard.masks(i)) for i in samples],
+        }
+    actions = [shard.action(i) for i in samples]
+    return {"learned": list(learned.predict(belief, actions).beliefs),
+            "analytic": list(twin.predict(belief, actions).beliefs)}
+
+
+def evaluate(
+    kind: str,
+    data_dir: str | Path,
+    weights: str | Path | None = None,
+    change_threshold: float = 0.5,
+    timing: bool = True,
+    candidates: int = 40,
+    repeats: int = 3,
+    threads: int = 2,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """All metrics (see the module docstring) as a JSON-able dict."""
+    torch.set_num_threads(threads)
+    paths = list_shards(data_dir, kind)
+    learned, twin = build_models(kind, Path(weights) if weights is not None else None, change_threshold)
+    cal = {m: {r: Calibration() for r in REGIONS} for m in MODELS}
+    changed = {m: 0.0 for m in MODELS}
+    n_samples = n_scenes = 0
+    first: CNABUShard | None = None
+    for path in paths:
+        shard = load_shard(path)
+        if shard.kind != kind:
+            raise UserError(f"{path} holds {shard.kind!r} samples, not {kind!r}")
+        if not len(shard):
+            continue
+        n_scenes += 1
+        first = first or shard
+        valid = ~wall_mask(shard.grid, shard.interior)
+        for s in range(shard.num_states):
+            samples = [int(i) for i in np.flatnonzero(shard.state == s)]
+            if not samples:
+                continue
+            belief = shard.belief(s)
+            preds = _predict_state(kind, learned, twin, shard, samples, belief)
+            preds["no-change"] = [belief] * len(samples)
+            for j, i in enumerate(samples):
+                gt_change = (shard.gt_occ[i] != shard.gt_occ_before[s]) | (shard.gt_cls[i] != shard.gt_cls_before[s])
+                regions = {"affected": dilate(gt_change | shard.act_vox[i].any(0), 1) & valid, "all": valid}
+                for m in MODELS:
+                    b = preds[m][j]
+                    _score(cal[m], b, shard.gt_occ[i], shard.gt_cls[i], regions)
+                    diff = (b.alpha != belief.alpha) | (b.beta != belief.beta) | np.any(b.eta != belief.eta, axis=0)
+                    changed[m] += float(diff.sum())
+                n_samples += 1
+    if first is None:
+        raise UserError(f"the shards in {data_dir} hold no samples (no scene had a candidate); generate more scenes")
+    result: dict[str, Any] = {
+        "kind": kind, "data": str(data_dir), "scenes": n_scenes, "samples": n_samples,
+        "weights": str(learned.meta.get("weights")), "weights_sha256": learned.meta.get("sha256"),
+        "change_threshold": change_threshold,
+        "metrics": {m: {r: cal[m][r].result() for r in REGIONS} for m in MODELS},
+        "changed_voxels_per_sample": {m: changed[m] / max(n_samples, 1) for m in MODELS},
+    }
+    nll = {m: result["metrics"][m]["affected"]["occ_nll"] + result["metrics"][m]["affected"]["sem_nll"]
+           for m in ("learned", "analytic")}
+    result["better_nll"] = min(nll, key=nll.__getitem__)
+    if timing:
+        result["timing"] = time_models(kind, learned, twin, first, candidates, repeats, log)
+    return result
+
+
+def _best_of(fn: Callable[[], Any], repeats: int) -> float:
+    best = np.inf
+    for _ in range(max(1, repeats)):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return float(best)
+
+
+def time_models(kind: str, learned: Any, twin: Any, shard: CNABUShard, candidates: int, repeats: int,
+                log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Prediction times of the learned model and its twin, and simulate-and-remap (see the module docstring)."""
+    s = int(shard.state[0])
+    samples = [int(i) for i in np.flatnonzero(shard.state == s)]
+    belief = shard.belief(s)
+    if kind == "observe":
+        masks = shard.masks(samples[0])
+        t_l = _best_of(lambda: learned.update_masks(belief, *masks), repeats)
+        t_a = _best_of(lambda: twin.update(belief, masks), repeats)
+        return {"learned_update_s": t_l, "analytic_update_s": t_a, "speedup_vs_analytic": t_a / t_l,
+                "note": "both need the view's ray masks (the same traversal), not included"}
+    actions = [shard.action(samples[j % len(samples)]) for j in range(candidates)]
+    learned.predict(belief, actions[:1])  # warm-up
+    t_l = _best_of(lambda: learned.predict(belief, actions), repeats)
+    t_a = _best_of(lambda: twin.predict(belief, actions), repeats)
+    t_sim = simulate_and_remap(kind, shard, s, [shard.action(samples[j % len(samples)]) for j in range(repeats)], log)
+    per = t_l / candidates
+    return {
+        "candidates": candidates,
+        "learned_batch_s": t_l, "learned_per_candidate_s": per,
+        "analytic_batch_s": t_a, "analytic_per_candidate_s": t_a / candidates,
+        "simulate_and_remap_s": t_sim,
+        "speedup_per_candidate": t_sim / per,
+        "speedup_whole_batch": t_sim / t_l,
+    }
+
+
+def simulate_and_remap(kind: str, shard: CNABUShard, state: int, actions: list[Any],
+                       log: Callable[[str], None] = print) -> float:
+    """Mean seconds of: snapshot, execute in PyBullet, re-observe, integrate, restore (per action).
+    The world is the shard's scene after ``reset`` (the state's belief is only a stand-in: the timing
+    does not depend on it)."""
+    from types import SimpleNamespace
+
+    from msmem_analytic.observation import AnalyticObservationModel
+    from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
+
+    from msmem_cnabu.datagen import _skill
+    from msmem_core.scenegen import SceneGenConfig, generate_scene
+    from msmem_core.viewpoints import ViewpointConfig, generate_viewpoints
+
+    hard = bool(shard.info.get("config", {}).get("require_hard", False))
+    scene = generate_scene(shard.seed, SceneGenConfig(require_hard=hard))
+    viewpoints = generate_viewpoints(ViewpointConfig(), scene.shelf)
+    view = viewpoints[int(shard.state_view[state])]
+    belief = shard.belief(state)
+    model = AnalyticObservationModel()
+    skill = _skill(kind, shard.seed)
+    ctx = SimpleNamespace(shelf=scene.shelf)
+    sim = PyBulletSimulator(PyBulletConfig(seed=shard.seed))
+    times = []
+    try:
+        sim.reset(scene)
+        for a in actions:
+            t = time.perf_counter()
+            token = sim.snapshot()
+            skill.execute(sim, a, ctx)
+            model.update(belief, sim.observe(view))
+            sim.restore(token)
+            times.append(time.perf_counter() - t)
+    finally:
+        sim.close()
+    return float(np.mean(times))
+
+
+def format_table(r: dict[str, Any]) -> str:
+    """The metrics as a Markdown table plus the timing line(s)."""
+    lines = [f"cnabu-{r['kind']} on {r['samples']} samples from {r['scenes']} scenes ({r['data']}); "
+             f"weights {r['weights']} (sha256 {str(r['weights_sha256'])[:12]}...)", "",
+             "| region | model | occ NLL | occ Brier | occ ECE | sem NLL | sem Brier | sem ECE "
+             "| changed voxels/sample |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for reg in REGIONS:
+        for m in MODELS:
+            x = r["metrics"][m][reg]
+            lines.append(f"| {reg} | {m} | {x['occ_nll']:.4f} | {x['occ_brier']:.4f} | {x['occ_ece']:.4f} | "
+                         f"{x['sem_nll']:.4f} | {x['sem_brier']:.4f} | {x['sem_ece']:.4f} | "
+                         f"{r['changed_voxels_per_sample'][m]:.0f} |")
+    lines += ["", f"better NLL (occupancy + semantics, affected region): {r['better_nll']}"]
+    t = r.get("timing")
+    if t and "learned_batch_s" in t:
+        lines.append(
+            f"timing: learned {t['candidates']} candidates in {t['learned_batch_s']:.3f} s "
+            f"({1000 * t['learned_per_candidate_s']:.1f} ms per candidate), analytic {t['analytic_batch_s']:.3f} s "
+            f"({1000 * t['analytic_per_candidate_s']:.1f} ms), simulate-and-remap {t['simulate_and_remap_s']:.2f} s "
+            f"per candidate -> speed-up {t['speedup_per_candidate']:.0f}x per candidate "
+            f"({t['speedup_whole_batch']:.1f}x for the whole batch of {t['candidates']})")
+    elif t:
+        lines.append(f"timing: learned update {1000 * t['learned_update_s']:.1f} ms, analytic update "
+                     f"{1000 * t['analytic_update_s']:.1f} ms per view (ray masks excluded)")
+    return "\n".join(lines)

@@ -1,0 +1,275 @@
+"""The CNABU network: a 2.5-D U-Net with the height bins as channels (DESIGN.md, "Learned CNABU").
+
+Input, per voxel: the belief features (``features.belief_features``: expected occupancy, occupancy
+uncertainty 2/S, semantic vacuity, expected class probabilities) and the action's voxel channels
+(``features``: ray masks, swept volume, ...); per sample: the action's scalar channels (a learned
+per-channel offset of the action's stem).
+
+Data flow (B samples, grid X x Y x Z, C classes):
+
+1. *Height bins as channels*: a per-voxel linear embedding shared over the Z bins (belief -> ``embed``,
+   action -> ``action_embed`` features) is flattened to Z * embed channels of a 2-D X x Y map. The
+   belief part and the action part have separate stems whose outputs are summed (the same as one
+   stem over the concatenation), so ``predict_many`` runs the belief's stem once for K candidates.
+2. *U-Net* on the bird's-eye map: a stride-2 stem (2 x 2 patches), ``levels`` resolutions with two
+   3 x 3 conv blocks each (GroupNorm, SiLU), skip connections, a transposed conv back to full
+   resolution.
+3. *Column context*: a 1 x 1 conv to Z * ``context`` channels, i.e. ``context`` features per voxel.
+4. *Per-voxel heads* on [context, belief features, action voxel channels]: the change logit (push
+   and grasp) and, through a small MLP, the evidence: occupancy (alpha, beta) and class (eta) as
+   ``relu(prior - 1 + evidence_scale * out) + 1``, i.e. relu + 1 of a residual on the prior, so the
+   identity is easy to learn and every evidence is >= 1.
+
+At inference (``predict_many``) the evidence head runs only on the voxels whose change probability
+passes the threshold (or, for observe, that the view reached); the belief models copy the prior
+everywhere else.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from pydantic import BaseModel, ConfigDict, Field
+from torch import Tensor, nn
+
+from msmem_core.scene import NUM_CLASSES
+
+Kind = Literal["observe", "push", "grasp"]
+KINDS: tuple[str, ...] = ("observe", "push", "grasp")
+
+
+def belief_feature_count(num_classes: int) -> int:
+    """Expected occupancy, occupancy uncertainty, vacuity and one probability per class."""
+    return 3 + num_classes
+
+
+def action_channel_counts(kind: str, num_classes: int) -> tuple[int, int]:
+    """(voxel channels, scalar channels) of an action of ``kind`` (see ``features``)."""
+    if kind == "observe":
+        return 2 + num_classes, 0  # free, occupied, class seen (one-hot per class)
+    if kind in ("push", "grasp"):
+        return 2, 4  # swept volume, start/contact; 4 scalars (direction, length/width ...)
+    raise ValueError(f"unknown CNABU kind {kind!r}; kinds: {', '.join(KINDS)}")
+
+
+class CNABUNetConfig(BaseModel):
+    """Architecture of one CNABU network (recorded in the weights' sidecar)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Kind
+    grid_shape: tuple[int, int, int] = (78, 40, 30)
+    """Voxels along x, y, z of the grid the network was trained on (z bins are channels)."""
+    num_classes: int = Field(NUM_CLASSES, ge=2)
+    embed: int = Field(4, ge=1, le=64)
+    """Per-voxel belief embedding width before the height bins are flattened into channels."""
+    action_embed: int = Field(2, ge=1, le=64)
+    width: int = Field(32, ge=4, le=512)
+    """Channels of the first U-Net level (doubled per level)."""
+    levels: int = Field(3, ge=1, le=5)
+    context: int = Field(4, ge=1, le=64)
+    """Column-context features per voxel handed to the per-voxel heads."""
+    hidden: int = Field(32, ge=4, le=512)
+    """Hidden width of the per-voxel evidence MLP."""
+    evidence_scale: float = Field(10.0, gt=0.0)
+    """Evidence change per unit of the head's output (the analytic update adds 10 per view)."""
+
+    @property
+    def change_head(self) -> bool:
+        return self.kind in ("push", "grasp")
+
+    @property
+    def in_voxel(self) -> int:
+        return belief_feature_count(self.num_classes)
+
+    @property
+    def action_voxel(self) -> int:
+        return action_channel_counts(self.kind, self.num_classes)[0]
+
+    @property
+    def action_scalars(self) -> int:
+        return action_channel_counts(self.kind, self.num_classes)[1]
+
+    @property
+    def padded_xy(self) -> tuple[int, int]:
+        """X and Y padded to a multiple of 2 ** levels (the stem halves them, each level again)."""
+        m = 2**self.levels
+        x, y = self.grid_shape[:2]
+        return -(-x // m) * m, -(-y // m) * m
+
+
+@dataclass
+class CNABUOutput:
+    """Evidence [B, X, Y, Z] (``eta``: [B, C, X, Y, Z]) and the change logit (None for observe)."""
+
+    alpha: Tensor
+    beta: Tensor
+    eta: Tensor
+    change_logit: Tensor | None
+
+    @property
+    def change(self) -> Tensor | None:
+        return None if self.change_logit is None else torch.sigmoid(self.change_logit)
+
+
+def _norm(c: int) -> nn.GroupNorm:
+    return nn.GroupNorm(min(8, c), c)
+
+
+class _Block(nn.Module):
+    def __init__(self, cin: int, cout: int) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Conv2d(cin, cout, 3, padding=1, bias=False), _norm(cout), nn.SiLU(),
+            nn.Conv2d(cout, cout, 3, padding=1, bias=False), _norm(cout), nn.SiLU(),
+        )
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.net(x)
+
+
+class CNABUNet(nn.Module):
+    def __init__(self, config: CNABUNetConfig) -> None:
+        super().__init__()
+        self.config = cfg = config
+        z = cfg.grid_shape[2]
+        self.embed_belief = nn.Linear(cfg.in_voxel, cfg.embed)
+        self.embed_action = nn.Linear(cfg.action_voxel, cfg.action_embed)
+        w = cfg.width
+        self.stem_belief = nn.Conv2d(z * cfg.embed, w, 2, stride=2)
+        self.stem_action = nn.Conv2d(z * cfg.action_embed, w, 2, stride=2, bias=False)
+        self.stem_scalars = nn.Linear(cfg.action_scalars, w, bias=False) if cfg.action_scalars else None
+        widths = [w * 2**i for i in range(cfg.levels)]
+        self.down = nn.ModuleList()
+        self.enc = nn.ModuleList()
+        cin = w
+        for i, c in enumerate(widths):
+            self.down.append(nn.Identity() if i == 0 else nn.Conv2d(cin, c, 2, stride=2))
+            self.enc.append(_Block(c if i else cin, c))
+            cin = c
+        self.up = nn.ModuleList()
+        self.dec = nn.ModuleList()
+        for c_hi, c_lo in zip(widths[::-1][:-1], widths[::-1][1:], strict=True):
+            self.up.append(nn.ConvTranspose2d(c_hi, c_lo, 2, stride=2))
+            self.dec.append(_Block(2 * c_lo, c_lo))
+        self.full = nn.ConvTranspose2d(w, w, 2, stride=2)
+        self.column = nn.Conv2d(w, z * cfg.context, 1)
+        per_voxel = cfg.context + cfg.in_voxel + cfg.action_voxel
+        self.change = nn.Linear(per_voxel, 1) if cfg.change_head else None
+        if self.change is not None:  # an untrained model changes (almost) nothing: p_change ~ 0.05
+            nn.init.constant_(self.change.bias, -3.0)
+        last = nn.Linear(cfg.hidden, 2 + cfg.num_classes)
+        nn.init.zeros_(last.weight)  # starts as the identity on the prior
+        nn.init.zeros_(last.bias)
+        self.evidence = nn.Sequential(nn.Linear(per_voxel, cfg.hidden), nn.SiLU(), last)
+
+    # ------------------------------------------------------------------------------------ pieces
+    @staticmethod
+    def _flatten_z(vox: Tensor, embed: nn.Linear) -> Tensor:
+        """[B, F, X, Y, Z] -> per-voxel embedding flattened over z: [B, Z * E, X, Y]."""
+        b, _, x, y, z = vox.shape
+        e = torch.einsum("bfxyz,ef->bzexy", vox, embed.weight) + embed.bias[None, None, :, None, None]
+        return e.reshape(b, z * embed.out_features, x, y)
+
+    def _pad(self, m: Tensor) -> Tensor:
+        px, py = self.config.padded_xy
+        return F.pad(m, (0, py - m.shape[-1], 0, px - m.shape[-2]))
+
+    def belief_stem(self, belief: Tensor) -> Tensor:
+        """The belief's share of the stem, [B, width, X'/2, Y'/2] (computed once per belief)."""
+        return self.stem_belief(self._pad(self._flatten_z(belief, self.embed_belief)))
+
+    def action_stem(self, action_vox: Tensor, action_scalars: Tensor) -> Tensor:
+        """The action's share: its voxel channels through the stem, its scalars as a per-channel offset."""
+        m = self.stem_action(self._pad(self._flatten_z(action_vox, self.embed_action)))
+        if self.stem_scalars is not None:
+            m = m + self.stem_scalars(action_scalars.to(m.dtype))[:, :, None, None]
+        return m
+
+    def columns(self, stem: Tensor) -> Tensor:
+        """U-Net from the summed stems to the column context [B, Z, context, X, Y]."""
+        cfg = self.config
+        h = F.silu(stem)
+        skips = []
+        for down, enc in zip(self.down, self.enc, strict=True):
+            h = enc(down(h))
+            skips.append(h)
+        for up, dec, skip in zip(self.up, self.dec, skips[::-1][1:], strict=True):
+            h = dec(torch.cat([up(h), skip], 1))
+        h = self.column(F.silu(self.full(h)))
+        x, y, z = cfg.grid_shape
+        return h[:, :, :x, :y].reshape(h.shape[0], z, cfg.context, x, y)
+
+    def context(self, stem: Tensor) -> Tensor:
+        """Per-voxel context [B, X, Y, Z, context] (channels last)."""
+        return self.columns(stem).permute(0, 3, 4, 1, 2)
+
+    def _heads_input(self, ctx: Tensor, belief: Tensor, action_vox: Tensor) -> Tensor:
+        """Per-voxel head input [B, X, Y, Z, context + features] (channels last)."""
+        return torch.cat([ctx, belief.permute(0, 2, 3, 4, 1), action_vox.permute(0, 2, 3, 4, 1)], -1)
+
+    def _evidence(self, h: Tensor, prior: Tensor) -> Tensor:
+        """relu(prior - 1 + scale * out) + 1 for per-voxel inputs h [..., D], prior [..., 2 + C]."""
+        return F.relu(prior - 1.0 + self.config.evidence_scale * self.evidence(h)) + 1.0
+
+    # ---------------------------------------------------------------------------------- forward
+    def forward(self, belief: Tensor, prior: Tensor, action_vox: Tensor, action_scalars: Tensor) -> CNABUOutput:
+        """All voxels. ``belief`` [B, Fb, X, Y, Z] features, ``prior`` [B, 2 + C, X, Y, Z] evidence
+        (alpha, beta, eta), ``action_vox`` [B, Fa, X, Y, Z], ``action_scalars`` [B, S]."""
+        ctx = self.context(self.belief_stem(belief) + self.action_stem(action_vox, action_scalars))
+        h = self._heads_input(ctx, belief, action_vox)
+        ev = self._evidence(h, prior.permute(0, 2, 3, 4, 1)).permute(0, 4, 1, 2, 3)
+        logit = self.change(h)[..., 0] if self.change is not None else None
+        return CNABUOutput(ev[:, 0], ev[:, 1], ev[:, 2:], logit)
+
+    @torch.no_grad()
+    def predict_many(
+        self, belief: Tensor, prior: Tensor, action_vox: Tensor, action_scalars: Tensor, threshold: float,
+        region: Tensor | None = None,
+    ) -> list[tuple[Tensor, Tensor, Tensor]]:
+        """Inference for K actions on one belief (``belief`` [1, Fb, ...], ``prior`` [1, 2 + C, ...],
+        ``action_vox`` [K, Fa, ...]). Per action: (flat voxel indices [M], change probability [M],
+        new evidence [M, 2 + C]) at the voxels it changes: p_change > ``threshold`` (push, grasp) or
+        ``region`` [K, X, Y, Z] (observe: the voxels the view's rays reached), always within
+        ``region`` if given. The belief's share of the stem is computed once; the change head (linear)
+        is evaluated as a sum of its context, belief and action parts, without building the per-voxel
+        inputs; the evidence head runs only on the selected voxels."""
+        cfg = self.config
+        k_n = action_vox.shape[0]
+        x, y, z = cfg.grid_shape
+        cols = self.columns(self.belief_stem(belief) + self.action_stem(action_vox, action_scalars))  # [K,Z,c,X,Y]
+        bf = belief[0].permute(1, 2, 3, 0).reshape(-1, belief.shape[1])
+        pr = prior[0].permute(1, 2, 3, 0).reshape(-1, prior.shape[1])
+        nc, nb = cfg.context, cfg.in_voxel
+        if self.change is not None:
+            wc = self.change.weight[0]
+            base = (bf @ wc[nc:nc + nb] + self.change.bias[0]).reshape(x, y, z)
+            logits = (torch.einsum("kzcxy,c->kxyz", cols, wc[:nc])
+                      + torch.einsum("kaxyz,a->kxyz", action_vox, wc[nc + nb:]) + base)
+            probs = torch.sigmoid(logits).reshape(k_n, -1)
+            sel_all = probs > threshold
+            if region is not None:
+                sel_all &= region.reshape(region.shape[0], -1)
+        else:
+            if region is None:
+                raise ValueError("an observe network needs the region its view reached")
+            probs = None
+            sel_all = region.reshape(region.shape[0], -1).expand(k_n, -1)
+        out = []
+        for k in range(k_n):
+            idx = torch.nonzero(sel_all[k])[:, 0]
+            i, rem = idx // (y * z), idx % (y * z)
+            j, kz = rem // z, rem % z
+            c = cols[k][kz, :, i, j]  # [M, context]
+            av = action_vox[k][:, i, j, kz].T
+            ev = self._evidence(torch.cat([c, bf[idx], av], -1), pr[idx])
+            out.append((idx, probs[k][idx] if probs is not None else torch.ones(len(idx)), ev))
+        return out
+
+
+def parameter_bytes(model: nn.Module) -> int:
+    """Size of the float32 state dict's tensors."""
+    return sum(t.numel() * t.element_size() for t in model.state_dict().values())

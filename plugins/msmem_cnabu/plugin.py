@@ -1,0 +1,57 @@
+"""Learned CNABU belief models: ``cnabu-observe`` (sigma_o), ``cnabu-push`` (sigma_p), ``cnabu-grasp`` (sigma_g)."""
+
+from collections.abc import Iterable
+from typing import Any
+
+from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
+from msmem_core.plugins import BeliefModelSpec, hookimpl
+
+
+def _observe(config: Any) -> Any:
+    from msmem_cnabu.models import CNABUObservationModel
+
+    return CNABUObservationModel(config)
+
+
+def _push(config: Any) -> Any:
+    from msmem_cnabu.models import CNABUPushEffect
+
+    return CNABUPushEffect(config)
+
+
+def _grasp(config: Any) -> Any:
+    from msmem_cnabu.models import CNABUGraspEffect
+
+    return CNABUGraspEffect(config)
+
+
+_WEIGHTS = ("Weights: msmem_cnabu/weights/cnabu_{k}.pt unless `weights` names a file (`msmem datagen cnabu` + "
+            "`msmem train cnabu --kind {k}` make them)")
+
+
+@hookimpl
+def msmem_belief_models() -> Iterable[BeliefModelSpec]:
+    yield BeliefModelSpec(
+        name="cnabu-observe",
+        factory=_observe,
+        config_model=CNABUObserveConfig,
+        roles=frozenset({"observe"}),
+        description="sigma_o by a learned 2.5-D U-Net (CNABU) on the view's ray masks; voxels the rays did not "
+                    "reach keep the prior exactly. " + _WEIGHTS.format(k="observe"),
+    )
+    yield BeliefModelSpec(
+        name="cnabu-push",
+        factory=_push,
+        config_model=CNABUEffectConfig,
+        roles=frozenset({"effect"}),
+        description="sigma_p by a learned 2.5-D U-Net (CNABU) with a change map: outside p_change > "
+                    "change_threshold the prior is copied exactly. " + _WEIGHTS.format(k="push"),
+    )
+    yield BeliefModelSpec(
+        name="cnabu-grasp",
+        factory=_grasp,
+        config_model=CNABUEffectConfig,
+        roles=frozenset({"effect"}),
+        description="sigma_g by a learned 2.5-D U-Net (CNABU) with a change map: outside p_change > "
+                    "change_threshold the prior is copied exactly. " + _WEIGHTS.format(k="grasp"),
+    )

@@ -1,0 +1,431 @@
+"""Learned CNABU belief models: network invariants, exact copy of the prior outside the changed mask,
+the evidential loss, data generation (valid shards, resume, corrupt shards), training and evaluation
+end to end on tiny data, discoverable plugins selectable from config, and clear errors for bad weights.
+
+Tiny everywhere: 2 cm voxels (a 39 x 20 x 15 grid), one or two scenes, one epoch."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
+from msmem_cnabu.datagen import CNABUDataConfig, ShardError, generate_dataset, load_shard, shard_path
+from msmem_cnabu.features import belief_features, grid_interior, prior_evidence, wall_mask
+from msmem_cnabu.losses import CNABULossConfig, cnabu_loss, dirichlet_kl_uniform
+from msmem_cnabu.models import CNABUGraspEffect, CNABUObservationModel, CNABUPushEffect
+from msmem_cnabu.network import CNABUNet, CNABUNetConfig, parameter_bytes
+from msmem_cnabu.training import TrainConfig, sha256_file, train, write_weights
+from msmem_cnabu.weights import WeightsError, load_cnabu
+from typer.testing import CliRunner
+
+from msmem_core.belief import EvidentialMap
+from msmem_core.grid import GridSpec
+from msmem_core.scene import ShelfSpec
+
+torch.set_num_threads(1)
+SHELF = ShelfSpec()
+GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.02, 1)
+NOLOG = lambda m: None  # noqa: E731
+
+
+def random_belief(grid: GridSpec = GRID, seed: int = 0) -> EvidentialMap:
+    rng = np.random.default_rng(seed)
+    shape = tuple(grid.shape)
+    return EvidentialMap(grid, rng.uniform(1, 30, shape).astype(np.float32),
+                         rng.uniform(1, 30, shape).astype(np.float32),
+                         rng.uniform(1, 20, (15, *shape)).astype(np.float32))
+
+
+def tiny_net(kind: str, grid_shape=tuple(GRID.shape), change_bias: float | None = None, seed: int = 0) -> CNABUNet:
+    torch.manual_seed(seed)
+    net = CNABUNet(CNABUNetConfig(kind=kind, grid_shape=grid_shape, width=8, levels=2)).eval()
+    with torch.no_grad():  # a non-trivial evidence head (it starts as the identity on the prior)
+        for p in net.evidence[-1].parameters():
+            p.normal_(0.0, 0.3)
+        if change_bias is not None and net.change is not None:
+            net.change.bias.fill_(change_bias)
+    return net
+
+
+# ------------------------------------------------------------------------------------------ network
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    kind=st.sampled_from(["observe", "push", "grasp"]),
+    x=st.integers(3, 19), y=st.integers(3, 11), z=st.integers(1, 5), batch=st.integers(1, 2),
+    levels=st.integers(1, 2), log_ev=st.floats(0.0, 6.0), seed=st.integers(0, 1000),
+)
+def test_network_shapes_and_evidence_at_least_one(kind, x, y, z, batch, levels, log_ev, seed):
+    c = 4
+    net = CNABUNet(CNABUNetConfig(kind=kind, grid_shape=(x, y, z), num_classes=c, width=4, levels=levels,
+                                  context=2, hidden=8))
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.copy_(torch.randn(p.shape, generator=g) * 0.5)
+    ev = lambda *s: 1.0 + torch.rand(*s, generator=g) * float(np.exp(log_ev))  # noqa: E731
+    a, b, e = ev(batch, x, y, z), ev(batch, x, y, z), ev(batch, c, x, y, z)
+    cfg = net.config
+    act = (torch.rand(batch, cfg.action_voxel, x, y, z, generator=g) > 0.7).float()
+    sc = torch.randn(batch, cfg.action_scalars, generator=g)
+    with torch.no_grad():
+        out = net(belief_features(a, b, e), prior_evidence(a, b, e), act, sc)
+    assert out.alpha.shape == out.beta.shape == (batch, x, y, z)
+    assert out.eta.shape == (batch, c, x, y, z)
+    for t in (out.alpha, out.beta, out.eta):
+        assert torch.isfinite(t).all()
+        assert (t >= 1.0).all()
+    if kind == "observe":
+        assert out.change_logit is None
+    else:
+        assert out.change_logit.shape == (batch, x, y, z)
+        assert ((out.change >= 0) & (out.change <= 1)).all()
+
+
+def test_default_network_is_small_and_starts_as_the_identity_on_the_prior():
+    for kind in ("observe", "push", "grasp"):
+        net = CNABUNet(CNABUNetConfig(kind=kind, width=TrainConfig().width))
+        assert parameter_bytes(net) < 3_000_000
+    net = CNABUNet(CNABUNetConfig(kind="push", grid_shape=tuple(GRID.shape), width=8, levels=2))
+    b = random_belief()
+    a, be, e = (torch.from_numpy(v)[None] for v in (b.alpha, b.beta, b.eta))
+    with torch.no_grad():
+        out = net(belief_features(a, be, e), prior_evidence(a, be, e), torch.zeros(1, 2, *GRID.shape),
+                  torch.zeros(1, 4))
+    torch.testing.assert_close(out.alpha, a)
+    torch.testing.assert_close(out.eta, e)
+    assert float(out.change.max()) < 0.1  # untrained: (almost) nothing changes
+
+
+def test_batched_inference_matches_the_training_forward():
+    net = tiny_net("push", change_bias=0.0)
+    b = random_belief()
+    a, be, e = (torch.from_numpy(v)[None] for v in (b.alpha, b.beta, b.eta))
+    feats, prior = belief_features(a, be, e), prior_evidence(a, be, e)
+    k = 3
+    act = (torch.rand(k, 2, *GRID.shape) > 0.9).float()
+    sc = torch.randn(k, 4)
+    with torch.no_grad():
+        full = net(feats.expand(k, -1, -1, -1, -1), prior.expand(k, -1, -1, -1, -1), act, sc)
+    outs = net.predict_many(feats, prior, act, sc, threshold=0.5)
+    for j, (idx, p, ev) in enumerate(outs):
+        want = full.change[j].reshape(-1) > 0.5
+        assert torch.equal(torch.sort(idx).values, torch.nonzero(want)[:, 0])
+        torch.testing.assert_close(p, full.change[j].reshape(-1)[idx], rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(ev[:, 0], full.alpha[j].reshape(-1)[idx], rtol=1e-4, atol=1e-3)
+        torch.testing.assert_close(ev[:, 2:], full.eta[j].reshape(15, -1)[:, idx].T, rtol=1e-4, atol=1e-3)
+
+
+# ------------------------------------------------------------------------------------ belief models
+def push_actions():
+    from msmem_push.skill import PushAction
+
+    return [PushAction(start_m=(x, 0.05), direction=(0.0, 1.0), length_m=0.12, height_m=0.02) for x in (-0.2, 0.1)] + [
+        PushAction(start_m=(0.0, 0.1), direction=(0.6, 0.8), length_m=0.1, height_m=0.04)]
+
+
+def grasp_actions():
+    from msmem_grasp.skill import GraspAction
+
+    pose = np.eye(4)
+    pose[:3, :3] = [[1, 0, 0], [0, -1, 0], [0, 0, -1]]  # approach down
+    out = []
+    for x in (-0.1, 0.15):
+        pose[:3, 3] = (x, 0.15, 0.08)
+        out.append(GraspAction(pose=tuple(map(tuple, pose)), width_m=0.05, opening_m=0.07,
+                               contact_m=(x - 0.025, 0.15, 0.08),
+                               target_class=3, retreat_m=((x, 0.15, 0.11), (x, -0.3, 0.11))))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["push", "grasp"])
+def test_effect_model_copies_the_prior_exactly_outside_the_changed_mask(tmp_path, kind):
+    net = tiny_net(kind, change_bias=0.3)  # roughly half the voxels pass the threshold
+    w = tmp_path / f"{kind}.pt"
+    write_weights(net, w)
+    cls = CNABUPushEffect if kind == "push" else CNABUGraspEffect
+    model = cls(CNABUEffectConfig(weights=w, change_threshold=0.5, batch=2))
+    belief = random_belief(seed=1)
+    before = belief.copy()
+    actions = push_actions() if kind == "push" else grasp_actions()
+    pred = model.predict(belief, actions)
+    walls = wall_mask(GRID, actions[0].interior_m)
+    assert pred.changed.shape == (len(actions), *GRID.shape)
+    assert len(pred.beliefs) == len(actions)
+    for k, b in enumerate(pred.beliefs):
+        ch = pred.changed[k]
+        assert 0 < ch.sum() < GRID.size
+        assert not (ch & walls).any()  # the boards never change
+        out = ~ch
+        assert np.array_equal(b.alpha[out], before.alpha[out])
+        assert np.array_equal(b.beta[out], before.beta[out])
+        assert np.array_equal(b.eta[:, out], before.eta[:, out])
+        diff = (b.alpha != before.alpha) | (b.beta != before.beta) | np.any(b.eta != before.eta, axis=0)
+        assert np.array_equal(diff, ch)  # exactly the voxels that differ
+        assert np.array_equal(np.sort(pred.beliefs.deltas[k].idx), np.flatnonzero(ch.reshape(-1)))
+        assert (b.alpha >= 1).all()
+        assert (b.beta >= 1).all()
+        assert (b.eta >= 1).all()
+    assert np.array_equal(belief.alpha, before.alpha)  # the input is not modified
+    if kind == "grasp":
+        assert pred.excluded is not None
+        assert pred.excluded.shape == pred.changed.shape
+    # a high threshold: nothing changes, the prediction is the prior itself
+    none = cls(CNABUEffectConfig(weights=w, change_threshold=0.999)).predict(belief, actions)
+    assert not none.changed.any()
+    assert all(len(d.idx) == 0 for d in none.beliefs.deltas)
+
+
+def test_observation_model_changes_only_what_the_view_reached(tmp_path):
+    w = tmp_path / "observe.pt"
+    write_weights(tiny_net("observe"), w)
+    model = CNABUObservationModel(CNABUObserveConfig(weights=w))
+    belief = random_belief(seed=2)
+    rng = np.random.default_rng(0)
+    free = rng.random(GRID.shape) < 0.2
+    occ = (rng.random(GRID.shape) < 0.05) & ~free
+    seen = np.zeros((15, *GRID.shape), bool)
+    seen[3] = occ
+    new = model.update_masks(belief, free, occ, seen)
+    reach = (free | occ) & ~wall_mask(GRID, grid_interior(GRID))
+    diff = (new.alpha != belief.alpha) | (new.beta != belief.beta) | np.any(new.eta != belief.eta, axis=0)
+    assert diff.any()
+    assert not (diff & ~reach).any()
+    assert (new.alpha >= 1).all()
+    assert (new.eta >= 1).all()
+
+
+# ------------------------------------------------------------------------------------------------ loss
+def _synthetic_batch(seed: int = 0, shape=(8, 8, 4), c: int = 4, b: int = 2):
+    g = torch.Generator().manual_seed(seed)
+    gt_occ = torch.rand(b, *shape, generator=g) < 0.3
+    gt_cls = torch.where(gt_occ, torch.randint(1, c, (b, *shape), generator=g), 0)
+    return {
+        "alpha": 1 + 10 * torch.rand(b, *shape, generator=g), "beta": 1 + 10 * torch.rand(b, *shape, generator=g),
+        "eta": 1 + 5 * torch.rand(b, c, *shape, generator=g),
+        "act_vox": (torch.rand(b, 2, *shape, generator=g) > 0.8).float(), "act_scalars": torch.randn(b, 4, generator=g),
+        "gt_occ": gt_occ, "gt_cls": gt_cls, "change": torch.rand(b, *shape, generator=g) < 0.2,
+        "valid": torch.ones(b, *shape, dtype=torch.bool), "focus": gt_occ,
+    }
+
+
+def test_loss_is_finite_even_for_extreme_evidence():
+    d = _synthetic_batch()
+    big = torch.full_like(d["alpha"], 1e5)
+    one = torch.ones_like(d["alpha"])
+    for a, b in ((big, one), (one, big), (one, one)):
+        eta = torch.ones_like(d["eta"])
+        eta[:, 1] = a
+        terms = cnabu_loss(a, b, eta, torch.full_like(a, 30.0), a, b, eta, d["gt_occ"], d["gt_cls"], d["change"],
+                           d["valid"], d["focus"], epoch=10.0)
+        assert all(torch.isfinite(v) for v in terms.values())
+    assert float(dirichlet_kl_uniform(torch.ones(1, 5))[0]) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_loss_decreases_when_overfitting_a_tiny_batch():
+    torch.manual_seed(0)
+    d = _synthetic_batch()
+    net = CNABUNet(CNABUNetConfig(kind="push", grid_shape=(8, 8, 4), num_classes=4, width=8, levels=1, hidden=16))
+    opt = torch.optim.Adam(net.parameters(), lr=1e-2)
+    cfg = CNABULossConfig(anneal_epochs=1.0)
+    feats, prior = belief_features(d["alpha"], d["beta"], d["eta"]), prior_evidence(d["alpha"], d["beta"], d["eta"])
+    losses = []
+    for _ in range(60):
+        out = net(feats, prior, d["act_vox"], d["act_scalars"])
+        terms = cnabu_loss(out.alpha, out.beta, out.eta, out.change_logit, d["alpha"], d["beta"], d["eta"],
+                           d["gt_occ"], d["gt_cls"], d["change"], d["valid"], d["focus"], 1.0, cfg)
+        assert torch.isfinite(terms["total"])
+        opt.zero_grad()
+        terms["total"].backward()
+        opt.step()
+        losses.append(float(terms["total"].detach()))
+    assert losses[-1] < 0.75 * losses[0], losses[::10]
+    assert losses[-1] < min(losses[:30]), losses[::10]
+
+
+# ------------------------------------------------------------------------------- data, train, eval
+TINY_PUSH = CNABUDataConfig(kind="push", voxel_m=0.02, min_views=1, max_views=2, states=1, actions_per_state=2)
+TINY_OBSERVE = CNABUDataConfig(kind="observe", voxel_m=0.02, min_views=0, max_views=1, observe_samples=2)
+
+
+@pytest.fixture(scope="module")
+def push_data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cnabu-push")
+    summary = generate_dataset(out, [3], TINY_PUSH, workers=1, progress=False, log=NOLOG)
+    assert not summary.failed, summary.failed
+    return out
+
+
+@pytest.fixture(scope="module")
+def observe_data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cnabu-observe")
+    summary = generate_dataset(out, [4, 5], TINY_OBSERVE, workers=1, progress=False, log=NOLOG)
+    assert not summary.failed, summary.failed
+    return out
+
+
+def test_push_datagen_writes_a_valid_shard(push_data):
+    s = load_shard(shard_path(push_data, 3))
+    shape = tuple(GRID.shape)
+    assert s.kind == "push"
+    assert s.seed == 3
+    assert tuple(s.grid.shape) == shape
+    assert len(s) == 2
+    assert s.num_states == 1
+    assert s.alpha.dtype == np.float16
+    assert s.eta.shape == (1, 15, *shape)
+    assert s.act_vox.shape == (2, 2, *shape)
+    assert s.act_scalars.shape == (2, 4)
+    assert s.gt_occ.shape == (2, *shape)
+    assert s.gt_occ.any()
+    assert s.act_vox[:, 0].any(axis=(1, 2, 3)).all()  # every push sweeps something
+    b = s.belief(0)
+    assert (b.alpha >= 1).all()
+    assert (b.eta >= 1).all()
+    a = s.action(0)
+    assert a.kind == "push"
+    assert np.isclose(np.hypot(*a.direction), 1.0)
+    assert json.loads((push_data / "dataset.json").read_text())["config"]["kind"] == "push"
+    again = generate_dataset(push_data, [3], TINY_PUSH, workers=1, progress=False, log=NOLOG)
+    assert again.skipped == [3]
+    assert not again.generated
+
+
+def test_observe_datagen_resumes_and_regenerates_a_corrupt_shard(observe_data):
+    s = load_shard(shard_path(observe_data, 4))
+    assert len(s) == 2
+    assert s.num_states == 2
+    assert s.act_vox.shape[1] == 17
+    free, occ, _seen = s.masks(0)
+    assert free.any()
+    assert occ.any()
+    assert not (free & occ).any()
+    assert np.array_equal(s.gt_occ[0], s.gt_occ_before[0])  # a view moves nothing
+    path = shard_path(observe_data, 5)
+    data = bytearray(path.read_bytes())
+    path.write_bytes(bytes(data[: len(data) // 2]))
+    with pytest.raises(ShardError, match=str(path)):
+        load_shard(path)
+    logs = []
+    again = generate_dataset(observe_data, [4, 5], TINY_OBSERVE, workers=1, progress=False, log=logs.append)
+    assert again.skipped == [4]
+    assert [g["seed"] for g in again.generated] == [5]
+    assert len(again.corrupt) == 1
+    assert load_shard(path).seed == 5
+    with pytest.raises(Exception, match="push"):  # one folder, one kind
+        generate_dataset(observe_data, [6], TINY_PUSH, workers=1, progress=False, log=NOLOG)
+
+
+def test_train_and_eval_end_to_end_on_tiny_push_data(push_data, tmp_path):
+    from msmem_core.cli import app
+
+    out = tmp_path / "cnabu_push.pt"
+    runner = CliRunner()
+    res = runner.invoke(app, ["train", "cnabu", "--kind", "push", "--data", str(push_data), "--out", str(out),
+                              "--epochs", "1", "--val-fraction", "0", "--threads", "1", "--width", "8", "-q"])
+    assert res.exit_code == 0, res.output
+    side = json.loads(out.with_suffix(".json").read_text())
+    assert side["kind"] == "push"
+    assert side["sha256"] == sha256_file(out)
+    assert side["epochs_run"] == 1
+    assert np.isfinite(side["best"]["score"])
+    net, meta = load_cnabu("push", out)
+    assert meta["model"]["width"] == 8
+    assert not net.training
+    jpath = tmp_path / "eval.json"
+    res = runner.invoke(app, ["eval", "belief-models", "--kind", "push", "--data", str(push_data),
+                              "--weights", str(out),
+                              "--threads", "1", "--candidates", "8", "--repeats", "1", "--json", str(jpath)])
+    assert res.exit_code == 0, res.output
+    r = json.loads(jpath.read_text())
+    assert r["samples"] == 2
+    for m in ("learned", "analytic", "no-change"):
+        for region in ("affected", "all"):
+            x = r["metrics"][m][region]
+            keys = ("occ_nll", "occ_brier", "occ_ece", "sem_nll", "sem_brier", "sem_ece")
+            assert all(np.isfinite(x[k]) for k in keys)
+            assert 0 <= x["occ_brier"] <= 1
+            assert 0 <= x["sem_brier"] <= 2
+    assert r["changed_voxels_per_sample"]["no-change"] == 0
+    t = r["timing"]
+    assert t["simulate_and_remap_s"] > 0
+    assert t["speedup_per_candidate"] > 0
+    assert "speed-up" in res.output
+    assert "| affected | learned |" in res.output
+
+
+def test_train_and_eval_observe(observe_data, tmp_path):
+    from msmem_cnabu.evaluation import evaluate
+
+    out = tmp_path / "cnabu_observe.pt"
+    side = train("observe", observe_data, out, TrainConfig(epochs=1, val_fraction=0.5, threads=1, width=8),
+                 progress=False, log=NOLOG)
+    assert side["best"]["val"]["occ_nll"] > 0
+    r = evaluate("observe", observe_data, out, threads=1, log=NOLOG)
+    assert r["better_nll"] in ("learned", "analytic")
+    a = r["metrics"]["analytic"]["affected"]
+    n = r["metrics"]["no-change"]["affected"]
+    assert a["occ_nll"] < n["occ_nll"]  # the analytic twin learns from the view; no-change does not
+
+
+# ---------------------------------------------------------------------------------- plugins, weights
+def test_plugins_are_discoverable_and_selectable_from_config(tmp_path):
+    from msmem_core.config import load_config
+    from msmem_core.plugins import ComponentRef, get_plugin_manager
+
+    pm = get_plugin_manager()
+    models = pm.belief_models()
+    assert models["cnabu-observe"].roles == frozenset({"observe"})
+    assert models["cnabu-push"].roles == models["cnabu-grasp"].roles == frozenset({"effect"})
+    w = tmp_path / "p.pt"
+    write_weights(tiny_net("push"), w)
+    cfg_file = tmp_path / "run.yaml"
+    cfg_file.write_text(f"skills:\n  - name: view\n  - name: push\n    effect_model:\n      name: cnabu-push\n"
+                        f"      params: {{weights: {w}, change_threshold: 0.7}}\n")
+    cfg = load_config("push-only", cfg_file)
+    ref = next(s for s in cfg.skills if s.name == "push").effect_model
+    model = pm.build("belief-model", ref, where="skills.1.effect_model")
+    assert isinstance(model, CNABUPushEffect)
+    assert model.config.change_threshold == 0.7
+    with pytest.raises(WeightsError, match="msmem train cnabu --kind observe"):
+        pm.build("belief-model", ComponentRef(name="cnabu-observe", params={"weights": str(tmp_path / "none.pt")}))
+
+
+def test_bad_weights_raise_clear_errors(tmp_path):
+    missing = tmp_path / "missing.pt"
+    with pytest.raises(WeightsError) as e:
+        load_cnabu("push", missing)
+    assert str(missing) in str(e.value)
+    assert "msmem datagen cnabu --kind push" in str(e.value)
+    w = tmp_path / "w.pt"
+    side = write_weights(tiny_net("push"), w)
+    data = bytearray(w.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    w.write_bytes(bytes(data))
+    with pytest.raises(WeightsError) as e:
+        load_cnabu("push", w)
+    assert str(w) in str(e.value)
+    assert side["sha256"] in str(e.value)
+    w.write_bytes(b"")
+    with pytest.raises(WeightsError, match=side["sha256"]):
+        load_cnabu("push", w)
+    w2 = tmp_path / "w2.pt"
+    write_weights(tiny_net("push"), w2)
+    with pytest.raises(WeightsError, match="'push' weights"):
+        load_cnabu("grasp", w2)
+    meta = json.loads(w2.with_suffix(".json").read_text())
+    meta["model"]["width"] = 16  # the hash matches, the tensors do not fit
+    w2.with_suffix(".json").write_text(json.dumps(meta))
+    with pytest.raises(WeightsError, match="loading failed"):
+        load_cnabu("push", w2)
+    w2.with_suffix(".json").unlink()
+    with pytest.raises(WeightsError, match="no sidecar"):
+        load_cnabu("push", w2)
+    w3 = tmp_path / "w3.pt"
+    write_weights(tiny_net("push", grid_shape=(10, 10, 5)), w3)
+    with pytest.raises(WeightsError, match="grid"):
+        CNABUPushEffect(CNABUEffectConfig(weights=w3)).predict(random_belief(), push_actions())

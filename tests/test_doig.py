@@ -1,0 +1,148 @@
+"""DOIG: the collateral disturbance term (paper eq. udiff/doig), exact finalists, the BEV mapped rule."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from msmem_grasp.effect import AnalyticGraspEffect
+from msmem_objectives.cdc import CDCConfig, CDCTerm, disturbed_voxels
+from msmem_objectives.ig import IGTerm, IGTermConfig
+from msmem_push.effect import AnalyticPushEffect
+from msmem_push.skill import PushConfig, PushSkill
+
+from msmem_core.belief import EvidentialMap
+from msmem_core.groundtruth import interior_mask
+from msmem_core.interfaces import CandidateBatch, Prediction
+from msmem_core.msas import Objective, bev_confidence, mapped_fraction
+from msmem_core.plugins import get_plugin_manager
+from msmem_core.plugins.manager import ComponentRef
+from tests.test_grasp import BYSTANDER, IN_THE_WAY, TARGET, top_grasp
+from tests.test_grasp import box_belief as grasp_box_belief
+from tests.test_push import GRID, SHELF, _ctx, _small_ig, synthetic_belief
+
+C = 15
+
+
+def _eta(classes: list[int], strength: list[float]) -> np.ndarray:
+    """Dirichlet evidence [C, M]: class k with ``strength`` extra evidence on top of the prior 1."""
+    eta = np.ones((C, len(classes)), np.float32)
+    for m, (k, s) in enumerate(zip(classes, strength, strict=True)):
+        eta[k, m] += s
+    return eta
+
+
+def test_u_diff_counts_only_confident_changes_of_known_classes() -> None:
+    # voxel 0: known class 3 -> confident class 5 (counted); 1: unknown before -> confident 5 (never);
+    # 2: known 3 -> unsure 5 (not confident after); 3: known 3 -> confident 3 (same class);
+    # 4: known 3 -> confident 5 but excluded (grasped object's region)
+    before = _eta([3, 3, 3, 3, 3], [40, 2, 40, 40, 40])
+    after = _eta([5, 5, 5, 3, 5], [40, 40, 3, 40, 40])
+    excluded = np.array([False, False, False, False, True])
+    assert disturbed_voxels(before, after, 0.5, excluded).tolist() == [True, False, False, False, False]
+    assert disturbed_voxels(before, after, 0.5).tolist() == [True, False, False, False, True]
+    # chi = C / sum(eta): 15 / (15 + 40) = 0.27 is confident at tau 0.5 but not at tau 0.2
+    assert not disturbed_voxels(before, after, 0.2).any()
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(0.05, 1.0))
+def test_u_diff_is_monotone_in_exclusion_and_never_exceeds_the_changed_voxels(seed: int, tau: float) -> None:
+    rng = np.random.default_rng(seed)
+    m = 200
+    before = (1.0 + rng.gamma(0.5, 10.0, (C, m))).astype(np.float32)
+    after = before.copy()
+    moved = rng.random(m) < 0.5
+    after[:, moved] = (1.0 + rng.gamma(0.5, 10.0, (C, int(moved.sum())))).astype(np.float32)
+    ex = rng.random(m) < 0.3
+    full = disturbed_voxels(before, after, tau)
+    part = disturbed_voxels(before, after, tau, ex)
+    assert not full[~moved].any()  # an unchanged voxel is never disturbed
+    assert np.all(part <= full) and not part[ex].any()
+
+
+def test_cdc_term_on_push_predictions_sparse_equals_dense() -> None:
+    belief = synthetic_belief(5)
+    ctx = _ctx(belief)
+    actions = PushSkill(PushConfig(max_samples=16)).propose(ctx)
+    pred = AnalyticPushEffect().predict(belief, actions)
+    batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
+    term = CDCTerm()
+    assert term.applies_to == frozenset({"manipulation"})
+    sparse = term.score(ctx, batch)
+    dense_pred = Prediction(list(pred.beliefs), pred.changed)
+    dense = term.score(ctx, CandidateBatch("push", "manipulation", list(actions), prediction=dense_pred))
+    np.testing.assert_array_equal(sparse, dense)
+    brute = [-float(((belief.vacuity() < 0.5) & (b.vacuity() < 0.5)
+                     & (belief.eta.argmax(0) != b.eta.argmax(0))).sum()) for b in pred.beliefs]
+    np.testing.assert_array_equal(sparse, brute)
+    assert np.all(sparse <= 0) and sparse.min() < 0  # some pushes on this scene displace known objects
+
+
+def test_cdc_excludes_the_grasped_object_and_sees_the_neighbour_it_displaces() -> None:
+    belief = grasp_box_belief([TARGET, IN_THE_WAY, BYSTANDER])
+    ctx = _ctx(belief)
+    clean = top_grasp(0.0, 0.225, 0.14, 0.04, lift=0.09)  # lifted over the block: only the target leaves
+    sweeping = top_grasp(0.0, 0.225, 0.14, 0.04)  # the lifted box drags through the block in front
+    pred = AnalyticGraspEffect().predict(belief, [clean, sweeping])
+    batch = CandidateBatch("grasp", "manipulation", [clean, sweeping], prediction=pred)
+    scores = CDCTerm().score(ctx, batch)
+    assert scores[0] == 0.0  # intentional removal is not a disturbance
+    c = GRID.centers()
+    (x0, y0), (x1, y1), h, _ = IN_THE_WAY
+    way = (c[..., 0] > x0) & (c[..., 0] < x1) & (c[..., 1] > y0) & (c[..., 1] < y1) & (c[..., 2] > 0) & (c[..., 2] < h)
+    assert scores[1] == -float(way.sum())
+    # with its own threshold the term is stricter than the run's tau_chi
+    assert CDCTerm(CDCConfig(tau_chi=0.01)).score(ctx, batch)[1] == 0.0
+
+
+def test_cdc_is_a_registered_term_and_the_ours_preset_uses_it() -> None:
+    from msmem_core.config import load_config
+
+    pm = get_plugin_manager()
+    assert isinstance(pm.build("objective-term", ComponentRef(name="cdc")), CDCTerm)
+    ours = load_config(method="ours")
+    assert [t.name for t in ours.objective] == ["ig", "semantic-entropy", "cdc"]
+    no_cdc = load_config(method="no-cdc")
+    assert "cdc" not in [t.name for t in no_cdc.objective]
+
+
+def test_the_winner_of_a_screened_batch_is_scored_at_full_density() -> None:
+    belief = synthetic_belief(3)
+    ig = _small_ig()
+    ctx = _ctx(belief, ig=ig)
+    actions = PushSkill(PushConfig(max_samples=12)).propose(ctx)
+    pred = AnalyticPushEffect().predict(belief, actions)
+    batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
+    full = ig.view_ig([ig.prepare(b) for b in pred.beliefs]).max(axis=1)
+    # a term that favours the candidate the screening ranks last forces a refinement
+    screened = IGTerm(IGTermConfig(screen_ray_step=2, finalists=2)).score(ctx, batch)
+    last = int(np.argmin(screened))
+    assert not np.isclose(screened[last], full[last], rtol=1e-9)
+
+    class Favour(CDCTerm):
+        def score(self, ctx: object, batch: CandidateBatch) -> np.ndarray:
+            out = np.zeros(len(batch.actions))
+            out[last] = 1e9
+            return out
+
+    ctx = _ctx(belief, ig=ig)  # fresh cache
+    objective = Objective([("ig", 1.0, IGTerm(IGTermConfig(screen_ray_step=2, finalists=2))), ("favour", 1.0, Favour())])
+    i, value, terms, refined = objective.best(ctx, batch)
+    assert i == last and refined == 1
+    assert terms["ig"] == np.float64(full[last]) or np.isclose(terms["ig"], full[last], rtol=1e-9)
+    assert np.isclose(value, full[last] + 1e9, rtol=1e-12)
+
+
+def test_bev_mapped_fraction_follows_the_belief() -> None:
+    interior = interior_mask(SHELF, GRID)
+    empty = EvidentialMap.empty(GRID)
+    assert mapped_fraction(empty, interior, 0.85) == 0.0  # nothing seen: nothing mapped
+    known = grasp_box_belief([TARGET, BYSTANDER])  # every voxel confident (free or a box)
+    conf = bev_confidence(known, interior)
+    assert conf.shape == GRID.shape[:2] and np.all((conf >= 0) & (conf <= 1))
+    assert mapped_fraction(known, interior, 0.85) == 1.0
+    half = known.copy()  # forget the left half of the shelf
+    left = GRID.centers()[..., 0] < 0.0
+    half.alpha[left], half.beta[left], half.eta[:, left] = 1.0, 1.0, 1.0
+    assert 0.4 < mapped_fraction(half, interior, 0.85) < 0.6
