@@ -58,7 +58,8 @@ def test_u_diff_is_monotone_in_exclusion_and_never_exceeds_the_changed_voxels(se
     full = disturbed_voxels(before, after, tau)
     part = disturbed_voxels(before, after, tau, ex)
     assert not full[~moved].any()  # an unchanged voxel is never disturbed
-    assert np.all(part <= full) and not part[ex].any()
+    assert np.all(part <= full)
+    assert not part[ex].any()
 
 
 def test_cdc_term_on_push_predictions_sparse_equals_dense() -> None:
@@ -76,7 +77,8 @@ def test_cdc_term_on_push_predictions_sparse_equals_dense() -> None:
     brute = [-float(((belief.vacuity() < 0.5) & (b.vacuity() < 0.5)
                      & (belief.eta.argmax(0) != b.eta.argmax(0))).sum()) for b in pred.beliefs]
     np.testing.assert_array_equal(sparse, brute)
-    assert np.all(sparse <= 0) and sparse.min() < 0  # some pushes on this scene displace known objects
+    assert np.all(sparse <= 0)
+    assert sparse.min() < 0
 
 
 def test_cdc_excludes_the_grasped_object_and_sees_the_neighbour_it_displaces() -> None:
@@ -127,9 +129,11 @@ def test_the_winner_of_a_screened_batch_is_scored_at_full_density() -> None:
             return out
 
     ctx = _ctx(belief, ig=ig)  # fresh cache
-    objective = Objective([("ig", 1.0, IGTerm(IGTermConfig(screen_ray_step=2, finalists=2))), ("favour", 1.0, Favour())])
+    screened_ig = IGTerm(IGTermConfig(screen_ray_step=2, finalists=2))
+    objective = Objective([("ig", 1.0, screened_ig), ("favour", 1.0, Favour())])
     i, value, terms, refined = objective.best(ctx, batch)
-    assert i == last and refined == 1
+    assert i == last
+    assert refined == 1
     assert terms["ig"] == np.float64(full[last]) or np.isclose(terms["ig"], full[last], rtol=1e-9)
     assert np.isclose(value, full[last] + 1e9, rtol=1e-12)
 
@@ -140,7 +144,8 @@ def test_bev_mapped_fraction_follows_the_belief() -> None:
     assert mapped_fraction(empty, interior, 0.85) == 0.0  # nothing seen: nothing mapped
     known = grasp_box_belief([TARGET, BYSTANDER])  # every voxel confident (free or a box)
     conf = bev_confidence(known, interior)
-    assert conf.shape == GRID.shape[:2] and np.all((conf >= 0) & (conf <= 1))
+    assert conf.shape == GRID.shape[:2]
+    assert np.all((conf >= 0) & (conf <= 1))
     assert mapped_fraction(known, interior, 0.85) == 1.0
     half = known.copy()  # forget the left half of the shelf
     left = GRID.centers()[..., 0] < 0.0
