@@ -199,7 +199,7 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None) 
         rec = {
             "step": step, "skill": d.skill, "action": d.action.model_dump(), "objective": d.value,
             "terms": d.terms, "best_per_skill": d.best, "candidates": d.candidates,
-            "success": outcome.success, "fell_or_left": outcome.fell_or_left,
+            "success": outcome.success, "fell_or_left": outcome.fell_or_left, "info": outcome.info,
             "metrics": m, "seconds": now - t_last,
         }
         t_last = now

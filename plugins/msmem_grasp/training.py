@@ -258,7 +258,7 @@ def train(
                 for k, v in terms.items():
                     running[k] = running.get(k, 0.0) + float(v.detach()) / steps_per_epoch
                 if bar is not None:
-                    bar.update(bar_id, advance=1, epoch=epoch, loss=f"{float(terms['total']):.3f}")
+                    bar.update(bar_id, advance=1, epoch=epoch, loss=f"{float(terms['total'].detach()):.3f}")
             val = validate(model, val_set, epoch + 1, cfg.loss) if val_set else {}
             seconds = elapsed_before + time.perf_counter() - t_start
             rec = {"epoch": epoch, "train": running, "val": val, "seconds": seconds, "lr": lr_at(step - 1)}
