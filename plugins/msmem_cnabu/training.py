@@ -12,10 +12,8 @@ metrics). A checkpoint is written every epoch, so ``resume=True`` continues a ki
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
-import os
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -29,6 +27,7 @@ from msmem_cnabu.datagen import MANIFEST, CNABUShard, list_shards, load_shard
 from msmem_cnabu.features import belief_features, dilate, prior_evidence, wall_mask
 from msmem_cnabu.losses import CNABULossConfig, blend, cnabu_loss
 from msmem_cnabu.network import CNABUNet, CNABUNetConfig, parameter_bytes
+from msmem_core.artifacts import atomic_save, atomic_text, sha256_file, sidecar_path
 from msmem_core.errors import UserError
 
 WEIGHTS_FORMAT = "msmem-cnabu"
@@ -176,30 +175,6 @@ def validate(model: CNABUNet, paths: Sequence[Path], epoch: float, cfg: TrainCon
 
 
 # ------------------------------------------------------------------------------------------- files
-def sha256_file(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def sidecar_path(weights: str | Path) -> Path:
-    return Path(weights).with_suffix(".json")
-
-
-def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
-def _atomic_text(text: str, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 # ------------------------------------------------------------------------------------------- train
 def train(
     kind: str,
@@ -329,13 +304,13 @@ def train(
                    + f"  ({train_s:.1f} s train, {seconds / 60:.1f} min)")
             if best is None or score < best["score"]:
                 best = {"epoch": epoch, "score": score, "val": val, "train": running}
-                _atomic_save(model.state_dict(), out)
+                atomic_save(model.state_dict(), out)
                 msg += "  * best"
             if bar is not None:
                 bar.console.print(msg)
             else:
                 log(msg)
-            _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "step": step,
+            atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "step": step,
                           "history": json.dumps(history), "best": json.dumps(best), "seconds": seconds}, ckpt_path)
             _write_sidecar(out, kind, model_cfg, cfg, data_info, history, best, seconds)
             if cfg.max_minutes is not None and seconds > 60.0 * cfg.max_minutes:
@@ -354,10 +329,10 @@ def write_weights(model: CNABUNet, out: str | Path, **meta: Any) -> dict[str, An
     that ``load_cnabu`` accepts; for experiments and tests (``train`` writes the full sidecar)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_save(model.state_dict(), out)
+    atomic_save(model.state_dict(), out)
     side = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "kind": model.config.kind, "weights": out.name,
             "sha256": sha256_file(out), "bytes": out.stat().st_size, "model": model.config.model_dump(), **meta}
-    _atomic_text(json.dumps(side, indent=1, default=float), sidecar_path(out))
+    atomic_text(json.dumps(side, indent=1, default=float), sidecar_path(out))
     return side
 
 
@@ -380,4 +355,4 @@ def _write_sidecar(out: Path, kind: str, model_cfg: CNABUNetConfig, cfg: TrainCo
         "history": history,
         "torch": torch.__version__,
     }
-    _atomic_text(json.dumps(side, indent=1, default=float), sidecar_path(out))
+    atomic_text(json.dumps(side, indent=1, default=float), sidecar_path(out))

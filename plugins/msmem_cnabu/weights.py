@@ -13,7 +13,8 @@ from typing import Any
 import torch
 
 from msmem_cnabu.network import KINDS, CNABUNet, CNABUNetConfig
-from msmem_cnabu.training import WEIGHTS_FORMAT, sha256_file, sidecar_path
+from msmem_cnabu.training import WEIGHTS_FORMAT
+from msmem_core.artifacts import sha256_file, sidecar_path
 from msmem_core.errors import UserError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"

@@ -14,8 +14,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from msmem_core.artifacts import sidecar_path
 from msmem_grasp.evaluation import format_table
-from msmem_grasp.training import sidecar_path
 
 
 def _ranges(seeds: list[int]) -> str:

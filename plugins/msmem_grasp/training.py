@@ -12,10 +12,8 @@ killed run.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -25,6 +23,7 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.artifacts import atomic_save, atomic_text, sha256_file, sidecar_path
 from msmem_core.errors import UserError
 from msmem_grasp.datagen import MANIFEST, GraspShard, list_shards, load_shard
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction
@@ -131,30 +130,6 @@ def validate(model: FEVMF, shards: Sequence[GraspShard], epoch: float, loss_cfg:
 
 
 # ------------------------------------------------------------------------------------------- files
-def sha256_file(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def sidecar_path(weights: str | Path) -> Path:
-    return Path(weights).with_suffix(".json")
-
-
-def _atomic_save(obj: Any, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
-def _atomic_text(text: str, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def load_shards(paths: Sequence[Path], log: Callable[[str], None] = print) -> list[GraspShard]:
     """All shards, validated (a bad one raises a ``ShardError`` naming its file)."""
     shards = [load_shard(p) for p in paths]
@@ -269,13 +244,13 @@ def train(
                       f"  err b {val['err_b_deg']:.1f} deg" if val else "") + f"  ({seconds / 60:.1f} min)")
             if best is None or score < best["score"]:
                 best = {"epoch": epoch, "score": score, "val": val, "train": running}
-                _atomic_save(model.state_dict(), out)
+                atomic_save(model.state_dict(), out)
                 msg += "  * best"
             if bar is not None:
                 bar.console.print(msg)
             else:
                 log(msg)
-            _atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
+            atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
                           "history": json.dumps(history), "best": json.dumps(best), "seconds": seconds}, ckpt_path)
             _write_sidecar(out, cfg, data_info, history, best, seconds)
             if cfg.max_minutes is not None and seconds > 60.0 * cfg.max_minutes:
@@ -307,4 +282,4 @@ def _write_sidecar(out: Path, cfg: TrainConfig, data: dict[str, Any], history: l
         "history": history,
         "torch": torch.__version__,
     }
-    _atomic_text(json.dumps(side, indent=1, default=float), sidecar_path(out))
+    atomic_text(json.dumps(side, indent=1, default=float), sidecar_path(out))

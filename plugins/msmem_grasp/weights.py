@@ -14,10 +14,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from msmem_core.artifacts import sha256_file, sidecar_path
 from msmem_core.errors import UserError
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction, executable_grasp
 from msmem_grasp.fpp import SurfaceCloud
-from msmem_grasp.training import WEIGHTS_FORMAT, sha256_file, sidecar_path
+from msmem_grasp.training import WEIGHTS_FORMAT
 
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "fe_vmf.pt"
 
