@@ -37,6 +37,9 @@ class DecisionContext:
     manipulation_allowed: bool
     tau_chi: float
     cache: dict[str, Any] = field(default_factory=dict)
+    last_manipulation: int = -1
+    """Step of the episode's last executed manipulation (-1: none yet); ``visited`` holds only the
+    views taken since then, and the belief outside them may be an effect model's prediction."""
 
     @cached_property
     def field(self) -> IGField:
@@ -195,7 +198,7 @@ def run_msas(
 
     visited: set[int] = set()
     interior: NDArray[np.bool_] | None = None
-    manipulation_ok, just_manipulated = True, False
+    manipulation_ok, just_manipulated, last_manipulation = True, False, -1
     lo, hi = cfg.manipulation_window
     for step in range(steps):
         # right after a manipulation only views compete: the argmax is its associated next-best view
@@ -206,6 +209,7 @@ def run_msas(
                 interior = interior_mask(probe.shelf, probe.grid)
             allowed = mapped_fraction(belief, interior, cfg.conf_cutoff) < cfg.mapped_fraction
         ctx = make_ctx(step, belief, visited, allowed)
+        ctx.last_manipulation = last_manipulation
         decision = decide(ctx, skills, objective)
         skill = next(b for b in skills if b.name == decision.skill).skill
         outcome = skill.execute(sim, decision.action, ctx)
@@ -216,6 +220,7 @@ def run_msas(
         elif just_manipulated:
             belief = decision.batch.prediction.beliefs[decision.index]  # type: ignore[union-attr]
             visited.clear()
+            last_manipulation = step
             manipulation_ok = manipulation_ok and not outcome.fell_or_left
         on_step(step, decision, outcome, belief)
     return belief

@@ -204,6 +204,30 @@ def test_the_buffer_is_updated_every_step_and_cleared_for_a_new_episode() -> Non
     assert float((skill.buffer.alpha + skill.buffer.beta).sum()) == pytest.approx(s0)
 
 
+def test_after_a_manipulation_the_buffer_restarts_from_views_taken_since() -> None:
+    from msmem_grasp.fpp import virtual_front_views
+
+    belief = box_belief([TARGET])
+    skill = GraspSkill(GraspConfig(predictor="geometric", fusion={"decay": 1.0}))
+    views = virtual_front_views()
+
+    def at(step: int, visited: set[int], manipulated: int) -> DecisionContext:
+        c = ctx(belief, step=step)
+        c.viewpoints, c.visited, c.last_manipulation = views, visited, manipulated
+        return c
+
+    skill.track(at(0, set(), -1))  # before any manipulation the virtual front cameras see the belief
+    before = len(skill.buffer)
+    assert before > 0
+    skill.track(at(4, set(), 3))  # a push at step 3, no view since: the belief is a prediction
+    assert len(skill.buffer) == 0 and skill.propose(at(4, set(), 3)) == []
+    skill.track(at(5, {0}, 3))  # the associated view was taken: grasps come back from what it saw
+    assert 0 < len(skill.buffer)
+    fused = float((skill.buffer.alpha + skill.buffer.beta).sum())
+    skill.track(at(6, {0}, 3))  # no new manipulation: the buffer keeps fusing
+    assert float((skill.buffer.alpha + skill.buffer.beta).sum()) > fused
+
+
 def test_the_lift_rises_over_a_low_object_in_the_way_when_the_shelf_leaves_room() -> None:
     low = ((-0.05, 0.12), (0.05, 0.18), 0.04, MEAT)
     short_target = ((-0.02, 0.18), (0.02, 0.27), 0.10, SUGAR)

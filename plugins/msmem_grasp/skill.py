@@ -2,11 +2,15 @@
 composed from the ``Simulator`` vocabulary.
 
 Every step (``GraspSkill.track``, called by MSAS before proposals, also when manipulation is not
-allowed): FPP of the current belief from the views visited since the last manipulation plus one
-virtual front camera per viewpoint grid (``fpp.frontier_points``, ``num_points`` points) -> per-point
+allowed): FPP of the current belief from the views visited since the last manipulation (before the
+first manipulation also one virtual front camera per viewpoint grid; after one, only cameras that
+really looked, since the rest of the belief may be an effect model's unconfirmed prediction)
+(``fpp.frontier_points``, ``num_points`` points) -> per-point
 evidential grasps (FE-vMF with the shipped weights; if none are installed, the geometric fallback of
 ``msmem_grasp.geometric``, logged once as a warning and recorded in every action's ``predictor``)
--> FE-UMGF buffer update (``msmem_grasp.fusion``). Nothing is ever read from ground truth.
+-> FE-UMGF buffer update (``msmem_grasp.fusion``). A manipulation (``ctx.last_manipulation``) clears
+the buffer, and nothing is fused until a view has been taken after it. Nothing is ever read from
+ground truth.
 
 Executable grasps (``GraspSkill.propose``, only when manipulation is allowed), from the fused buffer:
 
@@ -242,6 +246,8 @@ class GraspSkill(Skill):
         self._predictor: str | None = None
         self._tracked: tuple[int, EvidentialMap] | None = None
         """(step, belief) of the last FE-UMGF update."""
+        self._manipulated = -1
+        """``last_manipulation`` of the context the buffer was built under."""
 
     # ------------------------------------------------------------------------------ prediction
     @property
@@ -285,14 +291,28 @@ class GraspSkill(Skill):
         """FE-UMGF step: fuse this step's predictions into the buffer (once per step)."""
         if self._tracked is not None and self._tracked[0] == ctx.step and self._tracked[1] is ctx.belief:
             return
+        manipulated = int(getattr(ctx, "last_manipulation", -1))
         if ctx.step == 0 or (self._tracked is not None and ctx.step < self._tracked[0]):
             self.buffer.clear()  # a new episode
+            self._manipulated = -1
+        if manipulated != self._manipulated:
+            # the scene changed physically: grasps fused on the geometry before it are not evidence
+            # about the scene now (pushed objects and their neighbours moved as no model foresaw)
+            self.buffer.clear()
+            self._manipulated = manipulated
+        self._tracked = (int(ctx.step), ctx.belief)
         visited = sorted(v for v in ctx.visited if 0 <= v < len(ctx.viewpoints))
-        views = np.concatenate([np.asarray(ctx.viewpoints)[visited].reshape(-1, 4, 4), virtual_front_views()])
+        views = np.asarray(ctx.viewpoints)[visited].reshape(-1, 4, 4)
+        if manipulated < 0:  # nothing predicted in the belief: the virtual front cameras see real evidence
+            views = np.concatenate([views, virtual_front_views()])
+        elif not visited:
+            # no view since the manipulation: the belief is the effect model's prediction, and grasps
+            # planned on predicted geometry fail (docs/results.md); wait for a real view
+            self.last_stats = None
+            return
         seed = int(np.random.default_rng([self.config.seed, int(ctx.step)]).integers(2**31))
         new = self.predict(ctx.belief, ctx.shelf, views, seed)
         self.last_stats = self.buffer.update(new, ctx.belief)
-        self._tracked = (int(ctx.step), ctx.belief)
 
     # -------------------------------------------------------------------------------- proposal
     def propose(self, ctx: Any) -> list[Action]:
