@@ -1,13 +1,17 @@
-"""Files of learned models: content hashes, the JSON sidecar beside a weights file, atomic writes.
+"""Files of learned models: content hashes, the JSON sidecar beside a weights file, atomic writes, and
+loading weights checked against their sidecar.
 
 Shared by every plugin that trains and ships weights (FE-vMF, CNABU), so the hash a model card
-quotes and the one a loader checks are computed one way.
+quotes and the one a loader checks are computed one way; ``msmem_core.datagen`` writes its shards
+and manifests atomically the same way.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +30,8 @@ def sidecar_path(weights: str | Path) -> Path:
     return Path(weights).with_suffix(".json")
 
 
-def _tmp(path: Path) -> Path:
+def tmp_path(path: Path) -> Path:
+    """The temporary file an atomic write of ``path`` goes through (same folder, hidden, per process)."""
     return path.with_name(f".{path.name}.{os.getpid()}.tmp")
 
 
@@ -34,13 +39,69 @@ def atomic_save(obj: Any, path: Path) -> None:
     """``torch.save`` to a temporary file, then rename: a reader never sees a half-written file."""
     import torch
 
-    tmp = _tmp(path)
+    tmp = tmp_path(path)
     torch.save(obj, tmp)
     os.replace(tmp, path)
 
 
 def atomic_text(text: str, path: Path) -> None:
     """Write text to a temporary file, then rename."""
-    tmp = _tmp(path)
+    tmp = tmp_path(path)
     tmp.write_text(text)
     os.replace(tmp, path)
+
+
+def write_sidecar(weights: Path, head: dict[str, Any], tail: dict[str, Any]) -> dict[str, Any]:
+    """Write the JSON sidecar of a weights file and return it: ``head`` (format, version, ...), the
+    file's name, sha256 and size, then ``tail`` (architecture, training record, ...)."""
+    side = {**head, "weights": weights.name, "sha256": sha256_file(weights), "bytes": weights.stat().st_size, **tail}
+    atomic_text(json.dumps(side, indent=1, default=float), sidecar_path(weights))
+    return side
+
+
+def read_sidecar(
+    weights: str | Path, fmt: str, what: str, records: str, command: str, error: Callable[[str], Exception]
+) -> dict[str, Any]:
+    """The sidecar of a weights file, checked to be a ``fmt`` sidecar (``what``, e.g. "an FE-vMF") with
+    the weights' sha256 and architecture (``model``). Problems raise ``error(message)``; the message
+    of a missing sidecar says what it ``records`` and that ``command`` writes one."""
+    side = sidecar_path(weights)
+    if not side.exists():
+        raise error(f"{weights}: no sidecar {side.name} beside the weights (it records {records}); weights written "
+                    f"by `{command}` come with one")
+    try:
+        meta: dict[str, Any] = json.loads(side.read_text())
+    except (OSError, ValueError) as e:
+        raise error(f"{side}: unreadable sidecar ({e})") from e
+    if meta.get("format") != fmt or "sha256" not in meta or "model" not in meta:
+        raise error(f"{side}: not {what} weights sidecar (format {meta.get('format')!r})")
+    return meta
+
+
+def load_weights(
+    weights: Path, meta: dict[str, Any], build: Callable[[dict[str, Any]], Any], verify: bool, remedy: str,
+    error: Callable[[str], Exception],
+) -> Any:
+    """``build(meta["model"])`` (a torch module) with the state dict at ``weights``, in eval mode.
+
+    With ``verify`` the file's sha256 must equal the sidecar's. A mismatch, an unreadable file or
+    tensors that do not fit raise ``error(message)`` naming the file and the hash it should have; a
+    mismatch's message ends with what to do: "... Restore the file (reinstall msmem / git checkout)
+    or " + ``remedy``.
+    """
+    import torch
+
+    expected = meta["sha256"]
+    hint = (f"{weights}: weights are corrupt or not the ones described by {sidecar_path(weights).name}: expected"
+            f" sha256 {expected}")
+    if verify:
+        actual = sha256_file(weights)
+        if actual != expected:
+            raise error(f"{hint}, got {actual}. Restore the file (reinstall msmem / git checkout) or {remedy}")
+    try:
+        state = torch.load(weights, map_location="cpu", weights_only=True)
+        model = build(meta["model"])
+        model.load_state_dict(state)
+    except Exception as e:  # unpickling errors, missing/unexpected keys, shape mismatches
+        raise error(f"{hint}; loading failed with {type(e).__name__}: {e}") from e
+    return model.eval()

@@ -27,6 +27,7 @@ from multiprocessing import get_context
 from typing import Any, Literal
 
 from msmem_core.errors import UserError
+from msmem_core.progress import progress_bar
 
 EXECUTORS = ("local", "ray")
 ExecutorName = Literal["local", "ray"]
@@ -179,18 +180,7 @@ def run_tasks(
     stream = iter_tasks(fn, tasks, executor, workers, threads)
     bar = None
     if progress and tasks:
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
-
-        bar = Progress(TextColumn("{task.description}"), MofNCompleteColumn(), BarColumn(),
-                       TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TimeRemainingColumn())
-        bar.start()
+        bar = progress_bar("{task.description}", "{task.fields[rate]}")
         bar_id = bar.add_task(description, total=len(tasks), rate="")
     start = time.perf_counter()
     try:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -37,6 +39,32 @@ def matrix_to_quat(r: ArrayLike) -> NDArray[np.float64]:
     qa = np.asarray(q)
     qa /= np.linalg.norm(qa)
     return -qa if qa[3] < 0 else qa
+
+
+def slerp(q0: NDArray[np.float64], q1: NDArray[np.float64], t: float) -> NDArray[np.float64]:
+    """Spherical linear interpolation of unit quaternions (xyzw) along the shorter arc."""
+    d = float(np.dot(q0, q1))
+    if d < 0.0:
+        q1, d = -q1, -d
+    if d > 0.9995:
+        q = q0 + t * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = math.acos(d)
+    return (math.sin((1 - t) * theta) * q0 + math.sin(t * theta) * q1) / math.sin(theta)
+
+
+def quat_angle(q0: NDArray[np.float64], q1: NDArray[np.float64]) -> float:
+    """Angle in radians between two unit quaternions."""
+    return 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
+
+
+def rotation_vector(r: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Axis times angle of a rotation matrix."""
+    q = matrix_to_quat(r)
+    s = float(np.linalg.norm(q[:3]))
+    if s < 1e-12:
+        return np.zeros(3)
+    return q[:3] / s * 2.0 * math.atan2(s, q[3])
 
 
 def pose_matrix(position: ArrayLike, quat_xyzw: ArrayLike = (0, 0, 0, 1)) -> NDArray[np.float64]:

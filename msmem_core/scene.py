@@ -8,6 +8,8 @@ shapes from the parts; ground truth voxelises the same parts, so all agree on th
 from __future__ import annotations
 
 import json
+import math
+from collections.abc import Sequence
 from functools import cache
 from pathlib import Path
 from typing import Literal
@@ -55,6 +57,17 @@ class ObjectClass(BaseModel):
             ext = p.size_m[0] if p.kind == "cylinder" else 0.5 * float(np.hypot(p.size_m[0], p.size_m[1]))
             r = max(r, float(np.hypot(p.position_m[0], p.position_m[1])) + ext)
         return r
+
+
+def parts_centroid(parts: Sequence[Part]) -> NDArray[np.float64]:
+    """Volume-weighted centroid of the parts (overlaps counted twice; good enough for a mass centre).
+
+    The backends put an object's mass centre here."""
+    vols = np.array(
+        [float(np.prod(q.size_m)) if q.kind == "box" else math.pi * q.size_m[0] ** 2 * q.size_m[1] for q in parts]
+    )
+    centres = np.array([q.position_m for q in parts], dtype=np.float64)
+    return (vols[:, None] * centres).sum(axis=0) / vols.sum()
 
 
 def _box(x: float, y: float, z: float, at: tuple[float, float, float] | None = None) -> Part:

@@ -23,21 +23,26 @@ from msmem_sapien.simulator import SapienSimulator, native_renderer
 from msmem_core.camera import CameraConfig
 from msmem_core.config import load_config
 from msmem_core.geometry import rotation_angle_deg
-from msmem_core.interfaces import GRIPPER_ID, Simulator
+from msmem_core.interfaces import Simulator
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.plugins.manager import ComponentRef
 from msmem_core.runner import build_episode, run_episode
-from msmem_core.scene import ObjectSpec, SceneSpec, object_class
+from msmem_core.scene import ObjectSpec, SceneSpec
 from msmem_core.scenegen import SceneGenConfig, generate_scene
 from msmem_core.testing.conformance import (
     conformance_scene,
     front_view,
-    gripper_pose,
     push_along_y,
     simulator_conformance,
     single_object_scene,
 )
 from msmem_core.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+from tests.support.sim_checks import (
+    check_label_noise_relabels_whole_objects_and_follows_the_seed,
+    check_restoring_a_snapshot_and_repeating_a_push_reproduces_it_exactly,
+    check_top_grasp_lifts_by_friction,
+    check_two_simulators_in_one_process_do_not_interfere,
+)
 
 SMALL_CAMERA = CameraConfig(width_px=160, height_px=120)
 SEEDS = (0, 1)
@@ -98,75 +103,18 @@ def test_native_renderer_and_raycast_camera_see_the_same_picture() -> None:
     assert np.quantile(np.abs(a.depth - b.depth)[both], 0.99) < 1e-3
 
 
-def _labels_per_view(seed: int, views: int = 6) -> list[dict[int, int]]:
-    """The label each visible object carries in each of ``views`` renders of the same view."""
-    scene = conformance_scene()
-    sim = SapienSimulator(label_noise=0.5, seed=seed, renderer="raycast")
-    try:
-        sim.reset(scene)
-        out = []
-        for _ in range(views):
-            obs = sim.observe(front_view(scene))
-            assert obs.object_ids is not None
-            per_object = {}
-            for oid in np.unique(obs.object_ids[obs.object_ids >= 0]):
-                labels = np.unique(obs.labels[obs.object_ids == oid])
-                assert len(labels) == 1, f"object {oid} carries labels {labels} in one view"
-                per_object[int(oid)] = int(labels[0])
-            out.append(per_object)
-        return out
-    finally:
-        sim.close()
-
-
 def test_label_noise_relabels_whole_objects_and_follows_the_seed() -> None:
-    scene = conformance_scene()
-    first = _labels_per_view(seed=3)
-    for views in first:
-        assert views, "objects should be visible"
-        for oid, label in views.items():
-            cls = scene.objects[oid].object_class
-            assert label in (cls.class_id, object_class(cls.confusable_with or cls.name).class_id)
-    flips = [label != scene.objects[oid].class_id for views in first for oid, label in views.items()]
-    assert any(flips), "with noise 0.5 some objects should be relabelled"
-    assert not all(flips), "with noise 0.5 some objects should keep their class"
-    assert _labels_per_view(seed=3) == first, "the same seed must give the same noise"
-    assert _labels_per_view(seed=4) != first, "another seed should give other noise"
+    check_label_noise_relabels_whole_objects_and_follows_the_seed(
+        lambda seed: SapienSimulator(label_noise=0.5, seed=seed, renderer="raycast")
+    )
 
 
 def test_restoring_a_snapshot_and_repeating_a_push_reproduces_it_exactly() -> None:
-    scene = conformance_scene()
-    sim = sapien_sim()
-    try:
-        sim.reset(scene)
-        token = sim.snapshot()
-        runs = []
-        for _ in range(2):
-            sim.restore(token)
-            push_along_y(sim, scene.objects[1], 0.05)
-            sim.step(0.2)
-            runs.append((sim.object_poses(), sim.gripper_pose()))
-    finally:
-        sim.close()
-    for oid in runs[0][0]:
-        np.testing.assert_array_equal(runs[0][0][oid], runs[1][0][oid])
-    np.testing.assert_array_equal(runs[0][1], runs[1][1])
+    check_restoring_a_snapshot_and_repeating_a_push_reproduces_it_exactly(sapien_sim())
 
 
 def test_two_simulators_in_one_process_do_not_interfere() -> None:
-    a, b = sapien_sim(), sapien_sim()
-    try:
-        a.reset(single_object_scene("foam_brick", (0.1, 0.2, 0.0), object_id=1))
-        b.reset(SceneSpec(objects=(ObjectSpec(id=2, class_name="sugar_box", position_m=(-0.2, 0.2, 0.0)),)))
-        a.remove_object(1)
-        assert a.object_poses() == {}
-        assert set(b.object_poses()) == {2}
-        assert not np.any(a.observe(front_view(conformance_scene())).object_ids == 2)
-        with pytest.raises(ValueError, match="not a snapshot"):
-            a.restore(b.snapshot())
-    finally:
-        a.close()
-        b.close()
+    check_two_simulators_in_one_process_do_not_interfere(sapien_sim)
 
 
 def test_config_rejects_unknown_options_and_the_plugin_builds_the_backend() -> None:
@@ -296,25 +244,11 @@ def test_scripted_push_in_a_seeded_scene_moves_target_and_neighbours_alike(seede
 def test_top_grasp_of_an_isolated_object_succeeds_on_both_backends(class_name: str, tip_z: float) -> None:
     scene = single_object_scene(class_name, (-0.1, 0.2, 0.0))
     obj = scene.objects[0]
-    width = obj.object_class.parts[0].size_m[1]
-
-    def above(z: float) -> np.ndarray:
-        return gripper_pose((-0.1, 0.2, z), (0, 0, -1), (0, 1, 0))  # close across the narrow side
-
     for make in (lambda: PyBulletSimulator(label_noise=0.0), sapien_sim):
         sim: Simulator = make()
         try:
-            sim.reset(scene)
-            z0 = sim.object_poses()[obj.id][2, 3]
-            sim.move_gripper([above(tip_z + 0.06), above(tip_z)], opening_m=0.08)
-            assert abs(sim.set_gripper(0.0) - width) < 0.004
-            assert sim.held_object() == obj.id
-            lifted = sim.move_gripper([above(tip_z + 0.06)])  # the palm then stays clear of the top board
-            assert abs(lifted[2, 3] - (tip_z + 0.06)) < 0.005
-            rose = sim.object_poses()[obj.id][2, 3] - z0
-            assert rose > 0.05, f"{sim.capabilities().name}: {class_name} rose {rose * 100:.1f} cm with a 6 cm lift"
-            assert sim.held_object() == obj.id
-            assert any(GRIPPER_ID in (c.body_a, c.body_b) and obj.id in (c.body_a, c.body_b) for c in sim.contacts())
+            # lifted back to the start height, the palm stays clear of the top board
+            lifted = check_top_grasp_lifts_by_friction(sim, scene, tip_z, tip_z + 0.06, tip_z + 0.06)
             out = lifted.copy()
             out[1, 3] = -0.25  # retreat out of the shelf front
             sim.move_gripper([out])
@@ -353,3 +287,68 @@ def test_view_only_episode_runs_unchanged_on_each_backend(simulator: str, tmp_pa
     assert final["occupancy_iou"] > final["initial"]["occupancy_iou"]
     assert final["observable_iou"] > 0.3
     assert (tmp_path / "steps.jsonl").is_file()
+
+
+NARROW_VIEWS = {"targets_x_m": [-0.1], "grid": 3, "azimuth_deg": [-10, 10], "elevation_deg": [0, 15]}
+"""9 viewpoints around the front of ``_episode_scene``'s cracker box (the soup can is behind it)."""
+RECORD_KEYS = {"step", "skill", "action", "objective", "terms", "best_per_skill", "candidates", "success",
+               "fell_or_left", "info", "metrics", "seconds"}
+METRIC_KEYS = {"occupancy_iou", "observable_iou", "semantic_miou", "semantic_miou_bev", "position_change_m",
+               "correctly_found", "misclassified", "not_found", "hallucinated", "removed"}
+
+
+@pytest.mark.parametrize("simulator", ["pybullet", "sapien"])
+def test_full_method_episode_runs_unchanged_on_each_backend(simulator: str, tmp_path, monkeypatch) -> None:
+    """``ours`` (view, push and grasp skills, their effect models, ig + semantic entropy + cdc) on the
+    same scene through ``build_episode``/``run_episode``. Manipulation is allowed from step 1 on and
+    the views are 9 close to straight in front of the cracker box that hides the soup can, so views
+    soon gain little: both manipulation skills must propose candidates, one manipulation must win
+    within the 4 steps (a push at step 2 on both backends), and it must report every object's
+    displacement."""
+    steps = 4
+    cfg = load_config("ours", None, {**EPISODE, "steps": steps, "simulator": {"name": simulator},
+                                     "msas": {"manipulation_window": [1, 38]}, "viewpoints": NARROW_VIEWS})
+    ep = build_episode(cfg, get_plugin_manager(), scene=_episode_scene())
+    assert ep.sim.capabilities().name == simulator
+    assert [b.name for b in ep.skills] == ["view", "push", "grasp"]
+    assert [b.effect_model is not None for b in ep.skills] == [False, True, True]
+    outcomes: list[tuple[str, Any]] = []
+    for bound in ep.skills:
+        def execute(sim: Simulator, action: Any, ctx: Any, _name=bound.name, _run=bound.skill.execute) -> Any:
+            outcome = _run(sim, action, ctx)
+            outcomes.append((_name, outcome))
+            return outcome
+        monkeypatch.setattr(bound.skill, "execute", execute)
+    try:
+        final = run_episode(ep, tmp_path)
+    finally:
+        ep.sim.close()
+    assert final["steps"] == steps
+    assert [r["step"] for r in ep.records] == list(range(steps))
+    assert [name for name, _ in outcomes] == [r["skill"] for r in ep.records]
+    for r in ep.records:
+        assert set(r) == RECORD_KEYS, f"step {r['step']}: keys {sorted(r)}"
+        assert set(r["metrics"]) >= METRIC_KEYS, f"step {r['step']}: metrics {sorted(r['metrics'])}"
+        assert all(np.isfinite(v) for v in r["metrics"].values()), f"step {r['step']}: {r['metrics']}"
+        assert np.isfinite(r["objective"]), f"step {r['step']}: objective {r['objective']}"
+        assert r["candidates"].get(r["skill"], 0) > 0, f"step {r['step']}: candidates {r['candidates']}"
+        assert r["skill"] in r["best_per_skill"]
+    proposed = {name: max(r["candidates"].get(name, 0) for r in ep.records) for name in ("view", "push", "grasp")}
+    assert proposed["push"] > 0, f"{simulator}: no push candidates in {steps} steps ({proposed})"
+    assert proposed["grasp"] > 0, f"{simulator}: no grasp candidates in {steps} steps ({proposed})"
+    manipulations = [name for name, _ in outcomes if name != "view"]
+    assert manipulations, f"{simulator}: no manipulation in {steps} steps: {[r['skill'] for r in ep.records]}"
+    ids = {o.id for o in ep.scene.objects}
+    for (name, outcome), r in zip(outcomes, ep.records, strict=True):
+        if name == "view":
+            assert outcome.observation is not None
+            continue
+        assert outcome.observation is None
+        assert set(r["terms"]) == {"ig", "semantic-entropy", "cdc"}, f"step {r['step']}: terms {r['terms']}"
+        present = ids - set(outcome.removed)
+        assert present <= set(outcome.displacement_m), f"step {r['step']} ({name}): {outcome.displacement_m}"
+        assert all(d >= 0 and np.isfinite(d) for d in outcome.displacement_m.values())
+        if name == "push":
+            assert max(outcome.displacement_m.values()) > 0.005, f"step {r['step']}: the push moved nothing"
+    assert (tmp_path / "steps.jsonl").is_file()
+    assert len((tmp_path / "steps.jsonl").read_text().splitlines()) == steps

@@ -44,27 +44,22 @@ def datagen_cnabu(
     from pydantic import ValidationError
 
     from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset
+    from msmem_core.datagen import seed_range
 
     kind = _kind(kind)
-    if scenes < 1:
-        raise UserError(f"--scenes must be >= 1, got {scenes}")
-    if seed < 0:
-        raise UserError(f"--seed must be >= 0, got {seed}")
+    seeds = seed_range(scenes, seed)
     try:
         cfg = CNABUDataConfig(kind=kind, voxel_m=voxel, states=states, actions_per_state=actions,
                               observe_samples=samples, min_views=min_views, max_views=max_views)
     except ValidationError as e:
         err = e.errors()[0]
         raise UserError(f"invalid option ({'.'.join(str(x) for x in err['loc']) or 'views'}): {err['msg']}") from e
-    seeds = list(range(seed, seed + scenes))
     typer.echo(f"msmem datagen cnabu: {kind}, {scenes} scenes (seeds {seeds[0]}..{seeds[-1]}) -> {out}, "
                f"{workers} worker(s), executor {executor}")
     summary = generate_dataset(out, seeds, cfg, executor=executor, workers=workers, progress=not quiet,
                                log=lambda m: typer.echo(m, err=True))
     gen = summary.generated
-    line = f"generated {len(gen)}, skipped {len(summary.skipped)} (already done)"
-    if summary.corrupt:
-        line += f", regenerated {len(summary.corrupt)} corrupt"
+    line = summary.headline()
     if gen:
         per = sum(g["seconds"] for g in gen) / len(gen)
         n = sum(g["samples"] for g in gen)
@@ -73,8 +68,7 @@ def datagen_cnabu(
                  f"({sum(g['sim_execute_s'] for g in gen) / len(gen):.1f} s of it executing actions), "
                  f"{size / 1e6:.2f} MB per shard")
     typer.echo(line)
-    if summary.failed:
-        raise UserError(f"{len(summary.failed)} scene(s) failed (see above); rerun the same command to retry them")
+    summary.raise_if_failed()
 
 
 def train_cnabu(

@@ -38,10 +38,7 @@ analytic counts are small integers), masks as bool, compressed. Fields (S states
 from __future__ import annotations
 
 import json
-import os
 import time
-import zipfile
-import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -53,12 +50,12 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from msmem_cnabu.network import KINDS, Kind, action_channel_counts
+from msmem_core import datagen
+from msmem_core.datagen import DatagenSummary, ShardTask, read_manifest, read_npz, save_npz, shard_path
 from msmem_core.errors import UserError
 from msmem_core.grid import GridSpec
 
 SHARD_VERSION = 1
-SHARD_GLOB = "scene_*.npz"
-MANIFEST = "dataset.json"
 
 
 class CNABUDataConfig(BaseModel):
@@ -98,8 +95,8 @@ class CNABUDataConfig(BaseModel):
         return self
 
 
-class ShardError(UserError):
-    """A shard is missing fields, inconsistent or unreadable."""
+class ShardError(datagen.ShardError):
+    """A CNABU shard is missing fields, inconsistent or unreadable."""
 
 
 # ------------------------------------------------------------------------------------------ shards
@@ -203,16 +200,7 @@ def _check(z: dict[str, Any], path: Path) -> None:
 def load_shard(path: str | Path) -> CNABUShard:
     """Read and validate a shard; any problem raises :class:`ShardError` naming the file."""
     path = Path(path)
-    try:
-        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as f:
-            missing = [k for k in [*_NAMES, "version"] if k not in f.files]
-            if missing:
-                raise _fail(path, f"not a CNABU shard (missing {', '.join(missing)})")
-            z = {k: f[k] for k in f.files}
-    except ShardError:
-        raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, KeyError) as e:
-        raise _fail(path, f"corrupt shard ({type(e).__name__}: {e})") from e
+    z = read_npz(path, _NAMES, "CNABU", lambda what: _fail(path, what))
     if int(z["version"]) != SHARD_VERSION:
         raise _fail(path, f"shard version {int(z['version'])}, this msmem reads {SHARD_VERSION}", str(z["kind"]))
     _check(z, path)
@@ -230,33 +218,19 @@ def load_shard(path: str | Path) -> CNABUShard:
 
 def save_shard(path: str | Path, shard: CNABUShard) -> None:
     """Write atomically: a temporary file in the same folder, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **shard.arrays())
-    os.replace(tmp, path)
-
-
-def shard_path(out_dir: str | Path, seed: int) -> Path:
-    return Path(out_dir) / f"scene_{seed:06d}.npz"
+    save_npz(path, shard.arrays())
 
 
 def list_shards(data_dir: str | Path, kind: str | None = None) -> list[Path]:
     """The shards of a data folder, sorted; a missing or empty folder (or one of another kind, per
     its ``dataset.json``) is a clear error."""
     d = Path(data_dir)
-    k = kind or "KIND"
-    if not d.is_dir():
-        raise UserError(f"data folder {d} does not exist; create it with `msmem datagen cnabu --kind {k} --out {d}`")
-    paths = sorted(d.glob(SHARD_GLOB))
-    if not paths:
-        raise UserError(f"no {SHARD_GLOB} shards in {d}; create them with `msmem datagen cnabu --kind {k} --out {d}`")
-    manifest = d / MANIFEST
-    if kind is not None and manifest.exists():
-        have = json.loads(manifest.read_text()).get("config", {}).get("kind")
+    paths = datagen.list_shards(d, f"`msmem datagen cnabu --kind {kind or 'KIND'} --out {d}`")
+    manifest = read_manifest(d)
+    if kind is not None and manifest is not None:
+        have = manifest.get("config", {}).get("kind")
         if have is not None and have != kind:
-            raise UserError(f"{d} holds {have!r} data (see {manifest}), not {kind!r}")
+            raise UserError(f"{d} holds {have!r} data (see {d / datagen.MANIFEST}), not {kind!r}")
     return paths
 
 
@@ -432,15 +406,6 @@ def _propose(kind: str, skill: Any, belief: Any, shelf: Any, viewpoints: NDArray
 
 
 # ---------------------------------------------------------------------------------------- dataset
-@dataclass(frozen=True)
-class ShardTask:
-    """One unit of work for the executor (picklable)."""
-
-    seed: int
-    out: str
-    config_json: str
-
-
 def run_shard_task(task: ShardTask) -> dict[str, Any]:
     """Executor entry point: make and write one shard; returns a small summary."""
     t0 = time.perf_counter()
@@ -453,19 +418,6 @@ def run_shard_task(task: ShardTask) -> dict[str, Any]:
             "bytes": path.stat().st_size}
 
 
-@dataclass
-class DatagenSummary:
-    generated: list[dict[str, Any]]
-    skipped: list[int]
-    corrupt: list[str]
-    failed: list[str]
-    seconds: float
-
-    @property
-    def scenes_per_min(self) -> float:
-        return 60.0 * len(self.generated) / max(self.seconds, 1e-9)
-
-
 def generate_dataset(
     out_dir: str | Path,
     seeds: Sequence[int],
@@ -476,42 +428,19 @@ def generate_dataset(
     log: Callable[[str], None] = print,
 ) -> DatagenSummary:
     """Make the shards of ``seeds`` in ``out_dir`` that are missing (or corrupt), in parallel."""
-    from msmem_core.executors import TaskFailure, run_tasks
-
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    manifest_path = out / MANIFEST
-    if manifest_path.exists():
-        old = json.loads(manifest_path.read_text())
-        if old.get("config", {}).get("kind") not in (None, config.kind):
-            raise UserError(f"{out} already holds {old['config']['kind']!r} data (see {manifest_path}); "
-                            f"use another --out for {config.kind!r}")
-    todo, skipped, corrupt = [], [], []
-    for s in seeds:
-        path = shard_path(out, s)
-        if path.exists():
-            try:
-                if load_shard(path).kind != config.kind:
-                    raise _fail(path, f"not a {config.kind!r} shard", config.kind)
-                skipped.append(int(s))
-                continue
-            except ShardError as e:
-                corrupt.append(str(e))
-                log(f"warning: {e}; regenerating it")
-        todo.append(ShardTask(int(s), str(out), config.model_dump_json()))
+    old = read_manifest(out)
+    if old is not None and old.get("config", {}).get("kind") not in (None, config.kind):
+        raise UserError(f"{out} already holds {old['config']['kind']!r} data (see {out / datagen.MANIFEST}); "
+                        f"use another --out for {config.kind!r}")
+
+    def check(path: Path) -> None:
+        if load_shard(path).kind != config.kind:
+            raise _fail(path, f"not a {config.kind!r} shard", config.kind)
+
     seeds_all = {int(s) for s in seeds}
-    if manifest_path.exists():  # a folder grown by several runs lists every seed
-        seeds_all |= {int(s) for s in json.loads(manifest_path.read_text()).get("seeds", [])}
+    if old is not None:  # a folder grown by several runs lists every seed
+        seeds_all |= {int(s) for s in old.get("seeds", [])}
     manifest = {"config": config.model_dump(mode="json"), "seeds": sorted(seeds_all), "version": SHARD_VERSION}
-    tmp = out / f".{MANIFEST}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(manifest, indent=1))
-    os.replace(tmp, manifest_path)
-    t0 = time.perf_counter()
-    results = run_tasks(run_shard_task, todo, executor=executor, workers=workers, progress=progress,
-                        threads=1, description=f"{config.kind} scenes")
-    seconds = time.perf_counter() - t0
-    failed = [f"seed {r.task.seed}: {r.error}" for r in results if isinstance(r, TaskFailure)]
-    for f in failed:
-        log(f"error: {f}")
-    generated = [r for r in results if not isinstance(r, TaskFailure)]
-    return DatagenSummary(generated, skipped, corrupt, failed, seconds)
+    return datagen.generate_shards(out, seeds, run_shard_task, config.model_dump_json(), check, manifest, executor,
+                                   workers, progress, log, f"{config.kind} scenes")

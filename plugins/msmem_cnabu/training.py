@@ -12,7 +12,6 @@ metrics). A checkpoint is written every epoch, so ``resume=True`` continues a ki
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -23,12 +22,15 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_cnabu.datagen import MANIFEST, CNABUShard, list_shards, load_shard
+from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard
 from msmem_cnabu.features import belief_features, dilate, prior_evidence, wall_mask
 from msmem_cnabu.losses import CNABULossConfig, blend, cnabu_loss
 from msmem_cnabu.network import CNABUNet, CNABUNetConfig, parameter_bytes
-from msmem_core.artifacts import atomic_save, atomic_text, sha256_file, sidecar_path
+from msmem_core.artifacts import atomic_save, write_sidecar
+from msmem_core.artifacts import sha256_file as sha256_file  # re-exported: callers import it from here
+from msmem_core.datagen import read_manifest
 from msmem_core.errors import UserError
+from msmem_core.training import TrainingRun, optimizer_step, split_scenes, training_record, warmup_cosine
 
 WEIGHTS_FORMAT = "msmem-cnabu"
 WEIGHTS_VERSION = 1
@@ -174,7 +176,6 @@ def validate(model: CNABUNet, paths: Sequence[Path], epoch: float, cfg: TrainCon
     return out_m
 
 
-# ------------------------------------------------------------------------------------------- files
 # ------------------------------------------------------------------------------------------- train
 def train(
     kind: str,
@@ -199,10 +200,7 @@ def train(
         raise UserError(f"the shards in {data_dir} hold no samples (a scene's skill found no candidate); "
                         "generate more scenes with `msmem datagen cnabu`")
     paths, sizes = [paths[i] for i in keep], [sizes[i] for i in keep]
-    rng = np.random.default_rng(cfg.seed)
-    order = rng.permutation(len(paths))
-    n_val = min(len(paths) - 1, math.ceil(cfg.val_fraction * len(paths))) if cfg.val_fraction > 0 else 0
-    val_idx, train_idx = sorted(order[:n_val]), sorted(order[n_val:])
+    val_idx, train_idx = split_scenes(len(paths), cfg.val_fraction, cfg.seed)
     val_paths, train_paths = [paths[i] for i in val_idx], [paths[i] for i in train_idx]
     n_train = sum(sizes[i] for i in train_idx)
     log(f"{kind}: {len(train_paths)} training scenes ({n_train} samples), {len(val_paths)} validation scenes "
@@ -216,55 +214,23 @@ def train(
     model = CNABUNet(model_cfg)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = sum(math.ceil(sizes[i] / cfg.batch_size) for i in train_idx)  # upper bound
-    total_steps = cfg.epochs * steps_per_epoch
-
-    def lr_at(step: int) -> float:
-        if step < cfg.warmup_steps:
-            return cfg.lr * (step + 1) / cfg.warmup_steps
-        t = (step - cfg.warmup_steps) / max(1, total_steps - cfg.warmup_steps)
-        return cfg.lr * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, t))))
-
-    ckpt_path = out.with_suffix(".ckpt")
-    history: list[dict[str, Any]] = []
-    best: dict[str, Any] | None = None
-    start_epoch, elapsed_before, step = 0, 0.0, 0
-    if cfg.resume and ckpt_path.exists():
-        ck = torch.load(ckpt_path, weights_only=True)
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        history = json.loads(ck["history"])
-        best = json.loads(ck["best"]) if ck["best"] else None
-        start_epoch = int(ck["epoch"]) + 1
-        elapsed_before = float(ck["seconds"])
-        step = int(ck["step"])
-        log(f"resumed from {ckpt_path} after epoch {start_epoch - 1}")
-    manifest = Path(data_dir) / MANIFEST
+    lr_at = warmup_cosine(cfg.lr, cfg.warmup_steps, cfg.epochs * steps_per_epoch)
+    run = TrainingRun(out, model, opt, cfg.resume, log)
+    step = run.step or 0
     data_info = {
         "dir": str(data_dir),
         "train_scenes": [p.stem for p in train_paths],
         "val_scenes": [p.stem for p in val_paths],
         "train_samples": n_train,
-        "manifest": json.loads(manifest.read_text()) if manifest.exists() else None,
+        "manifest": read_manifest(data_dir),
     }
 
-    bar = None
-    if progress:
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
+    def write_sidecar(history: list[dict[str, Any]], best: dict[str, Any], seconds: float) -> None:
+        _write_sidecar(out, kind, model_cfg, cfg, data_info, history, best, seconds)
 
-        bar = Progress(TextColumn("epoch {task.fields[epoch]}"), MofNCompleteColumn(), BarColumn(),
-                       TextColumn("loss {task.fields[loss]}"), TimeElapsedColumn(), TimeRemainingColumn())
-        bar.start()
-        bar_id = bar.add_task("train", total=(cfg.epochs - start_epoch) * n_train, epoch=start_epoch, loss="-")
-    t_start = time.perf_counter()
+    run.start(progress, total=(cfg.epochs - run.start_epoch) * n_train)
     try:
-        for epoch in range(start_epoch, cfg.epochs):
+        for epoch in range(run.start_epoch, cfg.epochs):
             model.train()
             t_epoch = time.perf_counter()
             running: dict[str, float] = {}
@@ -273,55 +239,32 @@ def train(
             for items, k in stream_batches(train_paths, cfg.batch_size, erng, cfg.change_dilate, cfg.buffer_shards,
                                            cfg.mirror):
                 batch = collate(items)
-                for group in opt.param_groups:
-                    group["lr"] = lr_at(step)
                 terms, _ = forward_loss(model, batch, epoch + seen / max(n_train, 1), cfg.loss)
                 total = float(terms["total"].detach())
                 if not math.isfinite(total):
                     raise UserError(f"the loss became {total} at epoch {epoch}; lower --lr")
-                opt.zero_grad(set_to_none=True)
-                terms["total"].backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-                opt.step()
+                optimizer_step(model, opt, terms["total"], lr_at(step), cfg.grad_clip)
                 step += 1
                 seen += k
                 for key, v in terms.items():
                     running[key] = running.get(key, 0.0) + float(v.detach()) * k
-                if bar is not None:
-                    bar.update(bar_id, advance=k, epoch=epoch, loss=f"{total:.4f}")
+                run.advance(k, epoch, f"{total:.4f}")
             running = {key: v / max(seen, 1) for key, v in running.items()}
             train_s = time.perf_counter() - t_epoch
             # at the final KL weight, so that epochs compare on one objective
             val = validate(model, val_paths, cfg.loss.anneal_epochs, cfg) if val_paths else {}
-            seconds = elapsed_before + time.perf_counter() - t_start
+            seconds = run.seconds()
             rec = {"epoch": epoch, "train": running, "val": val, "seconds": seconds, "epoch_train_seconds": train_s,
                    "lr": lr_at(step - 1)}
-            history.append(rec)
-            score = val.get("total", running["total"])
             msg = (f"epoch {epoch}: train {running['total']:.4f}"
                    + (f"  val {val['total']:.4f}  occ NLL {val['occ_nll']:.4f}  Brier {val['occ_brier']:.4f}"
                       + (f"  change IoU {val['change_iou']:.3f}" if "change_iou" in val else "") if val else "")
                    + f"  ({train_s:.1f} s train, {seconds / 60:.1f} min)")
-            if best is None or score < best["score"]:
-                best = {"epoch": epoch, "score": score, "val": val, "train": running}
-                atomic_save(model.state_dict(), out)
-                msg += "  * best"
-            if bar is not None:
-                bar.console.print(msg)
-            else:
-                log(msg)
-            atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch, "step": step,
-                          "history": json.dumps(history), "best": json.dumps(best), "seconds": seconds}, ckpt_path)
-            _write_sidecar(out, kind, model_cfg, cfg, data_info, history, best, seconds)
-            if cfg.max_minutes is not None and seconds > 60.0 * cfg.max_minutes:
-                log(f"time budget of {cfg.max_minutes} min reached after epoch {epoch}")
+            if run.end_epoch(epoch, rec, val.get("total", running["total"]), msg, write_sidecar, cfg.max_minutes, step):
                 break
     finally:
-        if bar is not None:
-            bar.stop()
-    if best is None:
-        raise UserError("no epoch finished; nothing was saved")
-    return json.loads(sidecar_path(out).read_text())
+        run.stop()
+    return run.result()
 
 
 def write_weights(model: CNABUNet, out: str | Path, **meta: Any) -> dict[str, Any]:
@@ -330,29 +273,12 @@ def write_weights(model: CNABUNet, out: str | Path, **meta: Any) -> dict[str, An
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_save(model.state_dict(), out)
-    side = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "kind": model.config.kind, "weights": out.name,
-            "sha256": sha256_file(out), "bytes": out.stat().st_size, "model": model.config.model_dump(), **meta}
-    atomic_text(json.dumps(side, indent=1, default=float), sidecar_path(out))
-    return side
+    head = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "kind": model.config.kind}
+    return write_sidecar(out, head, {"model": model.config.model_dump(), **meta})
 
 
 def _write_sidecar(out: Path, kind: str, model_cfg: CNABUNetConfig, cfg: TrainConfig, data: dict[str, Any],
                    history: list[dict[str, Any]], best: dict[str, Any], seconds: float) -> None:
-    side = {
-        "format": WEIGHTS_FORMAT,
-        "version": WEIGHTS_VERSION,
-        "kind": kind,
-        "weights": out.name,
-        "sha256": sha256_file(out),
-        "bytes": out.stat().st_size,
-        "parameter_bytes": parameter_bytes(CNABUNet(model_cfg)),
-        "model": model_cfg.model_dump(),
-        "train": cfg.model_dump(),
-        "data": data,
-        "epochs_run": len(history),
-        "train_seconds": seconds,
-        "best": best,
-        "history": history,
-        "torch": torch.__version__,
-    }
-    atomic_text(json.dumps(side, indent=1, default=float), sidecar_path(out))
+    head = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "kind": kind}
+    model = {"parameter_bytes": parameter_bytes(CNABUNet(model_cfg)), "model": model_cfg.model_dump()}
+    write_sidecar(out, head, training_record(model, cfg.model_dump(), data, history, best, seconds))

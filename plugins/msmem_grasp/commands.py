@@ -10,35 +10,27 @@ from pathlib import Path
 
 import typer
 
-from msmem_core.errors import UserError
-
 
 def datagen_grasp(*, scenes: int, out: Path, workers: int, seed: int, executor: str, points: int, quiet: bool) -> None:
+    from msmem_core.datagen import seed_range
     from msmem_grasp.datagen import GraspDataConfig, generate_dataset
     from msmem_grasp.fpp import FPPConfig
 
-    if scenes < 1:
-        raise UserError(f"--scenes must be >= 1, got {scenes}")
-    if seed < 0:
-        raise UserError(f"--seed must be >= 0, got {seed}")
+    seeds = seed_range(scenes, seed)
     cfg = GraspDataConfig(fpp=FPPConfig(num_points=points))
-    seeds = list(range(seed, seed + scenes))
     typer.echo(f"msmem datagen grasp: {scenes} scenes (seeds {seeds[0]}..{seeds[-1]}) -> {out}, "
                f"{workers} worker(s), executor {executor}")
     summary = generate_dataset(out, seeds, cfg, executor=executor, workers=workers, progress=not quiet,
                                log=lambda m: typer.echo(m, err=True))
     gen = summary.generated
-    line = f"generated {len(gen)}, skipped {len(summary.skipped)} (already done)"
-    if summary.corrupt:
-        line += f", regenerated {len(summary.corrupt)} corrupt"
+    line = summary.headline()
     if gen:
         pos = sum(g["positives"] for g in gen) / max(sum(g["points"] for g in gen), 1)
         per = sum(g["seconds"] for g in gen) / len(gen)
         line += (f" in {summary.seconds:.0f} s: {summary.scenes_per_min:.1f} scenes/min "
                  f"({per:.1f} s per scene per worker), {100 * pos:.1f} % positive points")
     typer.echo(line)
-    if summary.failed:
-        raise UserError(f"{len(summary.failed)} scene(s) failed (see above); rerun the same command to retry them")
+    summary.raise_if_failed()
 
 
 def train_fe_vmf(

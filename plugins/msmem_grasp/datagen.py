@@ -13,11 +13,7 @@ regenerated. ``dataset.json`` records the config and the seeds.
 
 from __future__ import annotations
 
-import json
-import os
 import time
-import zipfile
-import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -28,14 +24,14 @@ import torch
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core import datagen
+from msmem_core.datagen import DatagenSummary, ShardTask, read_npz, save_npz, shard_path
 from msmem_core.errors import UserError
 from msmem_grasp.antipodal import AntipodalConfig, GraspSet
 from msmem_grasp.fpp import FPPConfig, SurfaceCloud, frontier_points
 from msmem_grasp.losses import GraspTargets, assign_targets
 
 SHARD_VERSION = 1
-SHARD_GLOB = "scene_*.npz"
-MANIFEST = "dataset.json"
 
 
 class GraspDataConfig(BaseModel):
@@ -62,8 +58,8 @@ class GraspDataConfig(BaseModel):
 
 
 # ------------------------------------------------------------------------------------------ shards
-class ShardError(UserError):
-    """A shard file is missing fields, has inconsistent shapes or cannot be read."""
+class ShardError(datagen.ShardError):
+    """A grasp shard file is missing fields, has inconsistent shapes or cannot be read."""
 
 
 @dataclass(frozen=True)
@@ -129,19 +125,11 @@ def _check_shapes(z: dict[str, NDArray[Any]], path: Path) -> None:
 def load_shard(path: str | Path) -> GraspShard:
     """Read and validate a shard; any problem raises :class:`ShardError` naming the file."""
     path = Path(path)
-    names = [f.name for f in fields(GraspShard)]
-    try:
-        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as f:
-            missing = [k for k in [*names, "version"] if k not in f.files]
-            if missing:
-                raise ShardError(f"{path}: not a grasp shard (missing {', '.join(missing)}); rerun `msmem datagen"
-                                 " grasp` with the same arguments to regenerate it")
-            z = {k: f[k] for k in f.files}
-    except ShardError:
-        raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, KeyError) as e:
-        raise ShardError(f"{path}: corrupt shard ({type(e).__name__}: {e}); rerun `msmem datagen grasp` with the"
-                         " same arguments to regenerate it") from e
+
+    def fail(what: str) -> ShardError:
+        return ShardError(f"{path}: {what}; rerun `msmem datagen grasp` with the same arguments to regenerate it")
+
+    z = read_npz(path, [f.name for f in fields(GraspShard)], "grasp", fail)
     if int(z["version"]) != SHARD_VERSION:
         raise ShardError(f"{path}: shard version {int(z['version'])}, this msmem reads {SHARD_VERSION}; regenerate")
     _check_shapes(z, path)
@@ -156,30 +144,15 @@ def load_shard(path: str | Path) -> GraspShard:
 
 def save_shard(path: str | Path, shard: GraspShard) -> None:
     """Write atomically: a temporary file in the same folder, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     arrays = shard.arrays()
     for key in ("approach", "baseline"):
         arrays[key] = arrays[key].astype(np.float16)  # unit vectors: 1e-3 is plenty, halves the size
-    with open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
-    os.replace(tmp, path)
-
-
-def shard_path(out_dir: str | Path, seed: int) -> Path:
-    return Path(out_dir) / f"scene_{seed:06d}.npz"
+    save_npz(path, arrays)
 
 
 def list_shards(data_dir: str | Path) -> list[Path]:
     """The shards of a data folder, sorted; a missing or empty folder is a clear error."""
-    d = Path(data_dir)
-    if not d.is_dir():
-        raise UserError(f"data folder {d} does not exist; create it with `msmem datagen grasp --out {d}`")
-    paths = sorted(d.glob(SHARD_GLOB))
-    if not paths:
-        raise UserError(f"no {SHARD_GLOB} shards in {d}; create them with `msmem datagen grasp --out {d}`")
-    return paths
+    return datagen.list_shards(data_dir, f"`msmem datagen grasp --out {Path(data_dir)}`")
 
 
 # ------------------------------------------------------------------------------------ one scene
@@ -242,15 +215,6 @@ def make_shard(seed: int, config: GraspDataConfig | None = None) -> GraspShard:
     )
 
 
-@dataclass(frozen=True)
-class ShardTask:
-    """One unit of work for the executor (picklable)."""
-
-    seed: int
-    out: str
-    config_json: str
-
-
 def run_shard_task(task: ShardTask) -> dict[str, Any]:
     """Executor entry point: make and write one shard; returns a small summary."""
     t0 = time.perf_counter()
@@ -263,19 +227,6 @@ def run_shard_task(task: ShardTask) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------------------------- dataset
-@dataclass
-class DatagenSummary:
-    generated: list[dict[str, Any]]
-    skipped: list[int]
-    corrupt: list[str]
-    failed: list[str]
-    seconds: float
-
-    @property
-    def scenes_per_min(self) -> float:
-        return 60.0 * len(self.generated) / max(self.seconds, 1e-9)
-
-
 def generate_dataset(
     out_dir: str | Path,
     seeds: Sequence[int],
@@ -286,33 +237,7 @@ def generate_dataset(
     log: Callable[[str], None] = print,
 ) -> DatagenSummary:
     """Make the shards of ``seeds`` in ``out_dir`` that are missing (or corrupt), in parallel."""
-    from msmem_core.executors import TaskFailure, run_tasks
-
     cfg = config or GraspDataConfig()
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    todo, skipped, corrupt = [], [], []
-    for s in seeds:
-        path = shard_path(out, s)
-        if path.exists():
-            try:
-                load_shard(path)
-                skipped.append(s)
-                continue
-            except ShardError as e:
-                corrupt.append(str(e))
-                log(f"warning: {e}; regenerating it")
-        todo.append(ShardTask(s, str(out), cfg.model_dump_json()))
     manifest = {"config": cfg.model_dump(mode="json"), "seeds": [int(s) for s in seeds], "version": SHARD_VERSION}
-    tmp = out / f".{MANIFEST}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(manifest, indent=1))
-    os.replace(tmp, out / MANIFEST)
-    t0 = time.perf_counter()
-    results = run_tasks(run_shard_task, todo, executor=executor, workers=workers, progress=progress,
-                        threads=1, description="scenes")
-    seconds = time.perf_counter() - t0
-    failed = [f"seed {r.task.seed}: {r.error}" for r in results if isinstance(r, TaskFailure)]
-    for f in failed:
-        log(f"error: {f}")
-    generated = [r for r in results if not isinstance(r, TaskFailure)]
-    return DatagenSummary(generated, skipped, corrupt, failed, seconds)
+    return datagen.generate_shards(out_dir, seeds, run_shard_task, cfg.model_dump_json(), load_shard, manifest,
+                                   executor, workers, progress, log, "scenes")

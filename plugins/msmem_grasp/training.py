@@ -12,9 +12,7 @@ killed run.
 
 from __future__ import annotations
 
-import json
 import math
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -23,9 +21,12 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.artifacts import atomic_save, atomic_text, sha256_file, sidecar_path
-from msmem_core.errors import UserError
-from msmem_grasp.datagen import MANIFEST, GraspShard, list_shards, load_shard
+from msmem_core.artifacts import sha256_file as sha256_file  # re-exported: callers import it from here
+from msmem_core.artifacts import sidecar_path as sidecar_path
+from msmem_core.artifacts import write_sidecar
+from msmem_core.datagen import read_manifest
+from msmem_core.training import TrainingRun, optimizer_step, split_scenes, training_record, warmup_cosine
+from msmem_grasp.datagen import GraspShard, list_shards, load_shard
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction
 from msmem_grasp.fpp import FEATURES
 from msmem_grasp.losses import GraspTargets, LossConfig, total_loss
@@ -152,13 +153,9 @@ def train(
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     paths = list_shards(data_dir)
-    rng = np.random.default_rng(cfg.seed)
-    order = rng.permutation(len(paths))
-    n_val = min(len(paths) - 1, math.ceil(cfg.val_fraction * len(paths))) if cfg.val_fraction > 0 else 0
-    val_paths = sorted(paths[i] for i in order[:n_val])
-    train_paths = sorted(paths[i] for i in order[n_val:])
-    train_set = load_shards(train_paths, log)
-    val_set = [load_shard(p) for p in val_paths]
+    val_idx, train_idx = split_scenes(len(paths), cfg.val_fraction, cfg.seed)
+    train_set = load_shards([paths[i] for i in train_idx], log)
+    val_set = [load_shard(paths[i]) for i in val_idx]
     if not val_set:
         log("warning: no validation scenes (--val-fraction 0 or a single scene): the last epoch is kept")
 
@@ -166,54 +163,22 @@ def train(
     model = FEVMF(cfg.model)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = math.ceil(len(train_set) / cfg.batch_scenes)
-    total_steps = cfg.epochs * steps_per_epoch
-
-    def lr_at(step: int) -> float:
-        if step < cfg.warmup_steps:
-            return cfg.lr * (step + 1) / cfg.warmup_steps
-        t = (step - cfg.warmup_steps) / max(1, total_steps - cfg.warmup_steps)
-        return cfg.lr * (0.05 + 0.95 * 0.5 * (1.0 + math.cos(math.pi * min(1.0, t))))
-
-    ckpt_path = out.with_suffix(".ckpt")
-    history: list[dict[str, Any]] = []
-    best: dict[str, Any] | None = None
-    start_epoch, elapsed_before = 0, 0.0
-    if cfg.resume and ckpt_path.exists():
-        ck = torch.load(ckpt_path, weights_only=True)
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["optimizer"])
-        history = json.loads(ck["history"])
-        best = json.loads(ck["best"]) if ck["best"] else None
-        start_epoch = int(ck["epoch"]) + 1
-        elapsed_before = float(ck["seconds"])
-        log(f"resumed from {ckpt_path} after epoch {start_epoch - 1}")
-    manifest = Path(data_dir) / MANIFEST
+    lr_at = warmup_cosine(cfg.lr, cfg.warmup_steps, cfg.epochs * steps_per_epoch)
+    run = TrainingRun(out, model, opt, cfg.resume, log)
     data_info = {
         "dir": str(data_dir),
         "train_scenes": [int(s.seed) for s in train_set],
         "val_scenes": [int(s.seed) for s in val_set],
-        "manifest": json.loads(manifest.read_text()) if manifest.exists() else None,
+        "manifest": read_manifest(data_dir),
     }
 
-    bar = None
-    if progress:
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
+    def write_sidecar(history: list[dict[str, Any]], best: dict[str, Any], seconds: float) -> None:
+        _write_sidecar(out, cfg, data_info, history, best, seconds)
 
-        bar = Progress(TextColumn("epoch {task.fields[epoch]}"), MofNCompleteColumn(), BarColumn(),
-                       TextColumn("loss {task.fields[loss]}"), TimeElapsedColumn(), TimeRemainingColumn())
-        bar.start()
-        bar_id = bar.add_task("train", total=(cfg.epochs - start_epoch) * steps_per_epoch, epoch=start_epoch, loss="-")
-    t_start = time.perf_counter()
-    step = start_epoch * steps_per_epoch
+    run.start(progress, total=(cfg.epochs - run.start_epoch) * steps_per_epoch)
+    step = run.start_epoch * steps_per_epoch
     try:
-        for epoch in range(start_epoch, cfg.epochs):
+        for epoch in range(run.start_epoch, cfg.epochs):
             model.train()
             perm = np.random.default_rng([cfg.seed, epoch]).permutation(len(train_set))
             flips = np.random.default_rng([cfg.seed, epoch, 1]).random(len(train_set)) < 0.5
@@ -222,64 +187,27 @@ def train(
                 idx = perm[b * cfg.batch_scenes:(b + 1) * cfg.batch_scenes]
                 shards = [mirror_shard(train_set[i]) if cfg.mirror and flips[i] else train_set[i] for i in idx]
                 pts, feats, batch, targets = collate(shards)
-                for group in opt.param_groups:
-                    group["lr"] = lr_at(step)
                 terms = total_loss(model(pts, feats, batch), targets, epoch + b / steps_per_epoch, cfg.loss)
-                opt.zero_grad(set_to_none=True)
-                terms["total"].backward()
-                torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-                opt.step()
+                optimizer_step(model, opt, terms["total"], lr_at(step), cfg.grad_clip)
                 step += 1
                 for k, v in terms.items():
                     running[k] = running.get(k, 0.0) + float(v.detach()) / steps_per_epoch
-                if bar is not None:
-                    bar.update(bar_id, advance=1, epoch=epoch, loss=f"{float(terms['total'].detach()):.3f}")
+                run.advance(1, epoch, f"{float(terms['total'].detach()):.3f}")
             val = validate(model, val_set, epoch + 1, cfg.loss) if val_set else {}
-            seconds = elapsed_before + time.perf_counter() - t_start
+            seconds = run.seconds()
             rec = {"epoch": epoch, "train": running, "val": val, "seconds": seconds, "lr": lr_at(step - 1)}
-            history.append(rec)
-            score = val.get("total", running["total"])
             msg = (f"epoch {epoch}: train {running['total']:.4f}"
                    + (f"  val {val['total']:.4f}  AUROC {val['auroc']:.3f}  err a {val['err_a_deg']:.1f} deg"
                       f"  err b {val['err_b_deg']:.1f} deg" if val else "") + f"  ({seconds / 60:.1f} min)")
-            if best is None or score < best["score"]:
-                best = {"epoch": epoch, "score": score, "val": val, "train": running}
-                atomic_save(model.state_dict(), out)
-                msg += "  * best"
-            if bar is not None:
-                bar.console.print(msg)
-            else:
-                log(msg)
-            atomic_save({"model": model.state_dict(), "optimizer": opt.state_dict(), "epoch": epoch,
-                          "history": json.dumps(history), "best": json.dumps(best), "seconds": seconds}, ckpt_path)
-            _write_sidecar(out, cfg, data_info, history, best, seconds)
-            if cfg.max_minutes is not None and seconds > 60.0 * cfg.max_minutes:
-                log(f"time budget of {cfg.max_minutes} min reached after epoch {epoch}")
+            if run.end_epoch(epoch, rec, val.get("total", running["total"]), msg, write_sidecar, cfg.max_minutes):
                 break
     finally:
-        if bar is not None:
-            bar.stop()
-    if best is None:
-        raise UserError("no epoch finished; nothing was saved")
-    return json.loads(sidecar_path(out).read_text())
+        run.stop()
+    return run.result()
 
 
 def _write_sidecar(out: Path, cfg: TrainConfig, data: dict[str, Any], history: list[dict[str, Any]],
                    best: dict[str, Any], seconds: float) -> None:
-    side = {
-        "format": WEIGHTS_FORMAT,
-        "version": WEIGHTS_VERSION,
-        "weights": out.name,
-        "sha256": sha256_file(out),
-        "bytes": out.stat().st_size,
-        "model": cfg.model.model_dump(),
-        "features": list(FEATURES),
-        "train": cfg.model_dump(exclude={"model"}),
-        "data": data,
-        "epochs_run": len(history),
-        "train_seconds": seconds,
-        "best": best,
-        "history": history,
-        "torch": torch.__version__,
-    }
-    atomic_text(json.dumps(side, indent=1, default=float), sidecar_path(out))
+    head = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION}
+    model = {"model": cfg.model.model_dump(), "features": list(FEATURES)}
+    write_sidecar(out, head, training_record(model, cfg.model_dump(exclude={"model"}), data, history, best, seconds))

@@ -7,14 +7,13 @@ trained and what they score is in ``weights/MODEL_CARD.md``.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from msmem_core.artifacts import sha256_file, sidecar_path
+from msmem_core import artifacts
 from msmem_core.errors import UserError
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction, executable_grasp
 from msmem_grasp.fpp import SurfaceCloud
@@ -28,17 +27,8 @@ class WeightsError(UserError):
 
 
 def read_sidecar(path: str | Path) -> dict[str, Any]:
-    side = sidecar_path(path)
-    if not side.exists():
-        raise WeightsError(f"{path}: no sidecar {side.name} beside the weights (it records the expected sha256 and"
-                           " the architecture); weights written by `msmem train fe-vmf` come with one")
-    try:
-        meta: dict[str, Any] = json.loads(side.read_text())
-    except (OSError, ValueError) as e:
-        raise WeightsError(f"{side}: unreadable sidecar ({e})") from e
-    if meta.get("format") != WEIGHTS_FORMAT or "sha256" not in meta or "model" not in meta:
-        raise WeightsError(f"{side}: not an FE-vMF weights sidecar (format {meta.get('format')!r})")
-    return meta
+    return artifacts.read_sidecar(path, WEIGHTS_FORMAT, "an FE-vMF", "the expected sha256 and the architecture",
+                                  "msmem train fe-vmf", WeightsError)
 
 
 def load_fe_vmf(path: str | Path | None = None, verify: bool = True) -> FEVMF:
@@ -52,21 +42,9 @@ def load_fe_vmf(path: str | Path | None = None, verify: bool = True) -> FEVMF:
     if not path.exists():
         raise WeightsError(f"weights file {path} does not exist")
     meta = read_sidecar(path)
-    expected = meta["sha256"]
-    hint = (f"{path}: weights are corrupt or not the ones described by {sidecar_path(path).name}: expected"
-            f" sha256 {expected}")
-    if verify:
-        actual = sha256_file(path)
-        if actual != expected:
-            raise WeightsError(f"{hint}, got {actual}. Restore the file (reinstall msmem / git checkout) or retrain"
-                               " with `msmem train fe-vmf`")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-        model = FEVMF(FEVMFConfig.model_validate(meta["model"]))
-        model.load_state_dict(state)
-    except Exception as e:  # unpickling errors, missing/unexpected keys, shape mismatches
-        raise WeightsError(f"{hint}; loading failed with {type(e).__name__}: {e}") from e
-    return model.eval()
+    model: FEVMF = artifacts.load_weights(path, meta, lambda m: FEVMF(FEVMFConfig.model_validate(m)), verify,
+                                          "retrain with `msmem train fe-vmf`", WeightsError)
+    return model
 
 
 def predict_cloud(model: FEVMF, cloud: SurfaceCloud) -> GraspPrediction:

@@ -17,7 +17,6 @@ Design notes:
 from __future__ import annotations
 
 import contextlib
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -29,31 +28,21 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from msmem_core.camera import CameraConfig, Observation
 from msmem_core.errors import UserError
-from msmem_core.geometry import matrix_to_quat, pose_matrix, quat_to_matrix
+from msmem_core.geometry import matrix_to_quat, pose_matrix
 from msmem_core.gripper import GripperSpec
-from msmem_core.interfaces import GRIPPER_ID, SHELF_ID, Capabilities, Contact, Simulator
-from msmem_core.scene import ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec, object_class
+from msmem_core.interfaces import GRIPPER_ID, SHELF_ID, Capabilities, Contact
+from msmem_core.motion import FINGER_SPEED_MPS, PARK_POSITION_M, PARK_QUAT_XYZW, FloatingGripperSimulator, PathTarget
+from msmem_core.scene import ObjectClass, ObjectSpec, SceneSpec, ShelfSpec, object_class, parts_centroid
 
 OBJECT_FRICTION = 0.6
 """Lateral friction of objects (Bullet multiplies the coefficients of the two bodies in contact)."""
 GRIPPER_MAX_FORCE_N = 200.0
 """Force (and torque, N m) limit of the constraint that drives the gripper base."""
 FINGER_MASS_KG = 0.05
-FINGER_SPEED_MPS = 0.1
-"""Top speed of each finger while opening or closing."""
-ROTATION_LEVER_M = 0.1
-"""Rotations are timed so that a point this far from the gripper origin moves at ``speed_mps``."""
-PARK_POSITION_M = (0.0, 0.0, 3.0)
-"""Where the gripper waits, out of every camera's range; moves from here start with a teleport."""
-START_CLEARANCE_M = 0.02
-"""Free space the gripper needs around the pose it teleports to when leaving the parking pose."""
-START_BACKOFF_STEP_M = 0.02
-START_BACKOFF_MAX_M = 0.50
 SOLVER_ITERATIONS = 200
 """More than PyBullet's default 50: two 40 N fingers squeezing a light object otherwise sink ~3 mm in."""
 CONTACT_DISTANCE_M = 1e-3
 """Manifold points farther apart than this are not reported as contacts."""
-_DOWN = (1.0, 0.0, 0.0, 0.0)  # quaternion xyzw of a rotation by pi about x: approach axis points down
 
 
 class PyBulletConfig(BaseModel):
@@ -108,32 +97,6 @@ class _Object:
     """Inertial frame origin (parts' volume centroid) in the object frame."""
 
 
-def _parts_centroid(parts: Sequence[Part]) -> NDArray[np.float64]:
-    """Volume-weighted centroid of the parts (overlaps counted twice; good enough for a mass centre)."""
-    vols = np.array(
-        [float(np.prod(q.size_m)) if q.kind == "box" else math.pi * q.size_m[0] ** 2 * q.size_m[1] for q in parts]
-    )
-    centres = np.array([q.position_m for q in parts], dtype=np.float64)
-    return (vols[:, None] * centres).sum(axis=0) / vols.sum()
-
-
-def _slerp(q0: NDArray[np.float64], q1: NDArray[np.float64], t: float) -> NDArray[np.float64]:
-    """Spherical linear interpolation of unit quaternions (xyzw) along the shorter arc."""
-    d = float(np.dot(q0, q1))
-    if d < 0.0:
-        q1, d = -q1, -d
-    if d > 0.9995:
-        q = q0 + t * (q1 - q0)
-        return q / np.linalg.norm(q)
-    theta = math.acos(d)
-    return (math.sin((1 - t) * theta) * q0 + math.sin(t * theta) * q1) / math.sin(theta)
-
-
-def _quat_angle(q0: NDArray[np.float64], q1: NDArray[np.float64]) -> float:
-    """Angle in radians between two unit quaternions."""
-    return 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
-
-
 def _tiny_renderer_projection(cam: CameraConfig) -> list[float]:
     """OpenGL projection (column-major) that makes TinyRenderer's pixels follow ``Observation``'s convention.
 
@@ -155,7 +118,7 @@ def _tiny_renderer_projection(cam: CameraConfig) -> list[float]:
     return proj.T.reshape(-1).tolist()
 
 
-class PyBulletSimulator(Simulator):
+class PyBulletSimulator(FloatingGripperSimulator):
     """Shelf scenes in PyBullet (``p.DIRECT``; one physics client per instance)."""
 
     def __init__(self, config: PyBulletConfig | None = None, **kwargs: Any) -> None:
@@ -177,7 +140,7 @@ class PyBulletSimulator(Simulator):
         self._constraint = -1
         self._gripper_target: tuple[tuple[float, float, float], tuple[float, float, float, float]] = (
             PARK_POSITION_M,
-            _DOWN,
+            PARK_QUAT_XYZW,
         )
         self._finger_target_m = g.max_opening_m
         self._parked = True
@@ -187,7 +150,7 @@ class PyBulletSimulator(Simulator):
         """Build the shelf and objects at their poses, park the gripper open, settle for ``settle_s``."""
         self._scene = scene
         self._finger_target_m = self.config.gripper.max_opening_m
-        self._gripper_target = (PARK_POSITION_M, _DOWN)
+        self._gripper_target = (PARK_POSITION_M, PARK_QUAT_XYZW)
         self._parked = True
         self._build_world(scene, [(o, None) for o in scene.objects])
         q = self._finger_target_m / 2
@@ -252,7 +215,7 @@ class PyBulletSimulator(Simulator):
             collisionFrameOrientations=[list(q.quat_xyzw) for q in cls.parts],
             physicsClientId=c,
         )
-        com = _parts_centroid(cls.parts)
+        com = parts_centroid(cls.parts)
         uid = p.createMultiBody(
             cls.mass_kg,
             shape,
@@ -349,10 +312,17 @@ class PyBulletSimulator(Simulator):
             out[oid] = t
         return out
 
+    @property
+    def _time_step_s(self) -> float:
+        return self.config.time_step_s
+
+    def _physics_step(self) -> None:
+        p.stepSimulation(physicsClientId=self._client)
+
     def step(self, seconds: float) -> None:
         """Advance physics by ``seconds`` rounded to whole time steps."""
         for _ in range(max(0, round(seconds / self.config.time_step_s))):
-            p.stepSimulation(physicsClientId=self._client)
+            self._physics_step()
 
     def remove_object(self, object_id: int) -> None:
         """Delete the object's body; a snapshot taken before brings it back."""
@@ -461,6 +431,10 @@ class PyBulletSimulator(Simulator):
         joints = p.getJointStates(self._gripper_uid, [0, 1], physicsClientId=self._client)
         return float(joints[0][0] + joints[1][0])
 
+    def _finger_speed(self) -> float:
+        joints = p.getJointStates(self._gripper_uid, [0, 1], physicsClientId=self._client)
+        return abs(joints[0][1]) + abs(joints[1][1])
+
     def _drive_fingers(self) -> None:
         g = self.config.gripper
         for j in (0, 1):
@@ -480,19 +454,7 @@ class PyBulletSimulator(Simulator):
         g = self.config.gripper
         self._finger_target_m = float(np.clip(opening_m, 0.0, g.max_opening_m))
         self._drive_fingers()
-        dt = self.config.time_step_s
-        still = 0
-        for i in range(max(1, round(0.5 / dt))):
-            p.stepSimulation(physicsClientId=self._client)
-            opening = self._opening()
-            if abs(opening - self._finger_target_m) < 5e-4:
-                break
-            joints = p.getJointStates(self._gripper_uid, [0, 1], physicsClientId=self._client)
-            moving = abs(joints[0][1]) + abs(joints[1][1]) > 2e-3
-            still = 0 if moving else still + 1
-            if still >= 10 and i * dt > 0.05:
-                break
-        return self._opening()
+        return self._wait_for_fingers(self._finger_target_m)
 
     def _set_target(self, pos: NDArray[np.float64], quat: NDArray[np.float64]) -> None:
         self._gripper_target = (tuple(pos.tolist()), tuple(quat.tolist()))
@@ -511,6 +473,9 @@ class PyBulletSimulator(Simulator):
         p.resetBaseVelocity(self._gripper_uid, [0.0] * 3, [0.0] * 3, physicsClientId=self._client)
         self._set_target(pose[:3, 3], quat)
 
+    def _track(self, target: PathTarget) -> None:
+        self._set_target(target.position, target.quat_xyzw)
+
     def _clearance(self, uids: Sequence[int], cap: float) -> float:
         """Distance from the gripper to the nearest of ``uids``, capped at ``cap``."""
         best = cap
@@ -519,84 +484,11 @@ class PyBulletSimulator(Simulator):
                 best = min(best, pt[8])
         return best
 
-    def _start_is_clear(self, start: NDArray[np.float64], first: NDArray[np.float64]) -> bool:
-        """Whether the gripper at ``start`` keeps START_CLEARANCE_M from everything and the straight
-        path from there to ``first`` does not cross a shelf board (objects on it may be pushed)."""
-        self._teleport_gripper(start)
-        everything = [*self._shelf_uids, *(o.uid for o in self._objects.values())]
-        if self._clearance(everything, START_CLEARANCE_M) < START_CLEARANCE_M:
-            return False
-        dist = float(np.linalg.norm(first[:3, 3] - start[:3, 3]))
-        n = math.ceil(dist / 0.01)
-        for i in range(1, n):  # the end is the waypoint itself: it may touch what the skill aims at
-            pose = start.copy()
-            pose[:3, 3] += (i / n) * (first[:3, 3] - start[:3, 3])
-            self._teleport_gripper(pose)
-            if self._clearance(list(self._shelf_uids), 1e-3) < 1e-3:
-                return False
-        return True
-
-    def _leave_park(self, first: NDArray[np.float64]) -> None:
-        """Teleport out of the parking pose to the nearest clear start for the first waypoint: the
-        waypoint itself, or a pose behind it along its approach axis, or out towards the open front
-        of the shelf (-y). The move then reaches the waypoint under physics."""
-        n = round(START_BACKOFF_MAX_M / START_BACKOFF_STEP_M)
-        candidates = [first]
-        for k in range(1, n + 1):
-            for direction in (-first[:3, 2], np.array([0.0, -1.0, 0.0])):
-                pose = first.copy()
-                pose[:3, 3] += k * START_BACKOFF_STEP_M * direction
-                candidates.append(pose)
-        start = next((c for c in candidates if self._start_is_clear(c, first)), first)
-        self._teleport_gripper(start)
-        self._parked = False
-
-    def move_gripper(
-        self, waypoints: Sequence[NDArray[np.float64]], opening_m: float | None = None, speed_mps: float = 0.1
-    ) -> NDArray[np.float64]:
-        """Drive the gripper base through the waypoints (linear position, slerped rotation) under physics.
-
-        The opening is set first. From the parking pose the gripper first teleports next to the first
-        waypoint (see ``_leave_park``). Returns the reached pose.
-        """
-        self._require_scene()
-        if speed_mps <= 0:
-            raise ValueError("speed_mps must be positive")
-        if opening_m is not None:
-            self.set_gripper(opening_m)
-        poses = [np.asarray(w, dtype=np.float64) for w in waypoints]
-        if not poses:
-            return self.gripper_pose()
-        if self._parked:
-            self._leave_park(poses[0])
-        dt = self.config.time_step_s
-        start = self.gripper_pose()
-        pos0, q0 = start[:3, 3], matrix_to_quat(start[:3, :3])
-        for pose in poses:
-            pos1, q1 = pose[:3, 3], matrix_to_quat(pose[:3, :3])
-            dist = float(np.linalg.norm(pos1 - pos0))
-            duration = max(dist, _quat_angle(q0, q1) * ROTATION_LEVER_M) / speed_mps
-            n = max(1, math.ceil(duration / dt))
-            for i in range(1, n + 1):
-                t = i / n
-                self._set_target(pos0 + t * (pos1 - pos0), _slerp(q0, q1, t))
-                p.stepSimulation(physicsClientId=self._client)
-            pos0, q0 = pos1, q1
-        # Let the base catch up with the final target (it lags slightly behind a moving target).
-        target = quat_to_matrix(q0)
-        for _ in range(round(0.2 / dt)):
-            now = self.gripper_pose()
-            if np.linalg.norm(now[:3, 3] - pos0) < 5e-4 and np.trace(now[:3, :3].T @ target) > 3 - 1e-5:
-                break
-            p.stepSimulation(physicsClientId=self._client)
-        return self.gripper_pose()
-
-    def park_gripper(self) -> None:
-        """Teleport the gripper back to its parking pose out of view (not part of the ``Simulator`` API)."""
-        self._require_scene()
-        park = pose_matrix(PARK_POSITION_M, _DOWN)
-        self._teleport_gripper(park)
-        self._parked = True
+    def _collides(self, pose: NDArray[np.float64], clearance: float, with_objects: bool) -> bool:
+        """Whether the gripper, teleported to ``pose``, is within ``clearance`` of the shelf (or anything)."""
+        self._teleport_gripper(pose)
+        uids = [*self._shelf_uids, *(o.uid for o in self._objects.values())] if with_objects else list(self._shelf_uids)
+        return self._clearance(uids, clearance) < clearance
 
     # ------------------------------------------------------------------------------------- contacts
     def _ids_by_uid(self) -> dict[int, int]:

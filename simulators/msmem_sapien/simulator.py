@@ -51,9 +51,10 @@ with warnings.catch_warnings():  # "Failed to find system libvulkan": SAPIEN the
 from msmem_core.camera import Observation
 from msmem_core.errors import UserError
 from msmem_core.geometry import matrix_to_quat, pose_matrix, quat_to_matrix
-from msmem_core.interfaces import GRIPPER_ID, SHELF_ID, Capabilities, Contact, Simulator
+from msmem_core.interfaces import GRIPPER_ID, SHELF_ID, Capabilities, Contact
 from msmem_core.meshes import class_mesh, part_mesh_local, shelf_meshes
-from msmem_core.scene import ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec, object_class
+from msmem_core.motion import FINGER_SPEED_MPS, PARK_POSITION_M, PARK_QUAT_XYZW, FloatingGripperSimulator, PathTarget
+from msmem_core.scene import ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec, object_class, parts_centroid
 from msmem_sapien.config import SapienConfig
 
 log = logging.getLogger(__name__)
@@ -69,22 +70,11 @@ GRIPPER_ROT_STIFFNESS = 1e3
 """N m/rad of the palm's orientation drive."""
 GRIPPER_ROT_DAMPING = 20.0
 FINGER_MASS_KG = 0.05
-FINGER_SPEED_MPS = 0.1
-"""Top speed of each finger while opening or closing."""
 FINGER_STIFFNESS = 1e4
 """N/m of a finger drive; it saturates at ``finger_force_n`` once blocked 4 mm short of its target."""
 FINGER_DAMPING = 50.0
-ROTATION_LEVER_M = 0.1
-"""Rotations are timed so that a point this far from the gripper origin moves at ``speed_mps``."""
-PARK_POSITION_M = (0.0, 0.0, 3.0)
-"""Where the gripper waits, out of every camera's range; moves from here start with a teleport."""
-START_CLEARANCE_M = 0.02
-"""Free space the gripper needs around the pose it teleports to when leaving the parking pose."""
-START_BACKOFF_STEP_M = 0.02
-START_BACKOFF_MAX_M = 0.50
 CONTACT_DISTANCE_M = 1e-3
 """Contact points farther apart than this are not reported as contacts."""
-_DOWN_XYZW = (1.0, 0.0, 0.0, 0.0)  # rotation by pi about x: approach axis points down
 _GRIPPER_GROUPS = [1, 1, 1, 0]
 """Collision groups of gripper shapes: they collide with everything but each other (shared word 2)."""
 _CYLINDER_TO_Z = quat_to_matrix((0.0, -math.sqrt(0.5), 0.0, math.sqrt(0.5)))
@@ -114,15 +104,6 @@ def _physx_frictions(obj: float, shelf: float, finger: float) -> tuple[float, fl
     return m_o, max(0.0, 2 * obj * shelf - m_o), max(0.0, 2 * obj * finger - m_o)
 
 
-def _parts_centroid(parts: Sequence[Part]) -> NDArray[np.float64]:
-    """Volume-weighted centroid of the parts (as the PyBullet backend: overlaps counted twice)."""
-    vols = np.array(
-        [float(np.prod(q.size_m)) if q.kind == "box" else math.pi * q.size_m[0] ** 2 * q.size_m[1] for q in parts]
-    )
-    centres = np.array([q.position_m for q in parts], dtype=np.float64)
-    return (vols[:, None] * centres).sum(axis=0) / vols.sum()
-
-
 def _part_box(part: Part) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """(centre, rotation, half extents) in the object frame of a part's bounding box."""
     rot = quat_to_matrix(part.quat_xyzw)
@@ -147,32 +128,6 @@ def _bounding_box_inertia(parts: Sequence[Part], mass: float) -> NDArray[np.floa
 def _box_inertia(half: NDArray[np.float64], mass: float) -> NDArray[np.float64]:
     x, y, z = 2 * half
     return mass / 12.0 * np.array([y * y + z * z, x * x + z * z, x * x + y * y])
-
-
-def _slerp(q0: NDArray[np.float64], q1: NDArray[np.float64], t: float) -> NDArray[np.float64]:
-    """Spherical linear interpolation of unit quaternions (xyzw) along the shorter arc."""
-    d = float(np.dot(q0, q1))
-    if d < 0.0:
-        q1, d = -q1, -d
-    if d > 0.9995:
-        q = q0 + t * (q1 - q0)
-        return q / np.linalg.norm(q)
-    theta = math.acos(d)
-    return (math.sin((1 - t) * theta) * q0 + math.sin(t * theta) * q1) / math.sin(theta)
-
-
-def _quat_angle(q0: NDArray[np.float64], q1: NDArray[np.float64]) -> float:
-    """Angle in radians between two unit quaternions."""
-    return 2.0 * math.acos(min(1.0, abs(float(np.dot(q0, q1)))))
-
-
-def _rotation_vector(r: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Axis times angle of a rotation matrix."""
-    q = matrix_to_quat(r)
-    s = float(np.linalg.norm(q[:3]))
-    if s < 1e-12:
-        return np.zeros(3)
-    return q[:3] / s * 2.0 * math.atan2(s, q[3])
 
 
 def _obb_overlap(
@@ -291,7 +246,7 @@ class _Object:
 _OWNER_IDS = itertools.count()
 
 
-class SapienSimulator(Simulator):
+class SapienSimulator(FloatingGripperSimulator):
     """Shelf scenes in SAPIEN 3 (PhysX on the CPU; one scene per instance)."""
 
     def __init__(self, config: SapienConfig | None = None, **kwargs: Any) -> None:
@@ -310,7 +265,7 @@ class SapienSimulator(Simulator):
         """Entity ``per_scene_id`` -> object id, ``GRIPPER_ID`` or ``SHELF_ID``."""
         self._fingers: tuple[int, int] = (-1, -1)
         """``per_scene_id`` of the left and right finger links."""
-        self._gripper_target: tuple[tuple[float, ...], tuple[float, ...]] = (PARK_POSITION_M, _DOWN_XYZW)
+        self._gripper_target: tuple[tuple[float, ...], tuple[float, ...]] = (PARK_POSITION_M, PARK_QUAT_XYZW)
         self._finger_goal_m = g.max_opening_m
         self._finger_command_m = g.max_opening_m
         self._finger_velocity = 0.0
@@ -344,7 +299,7 @@ class SapienSimulator(Simulator):
         g = self.config.gripper
         self._scene = scene
         self._finger_goal_m = self._finger_command_m = g.max_opening_m
-        self._gripper_target = (PARK_POSITION_M, _DOWN_XYZW)
+        self._gripper_target = (PARK_POSITION_M, PARK_QUAT_XYZW)
         self._parked = True
         self._build_world(scene, [(o, None) for o in scene.objects])
         q = g.max_opening_m / 2
@@ -483,7 +438,7 @@ class SapienSimulator(Simulator):
             local[:3, :3], local[:3, 3] = rot, part.position_m
             shape.local_pose = _sapien_pose(local)
             body.attach(shape)
-        com = _parts_centroid(cls.parts)
+        com = parts_centroid(cls.parts)
         body.mass = cls.mass_kg
         body.cmass_local_pose = sapien.Pose(np.asarray(com, dtype=np.float32))
         body.inertia = _bounding_box_inertia(cls.parts, cls.mass_kg).astype(np.float32)
@@ -609,6 +564,10 @@ class SapienSimulator(Simulator):
     def object_poses(self) -> dict[int, NDArray[np.float64]]:
         """Object-frame poses (``ObjectSpec`` convention) of every object still in the workspace."""
         return {oid: _matrix(obj.entity.pose) for oid, obj in self._objects.items()}
+
+    @property
+    def _time_step_s(self) -> float:
+        return self.config.time_step_s
 
     def _physics_step(self) -> None:
         """One time step: finger drive targets move towards the goal at ``FINGER_SPEED_MPS``."""
@@ -813,23 +772,15 @@ class SapienSimulator(Simulator):
     def _opening(self) -> float:
         return float(np.sum(self._articulation.get_qpos()))
 
+    def _finger_speed(self) -> float:
+        return float(np.abs(self._articulation.get_qvel()).sum())
+
     def set_gripper(self, opening_m: float) -> float:
         """Drive both fingers to ``opening_m`` (clamped); stop when reached or blocked (<= 0.5 s)."""
         self._require_scene()
         g = self.config.gripper
         self._finger_goal_m = float(np.clip(opening_m, 0.0, g.max_opening_m))
-        dt = self.config.time_step_s
-        still = 0
-        for i in range(max(1, round(0.5 / dt))):
-            self._physics_step()
-            opening = self._opening()
-            if abs(opening - self._finger_goal_m) < 5e-4:
-                break
-            moving = float(np.abs(self._articulation.get_qvel()).sum()) > 2e-3
-            still = 0 if moving else still + 1
-            if still >= 10 and i * dt > 0.05:
-                break
-        return self._opening()
+        return self._wait_for_fingers(self._finger_goal_m)
 
     def _set_target(self, pos: NDArray[np.float64], quat: NDArray[np.float64],
                     velocity: NDArray[np.float64] | None = None, spin: NDArray[np.float64] | None = None) -> None:
@@ -847,6 +798,12 @@ class SapienSimulator(Simulator):
         art.set_root_linear_velocity(np.zeros(3, dtype=np.float32))
         art.set_root_angular_velocity(np.zeros(3, dtype=np.float32))
         self._set_target(pose[:3, 3], matrix_to_quat(pose[:3, :3]))
+
+    def _track(self, target: PathTarget) -> None:
+        self._set_target(target.position, target.quat_xyzw, target.velocity, target.spin)
+
+    def _end_path(self, position: NDArray[np.float64], quat_xyzw: NDArray[np.float64]) -> None:
+        self._set_target(position, quat_xyzw)  # hold still there: zero velocity target
 
     def _gripper_boxes(self, pose: NDArray[np.float64], inflate: float) -> list[tuple[Any, Any, Any]]:
         """World (centre, rotation, half extents + inflate) of palm and fingers at ``pose``."""
@@ -871,84 +828,6 @@ class SapienSimulator(Simulator):
         """Whether the gripper at ``pose``, grown by ``clearance``, overlaps an obstacle (bounding boxes)."""
         cb, rb, hb = self._obstacles(with_objects)
         return any(bool(np.any(_obb_overlap(c, r, h, cb, rb, hb))) for c, r, h in self._gripper_boxes(pose, clearance))
-
-    def _start_is_clear(self, start: NDArray[np.float64], first: NDArray[np.float64]) -> bool:
-        """Whether the gripper at ``start`` keeps START_CLEARANCE_M from everything and the straight
-        path from there to ``first`` does not cross a shelf board (objects on it may be pushed)."""
-        if self._collides(start, START_CLEARANCE_M, with_objects=True):
-            return False
-        dist = float(np.linalg.norm(first[:3, 3] - start[:3, 3]))
-        n = math.ceil(dist / 0.01)
-        for i in range(1, n):  # the end is the waypoint itself: it may touch what the skill aims at
-            pose = start.copy()
-            pose[:3, 3] += (i / n) * (first[:3, 3] - start[:3, 3])
-            if self._collides(pose, 1e-3, with_objects=False):
-                return False
-        return True
-
-    def _leave_park(self, first: NDArray[np.float64]) -> None:
-        """Teleport out of the parking pose to the nearest clear start for the first waypoint: the
-        waypoint itself, or a pose behind it along its approach axis, or out towards the open front
-        of the shelf (-y). The move then reaches the waypoint under physics."""
-        n = round(START_BACKOFF_MAX_M / START_BACKOFF_STEP_M)
-        candidates = [first]
-        for k in range(1, n + 1):
-            for direction in (-first[:3, 2], np.array([0.0, -1.0, 0.0])):
-                pose = first.copy()
-                pose[:3, 3] += k * START_BACKOFF_STEP_M * direction
-                candidates.append(pose)
-        start = next((c for c in candidates if self._start_is_clear(c, first)), first)
-        self._teleport_gripper(start)
-        self._parked = False
-
-    def move_gripper(
-        self, waypoints: Sequence[NDArray[np.float64]], opening_m: float | None = None, speed_mps: float = 0.1
-    ) -> NDArray[np.float64]:
-        """Drive the palm through the waypoints (linear position, slerped rotation) under physics.
-
-        The opening is set first. From the parking pose the gripper first teleports next to the first
-        waypoint (see ``_leave_park``). Returns the reached pose.
-        """
-        self._require_scene()
-        if speed_mps <= 0:
-            raise ValueError("speed_mps must be positive")
-        if opening_m is not None:
-            self.set_gripper(opening_m)
-        poses = [np.asarray(w, dtype=np.float64) for w in waypoints]
-        if not poses:
-            return self.gripper_pose()
-        if self._parked:
-            self._leave_park(poses[0])
-        dt = self.config.time_step_s
-        start = self.gripper_pose()
-        pos0, q0 = start[:3, 3], matrix_to_quat(start[:3, :3])
-        for pose in poses:
-            pos1, q1 = pose[:3, 3], matrix_to_quat(pose[:3, :3])
-            dist = float(np.linalg.norm(pos1 - pos0))
-            duration = max(dist, _quat_angle(q0, q1) * ROTATION_LEVER_M) / speed_mps
-            n = max(1, math.ceil(duration / dt))
-            velocity = (pos1 - pos0) / (n * dt)
-            spin = _rotation_vector(quat_to_matrix(q1) @ quat_to_matrix(q0).T) / (n * dt)
-            for i in range(1, n + 1):
-                t = i / n
-                self._set_target(pos0 + t * (pos1 - pos0), _slerp(q0, q1, t), velocity, spin)
-                self._physics_step()
-            pos0, q0 = pos1, q1
-        self._set_target(pos0, q0)
-        # Let the palm catch up with the final target (it lags slightly behind a moving target).
-        target = quat_to_matrix(q0)
-        for _ in range(round(0.2 / dt)):
-            now = self.gripper_pose()
-            if np.linalg.norm(now[:3, 3] - pos0) < 5e-4 and np.trace(now[:3, :3].T @ target) > 3 - 1e-5:
-                break
-            self._physics_step()
-        return self.gripper_pose()
-
-    def park_gripper(self) -> None:
-        """Teleport the gripper back to its parking pose out of view."""
-        self._require_scene()
-        self._teleport_gripper(pose_matrix(PARK_POSITION_M, _DOWN_XYZW))
-        self._parked = True
 
     # ------------------------------------------------------------------------------------- contacts
     def _contact_points(self) -> list[_ContactPoint]:
