@@ -13,5 +13,10 @@ import sys as _sys
 
 # numba probes TBB first and warns when the installed one is too old; OpenMP is what we use.
 _os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
+# OpenMP threads (torch's and numba's) sleep at barriers instead of spinning. A spinning thread takes
+# its core from the threads still working whenever the machine has more runnable threads than cores
+# (two episodes in parallel, or other jobs): FE-vMF inference with 2 torch threads then took 0.5-1.4 s
+# instead of 0.05-0.07 s (docs/performance.md). Read when an OpenMP runtime loads, so set before torch/numba.
+_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 if "numba" in _sys.modules:  # imported before us: its config has already read the environment
     _sys.modules["numba"].config.THREADING_LAYER = _os.environ["NUMBA_THREADING_LAYER"]

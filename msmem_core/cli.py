@@ -221,6 +221,27 @@ def perf_push(
     run_perf(repeats=repeats, samples=samples, scene_seed=scene_seed, reference=reference)
 
 
+@perf_app.command("step")
+def perf_step(
+    repeats: Annotated[int, typer.Option("--repeats", help="Timed decisions (the median is reported).")] = 5,
+    scene_seed: Annotated[int, typer.Option("--scene-seed", help="Generated scene.")] = 1,
+    scene: Annotated[Path | None, typer.Option("--scene", help="SceneSpec JSON file instead of --scene-seed.")] = None,
+    views: Annotated[int, typer.Option("--views", help="Views integrated into the mid-episode belief.")] = 10,
+    view_seed: Annotated[int, typer.Option("--view-seed", help="Seed of the random views.")] = 0,
+    reference: Annotated[bool, typer.Option("--reference/--no-reference",
+                                            help="Also time the brute-force references.")] = True,
+    beliefs: Annotated[int, typer.Option("--beliefs", help="Beliefs on which screened and exact choices "
+                                                           "are compared (0: none).")] = 3,
+    method: MethodOpt = "ours",
+    config: ConfigOpt = None,
+) -> None:
+    """Time one full MSAS decision (all skills, effect models, objective) on a mid-episode belief, by stage."""
+    from msmem_core.perf_step import perf_step as run_perf
+
+    run_perf(repeats=repeats, scene_seed=scene_seed, views=views, view_seed=view_seed, reference=reference,
+             beliefs=beliefs, method=method or "ours", config=config, scene=scene)
+
+
 @docs_app.command("config")
 def docs_config() -> None:
     """Print the configuration reference (docs/config-reference.md), generated from the pydantic models."""

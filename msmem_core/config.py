@@ -24,7 +24,7 @@ from msmem_core.scenegen import SceneGenConfig
 from msmem_core.viewpoints import ViewpointConfig
 
 METHODS = ("view-only", "push-only", "grasp-only", "no-cdc", "ours")
-DEFAULT_METHOD = "view-only"
+DEFAULT_METHOD = "ours"
 
 
 class _Strict(BaseModel):

@@ -10,9 +10,11 @@ pass them as ``excluded`` to :meth:`IGService.best_two_step`.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
@@ -37,6 +39,23 @@ class IGConfig(BaseModel):
     """Expected occupancy above this counts as certainly occupied (p = 1, H = 0), as MEM."""
     p_free_clamp: float = Field(0.05, ge=0.0, lt=0.5)
     """Expected occupancy below this counts as certainly free (p = 0, H = 0), as MEM."""
+
+
+def _unique_deltas(deltas: Sequence[IGDelta]) -> tuple[list[IGDelta], NDArray[np.int64]]:
+    """The distinct deltas and, per input delta, its index among them (candidates that change the
+    field identically, e.g. pushes moving an object by the same whole number of voxels, are scored once)."""
+    first: dict[bytes, int] = {}
+    same = np.empty(len(deltas), dtype=np.int64)
+    out: list[IGDelta] = []
+    for i, d in enumerate(deltas):
+        idx = np.asarray(d.idx, dtype=np.int64)
+        key = hashlib.blake2b(idx.tobytes() + np.asarray(d.p, np.float32).tobytes()
+                              + np.asarray(d.H, np.float32).tobytes(), digest_size=16).digest()
+        if key not in first:
+            first[key] = len(out)
+            out.append(d)
+        same[i] = first[key]
+    return out, same
 
 
 def shelf_wall_mask(grid: GridSpec, shelf: ShelfSpec) -> NDArray[np.bool_]:
@@ -109,6 +128,8 @@ class IGService:
         self.rays = raycast.RayTable.build(self.origins, self.dirs, grid, self.t_min, self.t_max)
         """The same rays with their grid entry/exit, grid-crossing rays first (what the kernels read)."""
         self._coarse: dict[int, raycast.RayTable] = {}
+        self._sweeps: list[tuple[IGField, int, float, NDArray[np.float64], NDArray[np.float64]]] = []
+        """Recent base sweeps with their ray stops: (field, ray_step, eps, IG [V], stop t [V, R])."""
 
     @property
     def num_views(self) -> int:
@@ -162,6 +183,22 @@ class IGService:
             self._coarse[step] = raycast.RayTable.build(self.origins, dirs, self.grid, self.t_min, self.t_max)
         return self._coarse[step]
 
+    def sweep(self, field: IGField, exact: bool = False, ray_step: int = 1) -> NDArray[np.float64]:
+        """IG of every view, float64 [V], equal to ``view_ig(field, exact)`` (``ray_step`` > 1: over
+        the screening rays of :meth:`coarse_rays`), remembered for this field together with where
+        each ray stopped, which :meth:`view_ig_delta` uses. Fields are treated as immutable: the
+        result is looked up by identity (the few most recent fields are kept)."""
+        return self._sweep(field, 0.0 if exact else self.config.early_exit, ray_step)[0].copy()
+
+    def _sweep(self, field: IGField, eps: float, ray_step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        for f, step, e, ig, t_stop in self._sweeps:
+            if f is field and step == ray_step and e == eps:
+                return ig, t_stop
+        rays = self.coarse_rays(ray_step)
+        ig, t_stop = raycast.ig_views_stop(field.p, field.H, *rays.args(), self._g0, self._s, self._n, eps)
+        self._sweeps = [(field, ray_step, eps, ig, t_stop), *self._sweeps[:3]]
+        return ig, t_stop
+
     def view_ig_delta(
         self, base: IGField, deltas: Sequence[IGDelta], exact: bool = False, ray_step: int = 1
     ) -> NDArray[np.float64]:
@@ -170,13 +207,19 @@ class IGService:
         Equal to ``view_ig([d.apply(base) for d in deltas], exact)`` up to float64 summation order
         (tested); the early exit applies the same way to both. ``ray_step > 1`` uses every
         ``ray_step``-th ray in both image axes only (a screening estimate, not comparable with
-        full-density values).
+        full-density values). The base field's sweep (:meth:`sweep`) is computed once and reused;
+        identical deltas are scored once.
         """
         eps = 0.0 if exact else self.config.early_exit
         k = len(deltas)
         if k == 0:
             return np.zeros((0, self.num_views))
+        base_ig, t_stop = self._sweep(base, eps, ray_step)
+        deltas, same = _unique_deltas(deltas)
+        k = len(deltas)
         sizes = np.array([len(d.idx) for d in deltas], dtype=np.int64)
+        if not sizes.any():
+            return np.repeat(base_ig[None], len(same), axis=0)
         all_idx = np.concatenate([np.asarray(d.idx, dtype=np.int64) for d in deltas])
         union, inverse = np.unique(all_idx, return_inverse=True)
         owner = np.repeat(np.arange(k, dtype=np.int64), sizes)
@@ -192,11 +235,18 @@ class IGService:
         slot = np.full(self.grid.size, -1, dtype=np.int32)
         slot[union] = np.arange(len(union), dtype=np.int32)
         stop = ((base.p >= 1.0) & (slot < 0)).astype(np.uint8)
+        # a box around the union voxels, widened a little beyond rounding (the kernel's ray filter)
+        ijk = np.stack(np.unravel_index(union, self.grid.shape), axis=-1)
+        pad = 1e-6 * self._s
+        box_lo = self._g0 + ijk.min(axis=0) * self._s - pad
+        box_hi = self._g0 + (ijk.max(axis=0) + 1) * self._s + pad
         rays = self.coarse_rays(ray_step)
-        _, out = raycast.ig_views_delta(
-            base.p, base.H, stop, slot, pu, hu, cand_ptr, cand_k, *rays.args(), self._g0, self._s, self._n, eps
-        )
-        return out
+        with numba.parallel_chunksize(4):  # views differ in work (rays skipped): schedule them dynamically
+            change = raycast.ig_views_delta(
+                base.p, base.H, stop, slot, pu, hu, cand_ptr, cand_k, *rays.args(), t_stop, box_lo, box_hi,
+                self._g0, self._s, self._n, eps,
+            )
+        return (base_ig[None] + change)[same]
 
     def view_ig(self, fields: IGField | Sequence[IGField], exact: bool = False) -> NDArray[np.float64]:
         """IG of every view: float64 [V] for one field, [K, V] for a sequence of K fields.

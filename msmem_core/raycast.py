@@ -81,6 +81,50 @@ def _axis_init(o: float, d: float, t0: float, g0: float, s: float, n: int) -> tu
     return i, 0, np.inf, np.inf
 
 
+@njit(cache=True, fastmath=False, inline="always")
+def _dda_start(ox, oy, oz, dx, dy, dz, t0, gx, gy, gz, s, nx, ny, nz):
+    """DDA state of a ray clipped to the grid, at t0 (:func:`_axis_init` on each axis).
+
+    Returns ``(ix, iy, iz, idx, tx, ty, tz, sx, sy, sz, kx, ky, kz)``: the voxel and its flat index,
+    each axis's next boundary crossing, step (+-1 or 0) and t per voxel, as :func:`_dda_next` takes them.
+    Scalars in and out: array arguments cost a reference-count update per ray, and a tuple of tuples
+    trips numba's array analysis in the ``prange`` kernels.
+    """
+    ix, sx, tx, kx = _axis_init(ox, dx, t0, gx, s, nx)
+    iy, sy, ty, ky = _axis_init(oy, dy, t0, gy, s, ny)
+    iz, sz, tz, kz = _axis_init(oz, dz, t0, gz, s, nz)
+    return ix, iy, iz, (ix * ny + iy) * nz + iz, tx, ty, tz, sx, sy, sz, kx, ky, kz
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _dda_exit(tx: float, ty: float, tz: float) -> tuple[float, int]:
+    """Where the ray leaves the current voxel: (t, axis) of the nearest boundary crossing (x, then y on ties)."""
+    if tx <= ty and tx <= tz:
+        return tx, 0
+    if ty <= tz:
+        return ty, 1
+    return tz, 2
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _dda_next(ax, tn, t1, ix, iy, iz, idx, tx, ty, tz, sx, sy, sz, kx, ky, kz, nx, ny, nz):
+    """Step across the boundary at ``tn`` on axis ``ax`` (from :func:`_dda_exit`) into the next voxel.
+
+    Returns ``(more, ix, iy, iz, idx, tx, ty, tz)``; ``more`` is False when the ray ends: ``tn >= t1``
+    or the step leaves the grid (the other values are then meaningless).
+    """
+    if tn >= t1:
+        return False, ix, iy, iz, idx, tx, ty, tz
+    if ax == 0:
+        ix += sx
+        return 0 <= ix < nx, ix, iy, iz, idx + sx * ny * nz, tx + kx, ty, tz
+    if ax == 1:
+        iy += sy
+        return 0 <= iy < ny, ix, iy, iz, idx + sy * nz, tx, ty + ky, tz
+    iz += sz
+    return 0 <= iz < nz, ix, iy, iz, idx + sz, tx, ty, tz + kz
+
+
 @njit(cache=True, fastmath=False)
 def _traverse(ox, oy, oz, dx, dy, dz, g0, s, n, t_min, t_max, stop, vox, tin, tout):
     """Write the ray's voxels in order into ``vox`` with their intervals ``[tin, tout)``; return the count.
@@ -98,21 +142,14 @@ def _traverse(ox, oy, oz, dx, dy, dz, g0, s, n, t_min, t_max, stop, vox, tin, to
 def _traverse_clipped(ox, oy, oz, dx, dy, dz, g0, s, n, t0, t1, stop, vox, tin, tout):
     """:func:`_traverse` of a ray already clipped to the grid (t0 < t1 from :func:`_clip`)."""
     nx, ny, nz = n[0], n[1], n[2]
-    ix, sx, tx, kx = _axis_init(ox, dx, t0, g0[0], s, nx)
-    iy, sy, ty, ky = _axis_init(oy, dy, t0, g0[1], s, ny)
-    iz, sz, tz, kz = _axis_init(oz, dz, t0, g0[2], s, nz)
-    six, siy = sx * ny * nz, sy * nz
-    idx = (ix * ny + iy) * nz + iz
+    ix, iy, iz, idx, tx, ty, tz, sx, sy, sz, kx, ky, kz = _dda_start(
+        ox, oy, oz, dx, dy, dz, t0, g0[0], g0[1], g0[2], s, nx, ny, nz
+    )
     use_stop = stop.shape[0] > 0
     t = t0
     m = 0
     while True:
-        if tx <= ty and tx <= tz:
-            tn, ax = tx, 0
-        elif ty <= tz:
-            tn, ax = ty, 1
-        else:
-            tn, ax = tz, 2
+        tn, ax = _dda_exit(tx, ty, tz)
         te = tn if tn < t1 else t1
         if te > t:
             vox[m] = idx
@@ -121,26 +158,10 @@ def _traverse_clipped(ox, oy, oz, dx, dy, dz, g0, s, n, t0, t1, stop, vox, tin, 
             m += 1
             if use_stop and stop[idx] != 0:
                 break
-        if tn >= t1:
+        more, ix, iy, iz, idx, tx, ty, tz = _dda_next(ax, tn, t1, ix, iy, iz, idx, tx, ty, tz,
+                                                      sx, sy, sz, kx, ky, kz, nx, ny, nz)
+        if not more:
             break
-        if ax == 0:
-            ix += sx
-            if ix < 0 or ix >= nx:
-                break
-            idx += six
-            tx += kx
-        elif ax == 1:
-            iy += sy
-            if iy < 0 or iy >= ny:
-                break
-            idx += siy
-            ty += ky
-        else:
-            iz += sz
-            if iz < 0 or iz >= nz:
-                break
-            idx += sz
-            tz += kz
         t = tn
     return m
 
@@ -149,50 +170,8 @@ def _traverse_clipped(ox, oy, oz, dx, dy, dz, g0, s, n, t0, t1, stop, vox, tin, 
 @njit(cache=True, fastmath=False)
 def _ray_ig(p, h, ox, oy, oz, dx, dy, dz, g0, s, n, t0, t1, eps):
     """IG of one ray clipped to [t0, t1): ``sum_k H_k prod_{j<k} (1 - p_j)``, stopping once the
-    product is <= eps. The traversal of :func:`_traverse_clipped`, fused with the sum (the hot loop)."""
-    nx, ny, nz = n[0], n[1], n[2]
-    ix, sx, tx, kx = _axis_init(ox, dx, t0, g0[0], s, nx)
-    iy, sy, ty, ky = _axis_init(oy, dy, t0, g0[1], s, ny)
-    iz, sz, tz, kz = _axis_init(oz, dz, t0, g0[2], s, nz)
-    six, siy = sx * ny * nz, sy * nz
-    idx = (ix * ny + iy) * nz + iz
-    t = t0
-    trans = 1.0
-    ig = 0.0
-    while True:
-        if tx <= ty and tx <= tz:
-            tn, ax = tx, 0
-        elif ty <= tz:
-            tn, ax = ty, 1
-        else:
-            tn, ax = tz, 2
-        if (tn if tn < t1 else t1) > t:
-            ig += h[idx] * trans
-            trans *= 1.0 - p[idx]
-            if trans <= eps:
-                break
-        if tn >= t1:
-            break
-        if ax == 0:
-            ix += sx
-            if ix < 0 or ix >= nx:
-                break
-            idx += six
-            tx += kx
-        elif ax == 1:
-            iy += sy
-            if iy < 0 or iy >= ny:
-                break
-            idx += siy
-            ty += ky
-        else:
-            iz += sz
-            if iz < 0 or iz >= nz:
-                break
-            idx += sz
-            tz += kz
-        t = tn
-    return ig
+    product is <= eps (:func:`_ray_ig_stop` without the stop)."""
+    return _ray_ig_stop(p, h, ox, oy, oz, dx, dy, dz, g0, s, n, t0, t1, eps)[0]
 
 
 @njit(cache=True, fastmath=False, parallel=True)
@@ -427,33 +406,84 @@ def first_hit(occ, origins, dirs, g0, s, n, t_min, t_max):
 
 
 # ------------------------------------------------------------------------------ incremental IG
+@njit(cache=True, fastmath=False, inline="always")
+def _ray_ig_stop(p, h, ox, oy, oz, dx, dy, dz, g0, s, n, t0, t1, eps):
+    """:func:`_ray_ig` that also returns where the ray stopped: the exit t of the voxel at which its
+    transmission fell to <= eps, or t1 if it never did. The traversal of :func:`_traverse_clipped`,
+    fused with the sum (the hot loop; inlined, so :func:`_ray_ig` costs nothing more)."""
+    nx, ny, nz = n[0], n[1], n[2]
+    ix, iy, iz, idx, tx, ty, tz, sx, sy, sz, kx, ky, kz = _dda_start(
+        ox, oy, oz, dx, dy, dz, t0, g0[0], g0[1], g0[2], s, nx, ny, nz
+    )
+    t = t0
+    trans = 1.0
+    ig = 0.0
+    while True:
+        tn, ax = _dda_exit(tx, ty, tz)
+        te = tn if tn < t1 else t1
+        if te > t:
+            ig += h[idx] * trans
+            trans *= 1.0 - p[idx]
+            if trans <= eps:
+                return ig, te
+        more, ix, iy, iz, idx, tx, ty, tz = _dda_next(ax, tn, t1, ix, iy, iz, idx, tx, ty, tz,
+                                                      sx, sy, sz, kx, ky, kz, nx, ny, nz)
+        if not more:
+            break
+        t = tn
+    return ig, t1
+
+
 @njit(cache=True, fastmath=False, parallel=True)
-def ig_views_delta(p, h, stop, slot, pu, hu, cand_ptr, cand_k, origins, dirs, t_enter, t_exit, count, g0, s, n, eps):
-    """IG of every view under a base field and K sparsely changed fields, re-scoring only the rays
-    whose base traversal crosses a candidate's changed voxels: ``IG(v | k) = IG(v | base) + sum over
-    those rays of (ray IG under k - ray IG under base)``.
+def ig_views_stop(p, h, origins, dirs, t_enter, t_exit, count, g0, s, n, eps):
+    """:func:`ig_views` (equal to it bit for bit) that also returns each ray's stop: float64 [V, R] in
+    :class:`RayTable` slot order, the t up to which the ray was marched (see :func:`_ray_ig_stop`).
+    Beyond it the ray's IG cannot depend on the field: what :func:`ig_views_delta` skips by."""
+    nv, nr = dirs.shape[0], dirs.shape[1]
+    out = np.zeros(nv, dtype=np.float64)
+    t_stop = np.zeros((nv, nr), dtype=np.float64)
+    for v in prange(nv):
+        ox, oy, oz = origins[v, 0], origins[v, 1], origins[v, 2]
+        acc = 0.0
+        for r in range(count[v]):
+            g, te = _ray_ig_stop(p, h, ox, oy, oz, dirs[v, r, 0], dirs[v, r, 1], dirs[v, r, 2], g0, s, n,
+                                 t_enter[v, r], t_exit[v, r], eps)
+            acc += g
+            t_stop[v, r] = te
+        out[v] = acc
+    return out, t_stop
+
+
+@njit(cache=True, fastmath=False, parallel=True)
+def ig_views_delta(p, h, stop, slot, pu, hu, cand_ptr, cand_k, origins, dirs, t_enter, t_exit, count, t_stop,
+                   box_lo, box_hi, g0, s, n, eps):
+    """The change of every view's IG under K sparsely changed fields, float64 [K, V]: the sum over
+    the rays whose base traversal meets a candidate's changed voxels of (ray IG under the candidate
+    - ray IG under the base), so that ``IG(v | k) = IG(v | base) + out[k, v]``.
 
     ``p, h`` (float32 [N]): the base field. ``slot`` (int32 [N]): position of a voxel in the union U
     of all changed voxels, -1 elsewhere. ``pu, hu`` (float32 [U, K], voxel-major): every candidate's
     values on U (the base value where that candidate leaves a voxel unchanged). ``cand_ptr``
     (int64 [U + 1]) / ``cand_k`` (int64): CSR list of the candidates that change each union voxel.
     ``stop`` (uint8 [N]): voxels with p == 1 that no candidate changes (walls, unmoved confident
-    surfaces); traversal ends after one. Returns ``(base [V], out [K, V])``.
+    surfaces); traversal ends after one. ``t_stop`` [V, R]: where each base ray stopped
+    (:func:`ig_views_stop` with the same eps); ``box_lo, box_hi``: a box holding every union voxel.
 
-    Exactness: each ray is traversed once, carrying the base ray IG with the rule of
-    :func:`_ray_ig` (stop once the transmission is <= eps). Where the base ray, before its stop,
-    first meets a voxel a candidate changes, that candidate's ray starts from the base prefix (sum
-    and transmission) and is carried along in step with the same rule and the candidate's values,
-    until its own transmission is <= eps. A candidate whose changed voxels the base ray does not
-    reach before its stop sees the same prefix, hence the same stop and the same ray IG: its delta
-    is exactly 0. The traversal ends when the base and every started candidate are done, or after a
-    ``stop`` voxel (p == 1 for every candidate). So the result equals a full re-score of each
-    candidate field with the same eps (up to float64 summation order), with early exit on or off.
-    The candidates' values of one voxel are contiguous (voxel-major ``pu, hu``).
+    Which rays: a ray whose segment from the grid entry to its base stop misses the box cannot meet
+    a changed voxel before its stop and is skipped (its delta is exactly 0); so are the candidate
+    updates on voxels with p = H = 0 outside U (they change no candidate's ray). The other rays are
+    traversed once, carrying the base ray IG with the rule of :func:`_ray_ig` (stop once the
+    transmission is <= eps). Where the base ray, before its stop, first meets a voxel a candidate
+    changes, that candidate's ray starts from the base prefix (sum and transmission) and is carried
+    along in step with the same rule and the candidate's values, until its own transmission is
+    <= eps. A candidate whose changed voxels the base ray does not reach before its stop sees the
+    same prefix, hence the same stop and the same ray IG: its delta is exactly 0. The traversal ends
+    when the base and every started candidate are done, or after a ``stop`` voxel (p == 1 for every
+    candidate). So ``IG(v | base) + out`` equals a full re-score of each candidate field with the
+    same eps (up to float64 summation order), with early exit on or off.
     """
     nk = pu.shape[1]
     nv = dirs.shape[0]
-    base = np.zeros(nv, dtype=np.float64)
     out = np.zeros((nk, nv), dtype=np.float64)
     nx, ny, nz = n[0], n[1], n[2]
     for v in prange(nv):
@@ -465,15 +495,17 @@ def ig_views_delta(p, h, stop, slot, pu, hu, cand_ptr, cand_k, origins, dirs, t_
         ag = np.empty(nk, dtype=np.float64)
         delta = np.zeros(nk, dtype=np.float64)
         ox, oy, oz = origins[v, 0], origins[v, 1], origins[v, 2]
-        acc = 0.0
         for r in range(count[v]):
             dx, dy, dz = dirs[v, r, 0], dirs[v, r, 1], dirs[v, r, 2]
             t0, t1 = t_enter[v, r], t_exit[v, r]
-            ix, sx, tx, kx = _axis_init(ox, dx, t0, g0[0], s, nx)
-            iy, sy, ty, ky = _axis_init(oy, dy, t0, g0[1], s, ny)
-            iz, sz, tz, kz = _axis_init(oz, dz, t0, g0[2], s, nz)
-            six, siy = sx * ny * nz, sy * nz
-            idx = (ix * ny + iy) * nz + iz
+            b0, b1 = _slab(ox, dx, box_lo[0], box_hi[0], t0, t_stop[v, r])
+            b0, b1 = _slab(oy, dy, box_lo[1], box_hi[1], b0, b1)
+            b0, b1 = _slab(oz, dz, box_lo[2], box_hi[2], b0, b1)
+            if b0 > b1:  # no changed voxel before the base stop
+                continue
+            ix, iy, iz, idx, tx, ty, tz, sx, sy, sz, kx, ky, kz = _dda_start(
+                ox, oy, oz, dx, dy, dz, t0, g0[0], g0[1], g0[2], s, nx, ny, nz
+            )
             t = t0
             trans = 1.0
             ig = 0.0
@@ -481,12 +513,7 @@ def ig_views_delta(p, h, stop, slot, pu, hu, cand_ptr, cand_k, origins, dirs, t_
             nact = 0
             done = False
             while True:
-                if tx <= ty and tx <= tz:
-                    tn, ax = tx, 0
-                elif ty <= tz:
-                    tn, ax = ty, 1
-                else:
-                    tn, ax = tz, 2
+                tn, ax = _dda_exit(tx, ty, tz)
                 if (tn if tn < t1 else t1) > t:
                     sl = slot[idx]
                     pv = p[idx]
@@ -504,27 +531,28 @@ def ig_views_delta(p, h, stop, slot, pu, hu, cand_ptr, cand_k, origins, dirs, t_
                                 atr[nact] = trans
                                 ag[nact] = ig
                                 nact += 1
-                    a = 0
-                    while a < nact:  # the candidates' rays, in step with the base ray
-                        k = act[a]
-                        if sl >= 0:
-                            pk = pu[sl, k]
-                            hk = hu[sl, k]
-                        else:
-                            pk = pv
-                            hk = hv
-                        g = ag[a] + hk * atr[a]
-                        tr = atr[a] * (1.0 - pk)
-                        if tr <= eps:  # this candidate's ray is finished
-                            fin[k] = g
-                            nact -= 1
-                            act[a] = act[nact]
-                            atr[a] = atr[nact]
-                            ag[a] = ag[nact]
-                        else:
-                            ag[a] = g
-                            atr[a] = tr
-                            a += 1
+                    if sl >= 0 or pv != 0.0 or hv != 0.0:
+                        a = 0
+                        while a < nact:  # the candidates' rays, in step with the base ray
+                            k = act[a]
+                            if sl >= 0:
+                                pk = pu[sl, k]
+                                hk = hu[sl, k]
+                            else:
+                                pk = pv
+                                hk = hv
+                            g = ag[a] + hk * atr[a]
+                            tr = atr[a] * (1.0 - pk)
+                            if tr <= eps:  # this candidate's ray is finished
+                                fin[k] = g
+                                nact -= 1
+                                act[a] = act[nact]
+                                atr[a] = atr[nact]
+                                ag[a] = ag[nact]
+                            else:
+                                ag[a] = g
+                                atr[a] = tr
+                                a += 1
                     if not done:
                         ig += hv * trans
                         trans *= 1.0 - pv
@@ -532,33 +560,15 @@ def ig_views_delta(p, h, stop, slot, pu, hu, cand_ptr, cand_k, origins, dirs, t_
                             done = True
                     if stop[idx] != 0 or (done and nact == 0):
                         break
-                if tn >= t1:
+                more, ix, iy, iz, idx, tx, ty, tz = _dda_next(ax, tn, t1, ix, iy, iz, idx, tx, ty, tz,
+                                                              sx, sy, sz, kx, ky, kz, nx, ny, nz)
+                if not more:
                     break
-                if ax == 0:
-                    ix += sx
-                    if ix < 0 or ix >= nx:
-                        break
-                    idx += six
-                    tx += kx
-                elif ax == 1:
-                    iy += sy
-                    if iy < 0 or iy >= ny:
-                        break
-                    idx += siy
-                    ty += ky
-                else:
-                    iz += sz
-                    if iz < 0 or iz >= nz:
-                        break
-                    idx += sz
-                    tz += kz
                 t = tn
-            acc += ig
             for a in range(nact):  # still transmitting where the ray left the grid
                 fin[act[a]] = ag[a]
             for a in range(naff):
                 delta[aff[a]] += fin[aff[a]] - ig
-        base[v] = acc
         for k in range(nk):
-            out[k, v] = acc + delta[k]
-    return base, out
+            out[k, v] = delta[k]
+    return out

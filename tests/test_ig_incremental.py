@@ -100,3 +100,25 @@ def test_delta_beliefs_materialise_the_change(seed: int) -> None:
     np.testing.assert_array_equal(b1.alpha.ravel()[other], belief.alpha.ravel()[other])
     assert len(list(seq)) == 3
     assert len(seq[0:2]) == 2
+
+
+def test_a_small_change_scores_alike_alone_duplicated_and_beside_others() -> None:
+    """The rays skipped by the box filter and the deduplicated candidates change nothing: a one-voxel
+    change scores the same alone (a tiny box), twice, and in a batch with changes elsewhere; the
+    remembered sweep is view_ig."""
+    rng = np.random.default_rng(7)
+    svc = service(1e-3)
+    belief = random_belief(rng)
+    base = svc.prepare(belief)
+    np.testing.assert_array_equal(svc.sweep(base), svc.view_ig(base))
+    deltas = [svc.belief_delta(base, d) for d in random_deltas(belief, rng, 6)]
+    free = np.flatnonzero(base.p == 0.0)
+    small = svc.belief_delta(base, BeliefDelta(free[len(free) // 2 : len(free) // 2 + 1], np.array([41.0], np.float32),
+                                               np.array([1.0], np.float32), np.ones((15, 1), np.float32)))
+    assert len(small.idx) == 1  # a free voxel becomes occupied
+    alone = svc.view_ig_delta(base, [small])
+    full = svc.view_ig([small.apply(base)])
+    np.testing.assert_allclose(alone, full, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(svc.view_ig_delta(base, [small, small]), np.concatenate([alone, alone]))
+    mixed = svc.view_ig_delta(base, [deltas[0], small, *deltas[1:], small])
+    np.testing.assert_allclose(mixed[[1, -1]], np.concatenate([alone, alone]), rtol=1e-12, atol=1e-12)

@@ -10,3 +10,5 @@ training, evaluation and the belief-model plugins ``cnabu-observe``, ``cnabu-pus
 - ``models``: the belief models; ``evaluation``: ``msmem eval belief-models``;
 - ``commands``: the CLI commands (registered by ``msmem_core.cli``).
 """
+
+import msmem_core as _msmem_core  # noqa: F401 - sets the OpenMP wait policy before torch loads

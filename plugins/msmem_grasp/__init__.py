@@ -9,3 +9,5 @@
 - ``antipodal``: antipodal ground-truth grasps per object class, cached, and their collision-free
   subset in a shelf scene.
 """
+
+import msmem_core as _msmem_core  # noqa: F401 - sets the OpenMP wait policy before torch loads

@@ -96,8 +96,9 @@ class IGTerm(Term):
     def score(self, ctx: Any, batch: CandidateBatch) -> NDArray[np.float64]:
         if batch.category == "perception":
             assert batch.view_indices is not None
-            if "view_ig" not in ctx.cache:  # one sweep per step, shared with other terms
-                ctx.cache["view_ig"] = np.asarray(ctx.ig.view_ig(ctx.field), dtype=np.float64)
+            if "view_ig" not in ctx.cache:  # one sweep per step, shared with other terms; ig.sweep keeps
+                # it (and where each ray stopped) for this field, so the manipulation branch reuses it
+                ctx.cache["view_ig"] = np.asarray(ctx.ig.sweep(ctx.field), dtype=np.float64)
             ig = ctx.cache["view_ig"]
             scores = ig[batch.view_indices]
             if self.config.two_step and len(scores):

@@ -116,17 +116,14 @@ class AnalyticPushEffect(EffectModel):
         changed = np.zeros((len(actions), grid.size), dtype=bool)
         scenes: dict[tuple[float, ...], _Scene] = {}
         mark = np.zeros(grid.size, dtype=bool)
-        alpha = belief.alpha.reshape(-1)
-        beta = belief.beta.reshape(-1)
-        eta = belief.eta.reshape(belief.num_classes, -1)
         for k, a in enumerate(actions):
             if not isinstance(a, PushAction):
                 raise TypeError(f"push-analytic predicts push actions, got a {a.kind!r} action")
             interior = tuple(a.interior_m)
             if interior not in scenes:
                 scenes[interior] = self._scene(belief, interior)
-            d = self._predict_one(belief, scenes[interior], a, interior, mark)
-            keep = (d.alpha != alpha[d.idx]) | (d.beta != beta[d.idx]) | np.any(d.eta != eta[:, d.idx], axis=0)
+            d, (a0, b0, e0) = self._predict_one(belief, scenes[interior], a, interior, mark)
+            keep = (d.alpha != a0) | (d.beta != b0) | np.any(d.eta != e0, axis=0)
             d = BeliefDelta(d.idx[keep], d.alpha[keep], d.beta[keep], d.eta[:, keep])
             changed[k, d.idx] = True
             deltas.append(d)
@@ -279,8 +276,9 @@ class AnalyticPushEffect(EffectModel):
         return self._first_contacts(scene.labels[vox[pick][near]], vox[pick][near], gap[pick][near])
 
     def _predict_one(self, belief: EvidentialMap, scene: _Scene, a: Any, interior: tuple[float, ...],
-                     mark: NDArray[np.bool_]) -> BeliefDelta:
-        """One action's change; ``mark`` is an all-False scratch mask [N] (left all-False)."""
+                     mark: NDArray[np.bool_]) -> tuple[BeliefDelta, tuple[NDArray[np.float32], ...]]:
+        """One action's change and the evidence it replaces (alpha, beta, eta at its voxels); ``mark``
+        is an all-False scratch mask [N] (left all-False)."""
         cfg = self.config
         grid = belief.grid
         s = grid.voxel_m
@@ -305,7 +303,10 @@ class AnalyticPushEffect(EffectModel):
             dst_from.append(vox[ok[-1]])
             src_parts.append(vox)
         empty = np.zeros(0, np.int64)
-        path = np.concatenate(path_parts)
+        path = np.concatenate(path_parts)  # a voxel swept by several copies of a body: keep it once
+        mark[path] = True
+        path = np.flatnonzero(mark)
+        mark[path] = False
         src = np.concatenate(src_parts) if src_parts else empty
         dst = np.concatenate(dst_parts) if dst_parts else empty
         frm = np.concatenate(dst_from) if dst_from else empty
@@ -320,7 +321,8 @@ class AnalyticPushEffect(EffectModel):
         def toward_prior(x: NDArray[np.float32], keep: float) -> NDArray[np.float32]:
             return (1.0 + (x - 1.0) * np.float32(keep)).astype(np.float32)
 
-        na, nb, ne = alpha[idx].copy(), beta[idx].copy(), eta[:, idx].copy()
+        old = alpha[idx], beta[idx], eta[:, idx]
+        na, nb, ne = (x.copy() for x in old)
         pos = np.searchsorted(idx, path)
         ne[:, pos] = toward_prior(eta[:, path], cfg.swept_keep)
         pos = np.searchsorted(idx, src)
@@ -329,4 +331,4 @@ class AnalyticPushEffect(EffectModel):
         na[pos] = toward_prior(alpha[frm], cfg.moved_keep)
         nb[pos] = toward_prior(beta[frm], cfg.moved_keep)
         ne[:, pos] = toward_prior(eta[:, frm], cfg.moved_keep)
-        return BeliefDelta(idx, na, nb, ne)
+        return BeliefDelta(idx, na, nb, ne), old
