@@ -1,17 +1,31 @@
 """Frontier point projection: points lie on the believed surface (within a voxel of voxels with p > 0.5,
 nothing believed occupied in front of them), flat walls come out flat with the right normals, an
-empty or unknown belief gives no points, and sampling is seeded."""
+empty or unknown belief gives no points, sampling is seeded, and the fused numba kernel with
+normals at the drawn points only gives what the earlier array implementation (kept here as a
+reference) gave."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from msmem_grasp.fpp import FPPConfig, frontier_points, project_surface, shelf_bounds, virtual_front_views
+from msmem_grasp.fpp import (
+    FPPConfig,
+    SurfaceCloud,
+    _trilinear,
+    camera_rays,
+    frontier_points,
+    occupancy_normals,
+    project_surface,
+    sample_cloud,
+    shelf_bounds,
+    virtual_front_views,
+)
 
 from msmem_core import raycast
 from msmem_core.belief import EvidentialMap
 from msmem_core.grid import GridSpec
 from msmem_core.scene import ShelfSpec
+from msmem_core.viewpoints import ViewpointConfig, generate_viewpoints
 
 GRID = GridSpec.around_box(ShelfSpec().interior_lower, ShelfSpec().interior_upper, 0.01, 1)
 SMALL = FPPConfig(ray_stride_px=8, num_points=2000)
@@ -126,3 +140,93 @@ def test_shelf_bounds_drop_surfaces_outside_the_shelf():
     assert len(inside) > 0
     assert (inside.points[:, 2] <= hi[2] + GRID.voxel_m).all()
     assert np.isneginf(lo[1])
+
+
+# ------------------------------------------------------------------------------ reference (before numba)
+def _project_surface_reference(p, grid, poses, config=None, bounds=None) -> SurfaceCloud:  # type: ignore[no-untyped-def]
+    """``project_surface`` as it was before the fused kernel: camera rays as arrays, ``raycast.first_hit``,
+    all sub-voxel samples with scipy, normals from the whole-grid filter at every point."""
+    cfg = config or FPPConfig()
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    p = np.asarray(p, dtype=np.float32)
+    occ = np.ascontiguousarray((p > cfg.threshold).ravel().astype(np.uint8))
+    if len(poses) == 0 or not occ.any():
+        return SurfaceCloud.empty()
+    origins, dirs, view = camera_rays(poses, cfg.camera, cfg.ray_stride_px)
+    g0, s, n = raycast.grid_params(grid)
+    t_in, t_out, idx = raycast.first_hit(occ, origins, dirs, g0, s, n, cfg.camera.near_m, cfg.camera.far_m)
+    hit = idx >= 0
+    if not hit.any():
+        return SurfaceCloud.empty()
+    o, d, t_in, t_out, idx, view = origins[hit], dirs[hit], t_in[hit], t_out[hit], idx[hit], view[hit]
+    dn = np.linalg.norm(d, axis=1)
+    t_voxel = s / dn
+    k = 2 * cfg.samples_per_voxel + 1
+    t_start = np.maximum(t_in - t_voxel, cfg.camera.near_m)
+    frac = np.linspace(0.0, 1.0, k)
+    ts = t_start[:, None] + frac[None] * (t_out - t_start)[:, None]
+    vals = _trilinear(p, grid, o[:, None, :] + ts[..., None] * d[:, None, :])
+    above = vals > cfg.threshold
+    first = np.argmax(above, axis=1)
+    found = above[np.arange(len(first)), first]
+    prev = np.maximum(first - 1, 0)
+    rows = np.arange(len(first))
+    v0, v1 = vals[rows, prev], vals[rows, first]
+    w = np.where(v1 > v0, (cfg.threshold - v0) / np.where(v1 > v0, v1 - v0, 1.0), 0.0)
+    t_cross = ts[rows, prev] + np.clip(w, 0.0, 1.0) * (ts[rows, first] - ts[rows, prev])
+    t_cross = np.where(first == 0, ts[:, 0], t_cross)
+    t_cross = np.where(found, t_cross, t_in)
+    if bounds is not None:
+        at = o + t_cross[:, None] * d
+        tol = 0.5 * s
+        inside = np.all((at >= np.asarray(bounds[0]) - tol) & (at <= np.asarray(bounds[1]) + tol), axis=1)
+        if not inside.any():
+            return SurfaceCloud.empty()
+        o, d, dn, t_voxel, t_cross, idx, view = (a[inside] for a in (o, d, dn, t_voxel, t_cross, idx, view))
+    t_surf = t_cross + cfg.surface_offset_voxels * t_voxel
+    pts = o + t_surf[:, None] * d
+    cell_m = cfg.dedup_m or 0.5 * s
+    cells = np.floor((pts - grid.origin) / cell_m).astype(np.int64)
+    cells -= cells.min(axis=0)
+    key = np.ravel_multi_index(cells.T, tuple(int(v) + 1 for v in cells.max(axis=0)))
+    _, keep = np.unique(key, return_index=True)
+    keep = np.sort(keep)
+    pts, d, dn, idx, view = pts[keep], d[keep], dn[keep], idx[keep], view[keep]
+    grad = occupancy_normals(p, cfg.normal_sigma_voxels)
+    nrm = np.stack([_trilinear(grad[a], grid, pts) for a in range(3)], axis=1)
+    length = np.linalg.norm(nrm, axis=1, keepdims=True)
+    unit_d = d / dn[:, None]
+    nrm = np.where(length > 1e-6, nrm / np.maximum(length, 1e-12), -unit_d)
+    facing = np.einsum("ij,ij->i", nrm, unit_d)
+    nrm = np.where(facing[:, None] > 0.0, -nrm, nrm)
+    return SurfaceCloud(points=pts.astype(np.float32), normals=nrm.astype(np.float32),
+                        occupancy=p.ravel()[idx].astype(np.float32), voxel=idx.astype(np.int64),
+                        view=view.astype(np.int64))
+
+
+def _assert_same_cloud(a: SurfaceCloud, b: SurfaceCloud) -> None:
+    assert len(a) == len(b)
+    np.testing.assert_array_equal(a.voxel, b.voxel)
+    np.testing.assert_array_equal(a.view, b.view)
+    np.testing.assert_allclose(a.points, b.points, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(a.normals, b.normals, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(a.occupancy, b.occupancy, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("noisy", [False, True])
+def test_the_kernel_gives_the_reference_clouds(noisy: bool):
+    belief = _boxes_scene()
+    rng = np.random.default_rng(11)
+    if noisy:  # generic evidence: every sample of p differs
+        belief.alpha += rng.uniform(0.0, 4.0, belief.alpha.shape).astype(np.float32)
+        belief.beta += rng.uniform(0.0, 4.0, belief.beta.shape).astype(np.float32)
+    views = generate_viewpoints(ViewpointConfig())
+    poses = np.concatenate([views[rng.choice(len(views), 6, replace=False)], virtual_front_views()])
+    p = belief.expected_occupancy()
+    cfg = FPPConfig(ray_stride_px=6, num_points=1500, seed=5)
+    for bounds in (None, shelf_bounds(ShelfSpec())):
+        ref = _project_surface_reference(p, GRID, poses, cfg, bounds)
+        assert len(ref) > 2 * cfg.num_points
+        _assert_same_cloud(project_surface(p, GRID, poses, cfg, bounds), ref)
+    # frontier_points draws first and computes normals for the drawn points only: the same cloud
+    _assert_same_cloud(frontier_points(belief, poses, cfg, shelf=ShelfSpec()), sample_cloud(ref, cfg.num_points, 5))

@@ -1,5 +1,6 @@
 """The grasp skill (UGS: FE-UMGF buffer, executable grasps, execution), its analytic effect model
-(sigma_g) and the grasp-only method."""
+(sigma_g) and the grasp-only method; the batched collision tests against the per-grasp loop they
+replaced (kept here as a reference)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,17 @@ import numpy as np
 import pytest
 import torch
 from msmem_grasp.effect import AnalyticGraspEffect, GraspEffectConfig
-from msmem_grasp.planning import Objects, fill_down, gripper_points, path_offsets, swept_indices
-from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill, interior_of
+from msmem_grasp.planning import (
+    Objects,
+    blocked_mask,
+    fill_down,
+    gripper_points,
+    gripper_points_batch,
+    path_offsets,
+    sweep_hits,
+    swept_indices,
+)
+from msmem_grasp.skill import _SIN15, GraspAction, GraspConfig, GraspSkill, interior_of
 from pydantic import ValidationError
 
 from msmem_core.belief import DeltaBeliefs, EvidentialMap
@@ -121,6 +131,166 @@ def test_the_swept_volume_follows_the_approach_the_lift_and_the_retreat() -> Non
     assert not vol[c[..., 0] > 0.1].any()
     # the closed gripper in the retreat is narrower than the open one in the approach
     assert vol.sum() == len(a.swept_indices(GRID))
+
+
+# ------------------------------------------------------------------- reference: the per-grasp loop
+class _ReferenceGraspSkill(GraspSkill):
+    """``GraspSkill.executable`` as it was before the batched collision tests: per candidate, its
+    region and gripper points, then one numpy test per path (``_hits``)."""
+
+    def executable(self, belief: EvidentialMap, shelf: ShelfSpec) -> list[GraspAction]:
+        cfg = self.config
+        grip = cfg.gripper
+        h = self.buffer.hypotheses()
+        if not len(h):
+            return []
+        q, chi = h.affordance, h.uncertainty
+        idx = np.flatnonzero((q >= cfg.min_affordance) & (chi <= cfg.max_uncertainty))
+        idx = idx[np.argsort(-q[idx], kind="stable")][: cfg.preselect]
+        g = h.subset(idx)
+        a, _ = g.approach()
+        b = g.mu_b
+        keep = (a[:, 1] >= -_SIN15) & (a[:, 2] <= _SIN15) & (g.width >= cfg.min_width_m)
+        g, a, b = g.subset(keep), a[keep], b[keep]
+        if not len(g):
+            return []
+        grid = belief.grid
+        s = grid.voxel_m
+        width = np.minimum(g.width, grip.max_opening_m)
+        opening = np.minimum(width + cfg.opening_margin_m, grip.max_opening_m)
+        from msmem_grasp.fevmf import executable_grasp
+
+        poses = executable_grasp(g.contact, a, b, width)
+        objects = Objects.of(belief, interior_of(shelf), cfg.occupied_threshold)
+        label = objects.label_at(grid, g.contact + 0.5 * s * b)
+        blocked = blocked_mask(belief, shelf, cfg.occupied_threshold, cfg.unknown_vacuity, cfg.unknown_band).ravel()
+        p = belief.expected_occupancy()
+        top = shelf.interior_upper[2] - cfg.clearance_m
+        out: list[GraspAction] = []
+        per_object: dict[int, int] = {}
+        for i in range(len(g)):
+            lab = int(label[i])
+            if lab <= 0 or per_object.get(lab, 0) >= cfg.max_per_object:
+                continue
+            pose = poses[i]
+            region = objects.region(grid, lab, pose, opening[i], cfg.max_object_radius_m)
+            approach = self._plan_approach_reference(grid, blocked, region, pose, float(opening[i]))
+            if approach is None:
+                continue
+            lift_m = self._lift(grid, p, objects, lab, region, pose, float(width[i]), top)
+            if lift_m is None:
+                continue
+            lift = pose[:3, 3] + np.array([0.0, 0.0, lift_m])
+            retreat = (tuple(map(float, lift)), (float(lift[0]), float(min(cfg.retreat_y_m, lift[1])), float(lift[2])))
+            out.append(GraspAction(
+                pose=tuple(tuple(float(v) for v in row) for row in pose),
+                width_m=float(width[i]), opening_m=float(opening[i]),
+                contact_m=tuple(float(v) for v in g.contact[i]),  # type: ignore[arg-type]
+                target_class=int(objects.classes[lab]),
+                approach_m=tuple(tuple(float(v) for v in p) for p in approach),  # type: ignore[misc]
+                retreat_m=retreat, affordance=float(np.clip(g.affordance[i], 0, 1)),
+                uncertainty=float(np.clip(g.uncertainty[i], 0, 1)), predictor=self.predictor, gripper=grip,
+                interior_m=interior_of(shelf),
+            ))
+            per_object[lab] = per_object.get(lab, 0) + 1
+            if len(out) >= cfg.top_k:
+                break
+        return out
+
+    def _plan_approach_reference(self, grid: GridSpec, blocked: np.ndarray, region: np.ndarray, pose: np.ndarray,
+                                 opening: float) -> np.ndarray | None:
+        cfg = self.config
+        s = grid.voxel_m
+        pts = gripper_points(cfg.gripper, opening, s / 2, cfg.tolerance_m)
+        r = pose[:3, :3]
+        grasp = pose[:3, 3]
+        if _hits_reference(grid, blocked, region, r, pts, path_offsets(grasp[None], s)):
+            return None
+        for d in cfg.approach_distances_m:
+            pre = grasp - d * pose[:3, 2]
+            outside = pre.copy()
+            outside[1] = min(cfg.outside_y_m, pre[1])
+            if _hits_reference(grid, blocked, None, r, pts, path_offsets(np.stack([outside, pre]), s / 2)):
+                continue
+            if _hits_reference(grid, blocked, region, r, pts, path_offsets(np.stack([pre, grasp]), s / 2)):
+                continue
+            return np.stack([outside, pre])
+        return None
+
+
+def _hits_reference(grid: GridSpec, blocked: np.ndarray, region: np.ndarray | None, rotation: np.ndarray,
+                    pts: np.ndarray, path: np.ndarray) -> bool:
+    world = (path[:, None, :] + (pts @ rotation.T)[None]).reshape(-1, 3)
+    ijk = grid.index_of(world)
+    inside = grid.contains_index(ijk)
+    if (~inside & (ijk[:, 1] >= 0)).any():
+        return True
+    ii = ijk[inside]
+    hit = np.unique((ii[:, 0] * grid.shape[1] + ii[:, 1]) * grid.shape[2] + ii[:, 2])
+    hit = hit[blocked[hit]]
+    if region is not None and len(region):
+        hit = np.setdiff1d(hit, region, assume_unique=True)
+    return len(hit) > 0
+
+
+def _seeded_belief(seed: int) -> EvidentialMap:
+    """Random boxes of random classes, some unseen space behind them and noisy evidence."""
+    rng = np.random.default_rng(seed)
+    boxes = []
+    for _ in range(int(rng.integers(3, 7))):
+        x0, y0 = rng.uniform(-0.35, 0.3), rng.uniform(0.03, 0.3)
+        w, d = rng.uniform(0.03, 0.12), rng.uniform(0.03, 0.1)
+        boxes.append(((x0, y0), (x0 + w, y0 + d), float(rng.uniform(0.05, 0.22)), int(rng.choice([SUGAR, MEAT, FOAM,
+                                                                                                    CRACKER]))))
+    b = box_belief(boxes)
+    c = GRID.centers()
+    hidden = (c[..., 1] > 0.3) & (c[..., 0] > rng.uniform(-0.3, 0.3)) & ~(b.expected_occupancy() > 0.5)
+    b.alpha[hidden], b.beta[hidden], b.eta[:, hidden] = 1.0, 1.0, 1.0
+    b.alpha += rng.uniform(0.0, 0.5, b.alpha.shape).astype(np.float32)
+    return b
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_batched_collision_tests_equal_the_per_grasp_loop(seed: int) -> None:
+    belief = _seeded_belief(seed)
+    for params in ({}, {"top_k": 300, "max_per_object": 300}):
+        cfg = GraspConfig(predictor="geometric", seed=seed, **params)  # type: ignore[arg-type]
+        skill, reference = GraspSkill(cfg), _ReferenceGraspSkill(cfg)
+        skill.track(ctx(belief))
+        reference.buffer = skill.buffer
+        got, want = skill.executable(belief, SHELF), reference.executable(belief, SHELF)
+        assert [g.model_dump() for g in got] == [g.model_dump() for g in want]  # same grasps, order, poses, paths
+        if params:
+            assert len(got) > 4
+
+    # every candidate's test at the grasp and on its way in, one at a time against the kernel
+    cfg = GraspConfig(predictor="geometric")
+    skill = GraspSkill(cfg)
+    skill.track(ctx(belief))
+    h = skill.buffer.hypotheses()
+    a, _ = h.approach()
+    from msmem_grasp.fevmf import executable_grasp
+
+    opening = np.minimum(np.minimum(h.width, 0.08) + cfg.opening_margin_m, 0.08)
+    poses = executable_grasp(h.contact, a, h.mu_b, np.minimum(h.width, 0.08))
+    objects = Objects.of(belief, INTERIOR)
+    label = objects.label_at(GRID, h.contact + 0.005 * h.mu_b)
+    blocked = blocked_mask(belief, SHELF).ravel()
+    pts = gripper_points_batch(cfg.gripper, opening, 0.005, cfg.tolerance_m)
+    local = np.stack([pts[i] @ poses[i, :3, :3].T for i in range(len(h))])
+    grasp, pre = poses[:, :3, 3], poses[:, :3, 3] - 0.05 * poses[:, :3, 2]
+    paths = [grasp[i][None] if i % 2 else path_offsets(np.stack([pre[i], grasp[i]]), 0.005) for i in range(len(h))]
+    ptr = np.cumsum([0] + [len(q) for q in paths])
+    got = sweep_hits(GRID, blocked, objects.labels, local, np.concatenate(paths), ptr, np.arange(len(h)), label, poses,
+                     opening, cfg.max_object_radius_m)
+    want = []
+    for i in range(len(h)):
+        np.testing.assert_array_equal(pts[i], gripper_points(cfg.gripper, float(opening[i]), 0.005, cfg.tolerance_m))
+        region = objects.region(GRID, int(label[i]), poses[i], opening[i], cfg.max_object_radius_m)
+        want.append(_hits_reference(GRID, blocked, region, poses[i, :3, :3], pts[i], paths[i]))
+    assert len(h) > 100
+    assert 0 < sum(want) < len(want)
+    np.testing.assert_array_equal(got, want)
 
 
 # ----------------------------------------------------------------------------------------- proposal

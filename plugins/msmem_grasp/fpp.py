@@ -1,10 +1,12 @@
 """Frontier point projection (paper eq. frontier_projection): pcd = FPP(E[Phi^O]).
 
 Camera rays of the visited views (or of virtual front cameras) are cast into the expected occupancy
-p of a belief. Per ray, the exact DDA traversal (:func:`msmem_core.raycast.first_hit`) finds the
-first voxel with p > threshold; the crossing is then located continuously: p is sampled trilinearly
-(voxel centres as samples) at sub-voxel steps from one voxel before that voxel to its exit, and the
-first upward crossing of the threshold is interpolated linearly between two samples.
+p of a belief. Per ray, the exact DDA traversal of :mod:`msmem_core.raycast` (as in
+``raycast.first_hit``) finds the first voxel with p > threshold; the crossing is then located
+continuously: p is sampled trilinearly (voxel centres as samples) at sub-voxel steps from one voxel
+before that voxel to its exit, and the first upward crossing of the threshold is interpolated
+linearly between two samples. One numba kernel (:func:`_ray_crossings`) does both per ray, from the
+camera poses and pixel directions (no per-ray arrays are built first).
 
 The analytic observation update marks as occupied the voxel that *contains* a depth return, after
 free voxels, so the 0.5-isosurface of the trilinear field lies on the voxel boundary in front of
@@ -12,17 +14,25 @@ the true surface, while the surface itself is anywhere inside the hit voxel. ``s
 moves each point that far along its ray: 0.5 (the default) halves the mean distance to the true
 surface (measured in docs/grasp-learning.md).
 
-Per point, the outward normal is the negative gradient of p (Gaussian-derivative filtered, sampled
-trilinearly), turned to face the camera; points seen by several rays are deduplicated on a grid
-of ``dedup_m`` (first ray wins), and up to ``num_points`` are drawn without replacement, seeded.
+Points seen by several rays are deduplicated on a grid of ``dedup_m`` (first ray wins), and up to
+``num_points`` are drawn without replacement, seeded. Per drawn point, the outward normal is the
+negative gradient of p (Gaussian-derivative filtered, sampled trilinearly), turned to face the
+camera. The filter runs only over the box of voxels the drawn points' interpolation reads, widened
+by the filter's radius (clipped to the grid): inside that margin every filtered value is the one
+the whole-grid filter gives, bit for bit, since each 1-D pass reads only voxels within its radius
+and the grid's own borders are extended the same way. The trilinear sampling
+(:func:`_trilinear_at`) does scipy's ``map_coordinates(order=1, mode="nearest")`` arithmetic in
+the same order, so its values are those of :func:`_trilinear`, bit for bit.
 Everything runs as array operations or numba kernels; no Python loop touches rays or points.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import numpy as np
+from numba import njit, prange
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
@@ -130,6 +140,185 @@ def camera_rays(poses: NDArray[np.float64], camera: CameraConfig, stride: int) -
     return np.ascontiguousarray(origins), np.ascontiguousarray(dirs), view
 
 
+@njit(cache=True, fastmath=False, inline="always")
+def _trilinear_at(f, lo0, lo1, lo2, n0, n1, n2, c0, c1, c2):
+    """Trilinear value at voxel coordinates (c0, c1, c2) (voxel centres at integers) of a field of
+    grid shape (n0, n1, n2) given on the box starting at voxel (lo0, lo1, lo2) (``f`` holds that box;
+    it must hold every voxel read). Indices are clamped to the grid (scipy's ``mode="nearest"``);
+    weights, products and sum in the order of scipy's ``map_coordinates(order=1)``, so the value is
+    the same to the bit."""
+    f0, f1, f2 = math.floor(c0), math.floor(c1), math.floor(c2)
+    a0, a1, a2 = 1.0 - (c0 - f0), 1.0 - (c1 - f1), 1.0 - (c2 - f2)
+    i, j, k = int(f0), int(f1), int(f2)
+    acc = 0.0
+    for di in range(2):
+        ii = min(max(i + di, 0), n0 - 1) - lo0
+        wi = a0 if di == 0 else 1.0 - a0
+        for dj in range(2):
+            jj = min(max(j + dj, 0), n1 - 1) - lo1
+            wj = a1 if dj == 0 else 1.0 - a1
+            for dk in range(2):
+                kk = min(max(k + dk, 0), n2 - 1) - lo2
+                wk = a2 if dk == 0 else 1.0 - a2
+                acc += float(f[ii, jj, kk]) * wi * wj * wk
+    return acc
+
+
+@njit(cache=True, fastmath=False, parallel=True)
+def _ray_crossings(p, occ, rot, pos, d_cam, g0, s, n, t_min, t_max, frac, threshold, lo, hi, tol, offset):
+    """Per camera ray (pose v's rotation ``rot[v]`` [3, 3] times pixel direction ``d_cam[r]``, from
+    ``pos[v]``; ray number ``v * R + r``): the first voxel with ``occ != 0`` (``raycast`` DDA,
+    ``t`` in [t_min, t_max]), the continuous crossing of ``threshold`` by the trilinear p (float32
+    [X, Y, Z]) sampled at ``t_start + frac * (t_out - t_start)``, ``t_start`` one voxel length before
+    the hit voxel's entry (the DDA entry when no sample pair crosses), kept if the crossing lies in
+    the box [lo - tol, hi + tol], moved ``offset`` voxel lengths along the ray.
+
+    Returns the hit voxel (int64 [M], -1: no hit or dropped), the surface point [M, 3] and the unit
+    ray direction [M, 3] (both meaningless where the voxel is -1)."""
+    nv, nr = rot.shape[0], d_cam.shape[0]
+    m_rays = nv * nr
+    k = frac.shape[0]
+    voxel = np.full(m_rays, -1, dtype=np.int64)
+    point = np.empty((m_rays, 3), dtype=np.float64)
+    unit = np.empty((m_rays, 3), dtype=np.float64)
+    nbuf = n[0] + n[1] + n[2]
+    n0, n1, n2 = n[0], n[1], n[2]
+    chunk = 64
+    for c in prange((m_rays + chunk - 1) // chunk):
+        vox = np.empty(nbuf, dtype=np.int64)
+        tin = np.empty(nbuf, dtype=np.float64)
+        tout = np.empty(nbuf, dtype=np.float64)
+        ts = np.empty(k, dtype=np.float64)
+        vals = np.empty(k, dtype=np.float64)
+        for q in range(c * chunk, min(m_rays, (c + 1) * chunk)):
+            v, r = q // nr, q % nr
+            ox, oy, oz = pos[v, 0], pos[v, 1], pos[v, 2]
+            # rot[v] @ d_cam[r], summed as numpy's einsum sums it in camera_rays (the same rays, bit for bit)
+            dx = (rot[v, 0, 0] * d_cam[r, 0] + rot[v, 0, 2] * d_cam[r, 2]) + rot[v, 0, 1] * d_cam[r, 1]
+            dy = (rot[v, 1, 0] * d_cam[r, 0] + rot[v, 1, 2] * d_cam[r, 2]) + rot[v, 1, 1] * d_cam[r, 1]
+            dz = (rot[v, 2, 0] * d_cam[r, 0] + rot[v, 2, 2] * d_cam[r, 2]) + rot[v, 2, 1] * d_cam[r, 1]
+            m = raycast._traverse(ox, oy, oz, dx, dy, dz, g0, s, n, t_min, t_max, occ, vox, tin, tout)
+            if m == 0 or occ[vox[m - 1]] == 0:
+                continue
+            t_in, t_out = tin[m - 1], tout[m - 1]
+            dn = math.sqrt(dx * dx + dy * dy + dz * dz)
+            t_voxel = s / dn
+            t_start = max(t_in - t_voxel, t_min)
+            first = -1
+            for j in range(k):
+                t = t_start + frac[j] * (t_out - t_start)
+                ts[j] = t
+                vals[j] = _trilinear_at(p, 0, 0, 0, n0, n1, n2, (ox + t * dx - g0[0]) / s - 0.5,
+                                        (oy + t * dy - g0[1]) / s - 0.5, (oz + t * dz - g0[2]) / s - 0.5)
+                if vals[j] > threshold:
+                    first = j
+                    break
+            if first < 0:
+                t_cross = t_in  # no trilinear crossing (grazing ray): the DDA entry
+            elif first == 0:
+                t_cross = ts[0]
+            else:
+                v0, v1 = vals[first - 1], vals[first]
+                w = (threshold - v0) / (v1 - v0) if v1 > v0 else 0.0
+                w = min(max(w, 0.0), 1.0)
+                t_cross = ts[first - 1] + w * (ts[first] - ts[first - 1])
+            ax, ay, az = ox + t_cross * dx, oy + t_cross * dy, oz + t_cross * dz
+            if not (lo[0] - tol <= ax <= hi[0] + tol and lo[1] - tol <= ay <= hi[1] + tol
+                    and lo[2] - tol <= az <= hi[2] + tol):
+                continue
+            t_surf = t_cross + offset * t_voxel
+            voxel[q] = vox[m - 1]
+            point[q, 0], point[q, 1], point[q, 2] = ox + t_surf * dx, oy + t_surf * dy, oz + t_surf * dz
+            unit[q, 0], unit[q, 1], unit[q, 2] = dx / dn, dy / dn, dz / dn
+    return voxel, point, unit
+
+
+@njit(cache=True, fastmath=False)
+def _trilinear_points(f, lo, n, g0, s, points):
+    """:func:`_trilinear_at` of the field box ``f`` (from voxel ``lo`` of a grid of shape ``n``) at
+    world points [N, 3]: the values of :func:`_trilinear` on the whole field."""
+    out = np.empty(points.shape[0], dtype=np.float64)
+    for i in range(points.shape[0]):
+        out[i] = _trilinear_at(f, lo[0], lo[1], lo[2], n[0], n[1], n[2], (points[i, 0] - g0[0]) / s - 0.5,
+                               (points[i, 1] - g0[1]) / s - 0.5, (points[i, 2] - g0[2]) / s - 0.5)
+    return out
+
+
+@dataclass(frozen=True)
+class _Surface:
+    """Deduplicated first crossings before the normals: points [N, 3], unit ray directions [N, 3],
+    hit voxel [N], view [N]."""
+
+    points: NDArray[np.float64]
+    unit: NDArray[np.float64]
+    voxel: NDArray[np.int64]
+    view: NDArray[np.int64]
+
+
+def _surface(p: F32, grid: GridSpec, poses: NDArray[np.float64], cfg: FPPConfig,
+             bounds: tuple[NDArray[np.float64], NDArray[np.float64]] | None) -> _Surface | None:
+    """The deduplicated first crossings of :func:`project_surface` (None if there are none)."""
+    occ = np.ascontiguousarray((p > cfg.threshold).ravel().astype(np.uint8))
+    if len(poses) == 0 or not occ.any():
+        return None
+    d_cam = np.ascontiguousarray(cfg.camera.pixel_rays(cfg.ray_stride_px).reshape(-1, 3))
+    g0, s, n = raycast.grid_params(grid)
+    lo, hi = (np.full(3, -np.inf), np.full(3, np.inf)) if bounds is None else bounds
+    frac = np.linspace(0.0, 1.0, 2 * cfg.samples_per_voxel + 1)
+    voxel, pts, unit = _ray_crossings(
+        p, occ, np.ascontiguousarray(poses[:, :3, :3]), np.ascontiguousarray(poses[:, :3, 3]), d_cam, g0, s, n,
+        cfg.camera.near_m, cfg.camera.far_m, frac, cfg.threshold, np.asarray(lo, np.float64),
+        np.asarray(hi, np.float64), 0.5 * s, cfg.surface_offset_voxels,
+    )
+    kept = np.flatnonzero(voxel >= 0)
+    if not len(kept):
+        return None
+    pts, unit, voxel, view = pts[kept], unit[kept], voxel[kept], kept // len(d_cam)
+
+    # Deduplicate on a grid of dedup_m (first ray in camera order wins: deterministic).
+    cell_m = cfg.dedup_m or 0.5 * s
+    cells = np.floor((pts - grid.origin) / cell_m).astype(np.int64)
+    cells -= cells.min(axis=0)
+    key = np.ravel_multi_index(cells.T, tuple(int(v) + 1 for v in cells.max(axis=0)))  # 1-D: a fast unique
+    _, keep = np.unique(key, return_index=True)
+    keep = np.sort(keep)
+    return _Surface(pts[keep], unit[keep], voxel[keep], view[keep])
+
+
+def point_normals(p: NDArray[np.floating], grid: GridSpec, points: NDArray[np.float64],
+                  sigma_voxels: float) -> NDArray[np.float64]:
+    """:func:`occupancy_normals` sampled trilinearly at world points [N, 3] ([N, 3], unnormalised),
+    equal to the whole-grid filter's to the bit but filtered only over the box the points read
+    (see the module docstring)."""
+    if not len(points):
+        return np.zeros((0, 3))
+    g0, s, n = raycast.grid_params(grid)
+    base = np.floor((points - g0) / s - 0.5).astype(np.int64)  # lower interpolation corner per point
+    radius = int(4.0 * float(sigma_voxels) + 0.5)  # gaussian_filter's (truncate=4)
+    lo = np.maximum(np.minimum(base.min(axis=0), n - 1) - radius, 0)
+    hi = np.minimum(np.maximum(base.max(axis=0) + 1, 0) + radius, n - 1) + 1
+    box = np.asarray(p, dtype=np.float64)[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    grad = occupancy_normals(box, sigma_voxels)
+    return np.stack([_trilinear_points(grad[a], lo, n, g0, s, points) for a in range(3)], axis=1)
+
+
+def _cloud(p: F32, grid: GridSpec, surf: _Surface, sigma_voxels: float) -> SurfaceCloud:
+    """The :class:`SurfaceCloud` of crossings: normals facing the camera, occupancy of the hit voxel."""
+    nrm = point_normals(p, grid, surf.points, sigma_voxels)
+    length = np.linalg.norm(nrm, axis=1, keepdims=True)
+    unit_d = surf.unit
+    nrm = np.where(length > 1e-6, nrm / np.maximum(length, 1e-12), -unit_d)
+    facing = np.einsum("ij,ij->i", nrm, unit_d)
+    nrm = np.where(facing[:, None] > 0.0, -nrm, nrm)  # a seen surface faces its camera
+    return SurfaceCloud(
+        points=surf.points.astype(np.float32),
+        normals=nrm.astype(np.float32),
+        occupancy=p.ravel()[surf.voxel].astype(np.float32),
+        voxel=surf.voxel.astype(np.int64),
+        view=surf.view.astype(np.int64),
+    )
+
+
 def project_surface(
     p: NDArray[np.floating],
     grid: GridSpec,
@@ -142,70 +331,9 @@ def project_surface(
     half a voxel outside that box are dropped (e.g. the top of the shelf's top board, seen from above
     through the grid margin)."""
     cfg = config or FPPConfig()
-    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-    p = np.asarray(p, dtype=np.float32)
-    occ = np.ascontiguousarray((p > cfg.threshold).ravel().astype(np.uint8))
-    if len(poses) == 0 or not occ.any():
-        return SurfaceCloud.empty()
-    origins, dirs, view = camera_rays(poses, cfg.camera, cfg.ray_stride_px)
-    g0, s, n = raycast.grid_params(grid)
-    t_in, t_out, idx = raycast.first_hit(occ, origins, dirs, g0, s, n, cfg.camera.near_m, cfg.camera.far_m)
-    hit = idx >= 0
-    if not hit.any():
-        return SurfaceCloud.empty()
-    o, d, t_in, t_out, idx, view = origins[hit], dirs[hit], t_in[hit], t_out[hit], idx[hit], view[hit]
-    dn = np.linalg.norm(d, axis=1)
-    t_voxel = s / dn  # ray parameter per voxel length
-
-    # Continuous crossing: trilinear p sampled from one voxel before the hit voxel to its exit.
-    k = 2 * cfg.samples_per_voxel + 1
-    t_start = np.maximum(t_in - t_voxel, cfg.camera.near_m)
-    frac = np.linspace(0.0, 1.0, k)
-    ts = t_start[:, None] + frac[None] * (t_out - t_start)[:, None]  # [M, K]
-    vals = _trilinear(p, grid, o[:, None, :] + ts[..., None] * d[:, None, :])
-    above = vals > cfg.threshold
-    first = np.argmax(above, axis=1)
-    found = above[np.arange(len(first)), first]
-    prev = np.maximum(first - 1, 0)
-    rows = np.arange(len(first))
-    v0, v1 = vals[rows, prev], vals[rows, first]
-    w = np.where(v1 > v0, (cfg.threshold - v0) / np.where(v1 > v0, v1 - v0, 1.0), 0.0)
-    t_cross = ts[rows, prev] + np.clip(w, 0.0, 1.0) * (ts[rows, first] - ts[rows, prev])
-    t_cross = np.where(first == 0, ts[:, 0], t_cross)
-    t_cross = np.where(found, t_cross, t_in)  # no trilinear crossing (grazing ray): the DDA entry
-    if bounds is not None:
-        at = o + t_cross[:, None] * d
-        tol = 0.5 * s
-        inside = np.all((at >= np.asarray(bounds[0]) - tol) & (at <= np.asarray(bounds[1]) + tol), axis=1)
-        if not inside.any():
-            return SurfaceCloud.empty()
-        o, d, dn, t_voxel, t_cross, idx, view = (a[inside] for a in (o, d, dn, t_voxel, t_cross, idx, view))
-    t_surf = t_cross + cfg.surface_offset_voxels * t_voxel
-    pts = o + t_surf[:, None] * d
-
-    # Deduplicate on a grid of dedup_m (first ray in camera order wins: deterministic).
-    cell_m = cfg.dedup_m or 0.5 * s
-    cells = np.floor((pts - grid.origin) / cell_m).astype(np.int64)
-    cells -= cells.min(axis=0)
-    key = np.ravel_multi_index(cells.T, tuple(int(v) + 1 for v in cells.max(axis=0)))  # 1-D: a fast unique
-    _, keep = np.unique(key, return_index=True)
-    keep = np.sort(keep)
-    pts, d, dn, idx, view = pts[keep], d[keep], dn[keep], idx[keep], view[keep]
-
-    grad = occupancy_normals(p, cfg.normal_sigma_voxels)
-    nrm = np.stack([_trilinear(grad[a], grid, pts) for a in range(3)], axis=1)
-    length = np.linalg.norm(nrm, axis=1, keepdims=True)
-    unit_d = d / dn[:, None]
-    nrm = np.where(length > 1e-6, nrm / np.maximum(length, 1e-12), -unit_d)
-    facing = np.einsum("ij,ij->i", nrm, unit_d)
-    nrm = np.where(facing[:, None] > 0.0, -nrm, nrm)  # a seen surface faces its camera
-    return SurfaceCloud(
-        points=pts.astype(np.float32),
-        normals=nrm.astype(np.float32),
-        occupancy=p.ravel()[idx].astype(np.float32),
-        voxel=idx.astype(np.int64),
-        view=view.astype(np.int64),
-    )
+    p = np.ascontiguousarray(p, dtype=np.float32)
+    surf = _surface(p, grid, np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4), cfg, bounds)
+    return SurfaceCloud.empty() if surf is None else _cloud(p, grid, surf, cfg.normal_sigma_voxels)
 
 
 def shelf_bounds(shelf: ShelfSpec) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -215,12 +343,18 @@ def shelf_bounds(shelf: ShelfSpec) -> tuple[NDArray[np.float64], NDArray[np.floa
     return lo, shelf.interior_upper
 
 
+def _sample_index(size: int, num_points: int, seed: int | np.random.Generator | None) -> NDArray[np.intp] | None:
+    """Sorted indices of ``num_points`` of ``size`` items drawn without replacement (None: keep all)."""
+    if size <= num_points:
+        return None
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    return np.sort(rng.choice(size, num_points, replace=False))
+
+
 def sample_cloud(cloud: SurfaceCloud, num_points: int, seed: int | np.random.Generator | None = 0) -> SurfaceCloud:
     """Up to ``num_points`` points drawn without replacement (all of them, in order, if fewer)."""
-    if len(cloud) <= num_points:
-        return cloud
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    return cloud.subset(np.sort(rng.choice(len(cloud), num_points, replace=False)))
+    keep = _sample_index(len(cloud), num_points, seed)
+    return cloud if keep is None else cloud.subset(keep)
 
 
 def frontier_points(
@@ -237,5 +371,12 @@ def frontier_points(
     cfg = config or FPPConfig()
     poses = virtual_front_views() if poses is None else poses
     bounds = shelf_bounds(shelf) if shelf is not None else None
-    cloud = project_surface(belief.expected_occupancy(), belief.grid, poses, cfg, bounds)
-    return sample_cloud(cloud, cfg.num_points, cfg.seed if seed is None else seed)
+    p = np.ascontiguousarray(belief.expected_occupancy(), dtype=np.float32)
+    surf = _surface(p, belief.grid, np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4), cfg, bounds)
+    if surf is None:
+        return SurfaceCloud.empty()
+    # the draw of sample_cloud, before the normals: they are computed for the drawn points only
+    keep = _sample_index(len(surf.points), cfg.num_points, cfg.seed if seed is None else seed)
+    if keep is not None:
+        surf = _Surface(surf.points[keep], surf.unit[keep], surf.voxel[keep], surf.view[keep])
+    return _cloud(p, belief.grid, surf, cfg.normal_sigma_voxels)

@@ -4,6 +4,12 @@ along a path, the voxels a grasp may not touch, and the believed objects (connec
 Rasterisation rule: a body covers the voxels holding any of its sample points, sampled on a lattice
 of at most half a voxel (in the body's frame, boxes shrunk by a tolerance), and a translation is
 sampled every half voxel; a voxel-sized obstacle therefore cannot slip between two samples.
+
+Collision tests of many grasps at once (:func:`sweep_hits`): one numba kernel walks each test's
+body points through its positions and stops at the first point in a blocked voxel, testing a
+voxel's membership in the exempt target region (``Objects.region``) from its label and the
+region's box in the grasp frame, without building the region. The gripper's points for many
+openings come from one lattice (:func:`gripper_points_batch`, equal to :func:`gripper_points`).
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 from scipy import ndimage
 
@@ -41,6 +48,24 @@ def gripper_points(gripper: GripperSpec, opening_m: float, spacing: float, shrin
     return np.concatenate([box_lattice(c, h, spacing, shrink) for c, h in boxes])
 
 
+def gripper_points_batch(gripper: GripperSpec, openings_m: F64, spacing: float, shrink: float = 0.0) -> F64:
+    """:func:`gripper_points` for each opening [N] at once: [N, P, 3], equal to it to the bit (the same
+    lattice offsets plus each opening's box centres)."""
+    openings = np.clip(np.asarray(openings_m, dtype=np.float64), 0.0, gripper.max_opening_m)
+    (_, finger_half), _, (palm_c, palm_half) = gripper.boxes(0.0)
+    finger = box_lattice(np.zeros(3), finger_half, spacing, shrink)  # offsets from a finger's centre
+    palm = box_lattice(palm_c, palm_half, spacing, shrink)
+    fx = openings / 2 + gripper.finger_thickness_m / 2  # as GripperSpec.boxes
+    fz = -gripper.finger_length_m / 2
+    n = len(openings)
+    left = np.zeros((n, 3))
+    left[:, 0], left[:, 2] = -fx, fz
+    right = np.zeros((n, 3))
+    right[:, 0], right[:, 2] = fx, fz
+    return np.concatenate([finger[None] + left[:, None], finger[None] + right[:, None],
+                           np.broadcast_to(palm, (n, *palm.shape))], axis=1)
+
+
 def path_offsets(waypoints: F64, spacing: float) -> F64:
     """Positions [T, 3] along the polyline through ``waypoints`` [W, 3], at most ``spacing`` apart
     (the waypoints included)."""
@@ -63,6 +88,62 @@ def swept_indices(grid: GridSpec, rotation: F64, local_points: F64, positions: F
     ijk = grid.index_of(world)
     ii = ijk[grid.contains_index(ijk)]
     return np.unique((ii[:, 0] * grid.shape[1] + ii[:, 1]) * grid.shape[2] + ii[:, 2])
+
+
+@njit(cache=True, fastmath=False)
+def _sweep_hits(blocked, labels, g0, s, n, local, positions, ptr, body, label, frame, half_x, radius, depth):
+    """The kernel of :func:`sweep_hits` (arguments as there, grid as ``raycast.grid_params``)."""
+    nx, ny, nz = n[0], n[1], n[2]
+    out = np.zeros(len(body), dtype=np.bool_)
+    for q in range(len(body)):
+        b, lab = body[q], label[q]
+        hit = False
+        for t in range(ptr[q], ptr[q + 1]):
+            for m in range(local.shape[1]):
+                i = math.floor((positions[t, 0] + local[b, m, 0] - g0[0]) / s)
+                j = math.floor((positions[t, 1] + local[b, m, 1] - g0[1]) / s)
+                k = math.floor((positions[t, 2] + local[b, m, 2] - g0[2]) / s)
+                if not (0 <= i < nx and 0 <= j < ny and 0 <= k < nz):
+                    if j >= 0:  # beside, behind, above or below the grid: the boards
+                        hit = True
+                        break
+                    continue
+                v = (i * ny + j) * nz + k
+                if not blocked[v]:
+                    continue
+                if lab > 0 and labels[v] == lab:  # in the region: the label's voxels inside its box
+                    cx = g0[0] + (i + 0.5) * s - frame[q, 0, 3]
+                    cy = g0[1] + (j + 0.5) * s - frame[q, 1, 3]
+                    cz = g0[2] + (k + 0.5) * s - frame[q, 2, 3]
+                    lx = cx * frame[q, 0, 0] + cy * frame[q, 1, 0] + cz * frame[q, 2, 0]
+                    ly = cx * frame[q, 0, 1] + cy * frame[q, 1, 1] + cz * frame[q, 2, 1]
+                    lz = cx * frame[q, 0, 2] + cy * frame[q, 1, 2] + cz * frame[q, 2, 2]
+                    if abs(lx) <= half_x[q] and abs(ly) <= radius and -radius <= lz <= depth:
+                        continue
+                hit = True
+                break
+            if hit:
+                break
+        out[q] = hit
+    return out
+
+
+def sweep_hits(grid: GridSpec, blocked: NDArray[np.bool_], labels: NDArray[np.int32], local: F64, positions: F64,
+               ptr: I64, body: I64, label: I64, frame: F64, opening_m: F64, max_radius_m: float,
+               max_depth_m: float = 0.3) -> NDArray[np.bool_]:
+    """Collision tests [Q]: does body ``body[q]`` (its points ``local[body[q]]`` [P, 3], already
+    rotated into the world's axes) at the origins ``positions[ptr[q]:ptr[q + 1]]`` touch a voxel of
+    ``blocked`` (flat [X*Y*Z]) other than those of the exempt region, or leave the grid other than
+    towards the front (-y)? The region of test q is ``Objects.region(grid, label[q], frame[q],
+    opening_m[q], max_radius_m, max_depth_m)`` (``label[q] <= 0``: none), tested per voxel from
+    ``labels`` (flat) and the same box in the frame [4, 4]."""
+    half_x = np.asarray(opening_m, dtype=np.float64) / 2 + grid.voxel_m / 2  # as Objects.region
+    g0 = grid.origin.astype(np.float64)
+    return _sweep_hits(np.asarray(blocked, dtype=np.bool_).reshape(-1), np.asarray(labels, np.int32).reshape(-1), g0,
+                       float(grid.voxel_m), np.asarray(grid.shape, dtype=np.int64),
+                       np.ascontiguousarray(local, dtype=np.float64), np.ascontiguousarray(positions, dtype=np.float64),
+                       np.asarray(ptr, np.int64), np.asarray(body, np.int64), np.asarray(label, np.int64),
+                       np.ascontiguousarray(frame, dtype=np.float64), half_x, float(max_radius_m), float(max_depth_m))
 
 
 def voxel_centres(grid: GridSpec, flat: I64) -> F64:

@@ -36,6 +36,9 @@ Executable grasps (``GraspSkill.propose``, only when manipulation is allowed), f
    slide along it and close on it (its voxels reach up to a voxel beyond its surface). The lift and the retreat are
    not tested against objects (what they disturb is the effect model's prediction) but the lifted
    target's believed top and the gripper must stay ``clearance_m`` under the shelf top.
+   The tests run in one numba kernel (``planning.sweep_hits``, stopping at the first blocked
+   point): the test at the grasp for all preselected candidates at once, before the loop over them
+   (steps 4-5); the approach paths only for the candidates that pass it, one at a time.
 5. *Diversity*: at most ``max_per_object`` grasps per believed object (component), the ``top_k``
    best by E[q].
 
@@ -74,7 +77,9 @@ from msmem_grasp.planning import (
     blocked_mask,
     fill_down,
     gripper_points,
+    gripper_points_batch,
     path_offsets,
+    sweep_hits,
     swept_indices,
     voxel_centres,
     way_out,
@@ -348,6 +353,13 @@ class GraspSkill(Skill):
         objects = Objects.of(belief, interior_of(shelf), cfg.occupied_threshold)
         label = objects.label_at(grid, g.contact + 0.5 * s * b)
         blocked = blocked_mask(belief, shelf, cfg.occupied_threshold, cfg.unknown_vacuity, cfg.unknown_band).ravel()
+        # the open gripper's points of every candidate, rotated as the grasp holds them
+        pts = gripper_points_batch(grip, opening, s / 2, cfg.tolerance_m)
+        local = np.stack([pts[i] @ poses[i, :3, :3].T for i in range(len(g))])
+        # first test of step 4 for all candidates at once: the open gripper at the grasp
+        n = len(g)
+        at_grasp = sweep_hits(grid, blocked, objects.labels, local, poses[:, :3, 3], np.arange(n + 1), np.arange(n),
+                              label, poses, opening, cfg.max_object_radius_m)
         p = belief.expected_occupancy()
         top = shelf.interior_upper[2] - cfg.clearance_m
         out: list[GraspAction] = []
@@ -355,13 +367,13 @@ class GraspSkill(Skill):
         predictor = self.predictor
         for i in range(len(g)):  # candidates in order of E[q]; stops at top_k
             lab = int(label[i])
-            if lab <= 0 or per_object.get(lab, 0) >= cfg.max_per_object:
+            if lab <= 0 or per_object.get(lab, 0) >= cfg.max_per_object or at_grasp[i]:
                 continue
             pose = poses[i]
-            region = objects.region(grid, lab, pose, opening[i], cfg.max_object_radius_m)
-            approach = self._plan_approach(grid, blocked, region, pose, float(opening[i]))
+            approach = self._plan_approach(grid, blocked, objects, local, i, pose, lab, float(opening[i]))
             if approach is None:
                 continue
+            region = objects.region(grid, lab, pose, opening[i], cfg.max_object_radius_m)
             lift_m = self._lift(grid, p, objects, lab, region, pose, float(width[i]), top)
             if lift_m is None:
                 continue  # the lifted object or gripper would hit the shelf top
@@ -382,29 +394,35 @@ class GraspSkill(Skill):
                 break
         return out
 
-    def _plan_approach(self, grid: GridSpec, blocked: NDArray[np.bool_], region: NDArray[np.int64], pose: F64,
-                       opening: float) -> F64 | None:
+    def _plan_approach(self, grid: GridSpec, blocked: NDArray[np.bool_], objects: Objects, local: F64, i: int,
+                       pose: F64, label: int, opening: float) -> F64 | None:
         """Gripper origins [2, 3] before the grasp (in front of the shelf, then the pre-grasp pose
         ``d`` back along a, for the first d of ``approach_distances_m`` that works), or None if the
-        open gripper would touch a blocked voxel: on the way in and at the pre-grasp pose anything
-        blocked counts; on the final stretch along a (and at the grasp) the target's region does not."""
+        open gripper (candidate ``i``'s points ``local[i]``, rotated) would touch a blocked voxel: on
+        the way in and at the pre-grasp pose anything blocked counts; on the final stretch along a
+        the target's region (``Objects.region`` of ``label``) does not. The test at the grasp itself
+        is done for all candidates at once in :meth:`executable`."""
         cfg = self.config
-        s = grid.voxel_m
-        pts = gripper_points(cfg.gripper, opening, s / 2, cfg.tolerance_m)
-        r = pose[:3, :3]
         grasp = pose[:3, 3]
-        if self._hits(grid, blocked, region, r, pts, path_offsets(grasp[None], s)):
-            return None
         for d in cfg.approach_distances_m:
             pre = grasp - d * pose[:3, 2]
             outside = pre.copy()
             outside[1] = min(cfg.outside_y_m, pre[1])
-            if self._hits(grid, blocked, None, r, pts, path_offsets(np.stack([outside, pre]), s / 2)):
+            if self._hits(grid, blocked, objects, local, i, pose, 0, opening, np.stack([outside, pre])):
                 continue
-            if self._hits(grid, blocked, region, r, pts, path_offsets(np.stack([pre, grasp]), s / 2)):
+            if self._hits(grid, blocked, objects, local, i, pose, label, opening, np.stack([pre, grasp])):
                 continue
             return np.stack([outside, pre])
         return None
+
+    def _hits(self, grid: GridSpec, blocked: NDArray[np.bool_], objects: Objects, local: F64, i: int, pose: F64,
+              label: int, opening: float, waypoints: F64) -> bool:
+        """Does candidate ``i``'s open gripper, swept along ``waypoints`` (sampled every half voxel),
+        touch a blocked voxel other than the region of ``label`` (0: none) or blocked space outside
+        the grid (``planning.sweep_hits``)?"""
+        path = path_offsets(waypoints, grid.voxel_m / 2)
+        return bool(sweep_hits(grid, blocked, objects.labels, local, path, np.array([0, len(path)]), np.array([i]),
+                               np.array([label]), pose[None], np.array([opening]), self.config.max_object_radius_m)[0])
 
     def _lift(self, grid: GridSpec, p: NDArray[np.floating], objects: Objects, label: int, region: NDArray[np.int64],
               pose: F64, width: float, top: float) -> float | None:
@@ -441,23 +459,6 @@ class GraspSkill(Skill):
             # one voxel more where there is room: the voxels' heights are only known to a voxel
             return max(cfg.lift_m, min((k + 1) * s, room)) if k > first else cfg.lift_m
         return cfg.lift_m
-
-    @staticmethod
-    def _hits(grid: GridSpec, blocked: NDArray[np.bool_], region: NDArray[np.int64] | None, rotation: F64,
-              pts: F64, path: F64) -> bool:
-        """Do the body's points, swept through the positions ``path``, touch a blocked voxel (other
-        than those of ``region``) or blocked space outside the grid (all but in front of it)?"""
-        world = (path[:, None, :] + (pts @ rotation.T)[None]).reshape(-1, 3)
-        ijk = grid.index_of(world)
-        inside = grid.contains_index(ijk)
-        if (~inside & (ijk[:, 1] >= 0)).any():  # beside, behind, above or below the grid: the boards
-            return True
-        ii = ijk[inside]
-        hit = np.unique((ii[:, 0] * grid.shape[1] + ii[:, 1]) * grid.shape[2] + ii[:, 2])
-        hit = hit[blocked[hit]]
-        if region is not None and len(region):
-            hit = np.setdiff1d(hit, region, assume_unique=True)
-        return len(hit) > 0
 
     # ------------------------------------------------------------------------------- execution
     def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
