@@ -22,7 +22,7 @@ from msmem_grasp.planning import (
     sweep_hits,
     swept_indices,
 )
-from msmem_grasp.skill import _SIN15, GraspAction, GraspConfig, GraspSkill, interior_of
+from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill, interior_of
 from pydantic import ValidationError
 
 from msmem_core.belief import DeltaBeliefs, EvidentialMap
@@ -140,58 +140,25 @@ class _ReferenceGraspSkill(GraspSkill):
 
     def executable(self, belief: EvidentialMap, shelf: ShelfSpec) -> list[GraspAction]:
         cfg = self.config
-        grip = cfg.gripper
-        h = self.buffer.hypotheses()
-        if not len(h):
-            return []
-        q, chi = h.affordance, h.uncertainty
-        idx = np.flatnonzero((q >= cfg.min_affordance) & (chi <= cfg.max_uncertainty))
-        idx = idx[np.argsort(-q[idx], kind="stable")][: cfg.preselect]
-        g = h.subset(idx)
-        a, _ = g.approach()
-        b = g.mu_b
-        keep = (a[:, 1] >= -_SIN15) & (a[:, 2] <= _SIN15) & (g.width >= cfg.min_width_m)
-        g, a, b = g.subset(keep), a[keep], b[keep]
-        if not len(g):
+        c = self.candidates(belief, shelf)
+        if c is None:
             return []
         grid = belief.grid
-        s = grid.voxel_m
-        width = np.minimum(g.width, grip.max_opening_m)
-        opening = np.minimum(width + cfg.opening_margin_m, grip.max_opening_m)
-        from msmem_grasp.fevmf import executable_grasp
-
-        poses = executable_grasp(g.contact, a, b, width)
-        objects = Objects.of(belief, interior_of(shelf), cfg.occupied_threshold)
-        label = objects.label_at(grid, g.contact + 0.5 * s * b)
-        blocked = blocked_mask(belief, shelf, cfg.occupied_threshold, cfg.unknown_vacuity, cfg.unknown_band).ravel()
-        p = belief.expected_occupancy()
-        top = shelf.interior_upper[2] - cfg.clearance_m
         out: list[GraspAction] = []
         per_object: dict[int, int] = {}
-        for i in range(len(g)):
-            lab = int(label[i])
+        for i in range(len(c.grasps)):
+            lab = int(c.label[i])
             if lab <= 0 or per_object.get(lab, 0) >= cfg.max_per_object:
                 continue
-            pose = poses[i]
-            region = objects.region(grid, lab, pose, opening[i], cfg.max_object_radius_m)
-            approach = self._plan_approach_reference(grid, blocked, region, pose, float(opening[i]))
+            pose = c.poses[i]
+            region = c.objects.region(grid, lab, pose, c.opening[i], cfg.max_object_radius_m)
+            approach = self._plan_approach_reference(grid, c.blocked, region, pose, float(c.opening[i]))
             if approach is None:
                 continue
-            lift_m = self._lift(grid, p, objects, lab, region, pose, float(width[i]), top)
+            lift_m = self._lift(grid, c.p, c.objects, lab, region, pose, float(c.width[i]), c.top)
             if lift_m is None:
                 continue
-            lift = pose[:3, 3] + np.array([0.0, 0.0, lift_m])
-            retreat = (tuple(map(float, lift)), (float(lift[0]), float(min(cfg.retreat_y_m, lift[1])), float(lift[2])))
-            out.append(GraspAction(
-                pose=tuple(tuple(float(v) for v in row) for row in pose),
-                width_m=float(width[i]), opening_m=float(opening[i]),
-                contact_m=tuple(float(v) for v in g.contact[i]),  # type: ignore[arg-type]
-                target_class=int(objects.classes[lab]),
-                approach_m=tuple(tuple(float(v) for v in p) for p in approach),  # type: ignore[misc]
-                retreat_m=retreat, affordance=float(np.clip(g.affordance[i], 0, 1)),
-                uncertainty=float(np.clip(g.uncertainty[i], 0, 1)), predictor=self.predictor, gripper=grip,
-                interior_m=interior_of(shelf),
-            ))
+            out.append(self.action(c, i, approach, lift_m, shelf))
             per_object[lab] = per_object.get(lab, 0) + 1
             if len(out) >= cfg.top_k:
                 break
@@ -390,7 +357,8 @@ def test_after_a_manipulation_the_buffer_restarts_from_views_taken_since() -> No
     before = len(skill.buffer)
     assert before > 0
     skill.track(at(4, set(), 3))  # a push at step 3, no view since: the belief is a prediction
-    assert len(skill.buffer) == 0 and skill.propose(at(4, set(), 3)) == []
+    assert len(skill.buffer) == 0
+    assert skill.propose(at(4, set(), 3)) == []
     skill.track(at(5, {0}, 3))  # the associated view was taken: grasps come back from what it saw
     assert 0 < len(skill.buffer)
     fused = float((skill.buffer.alpha + skill.buffer.beta).sum())

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar, Literal
 
@@ -240,6 +241,26 @@ class GraspConfig(BaseModel):
     touching it stay out)."""
 
 
+@dataclass
+class Candidates:
+    """Grasps of the buffer that passed the evidence, reach and width tests (``GraspSkill.candidates``)."""
+
+    grasps: GraspHypotheses
+    width: F64
+    opening: F64
+    poses: F64
+    """[N, 4, 4] gripper poses at the grasp."""
+    objects: Objects
+    label: NDArray[np.int64]
+    """Believed object (component) at each contact; <= 0: none."""
+    blocked: NDArray[np.bool_]
+    """Flat mask of voxels the gripper may not enter."""
+    p: NDArray[np.floating]
+    """Expected occupancy."""
+    top: float
+    """Highest z the lifted object and gripper may reach."""
+
+
 class GraspSkill(Skill):
     category: ClassVar[Category] = "manipulation"
 
@@ -326,13 +347,14 @@ class GraspSkill(Skill):
             return []
         return list(self.executable(ctx.belief, ctx.shelf))
 
-    def executable(self, belief: EvidentialMap, shelf: ShelfSpec) -> list[GraspAction]:
-        """The executable grasps of the fused buffer (steps 1-5 of the module docstring), best first."""
+    def candidates(self, belief: EvidentialMap, shelf: ShelfSpec) -> Candidates | None:
+        """Steps 1-2 of the module docstring: the buffer's grasps that pass the evidence, reach and
+        width tests, best E[q] first, with their poses and what the collision tests need."""
         cfg = self.config
         grip = cfg.gripper
         h = self.buffer.hypotheses()
         if not len(h):
-            return []
+            return None
         q, chi = h.affordance, h.uncertainty
         idx = np.flatnonzero((q >= cfg.min_affordance) & (chi <= cfg.max_uncertainty))
         idx = idx[np.argsort(-q[idx], kind="stable")][: cfg.preselect]
@@ -342,53 +364,68 @@ class GraspSkill(Skill):
         keep = (a[:, 1] >= -_SIN15) & (a[:, 2] <= _SIN15) & (g.width >= cfg.min_width_m)
         g, a, b = g.subset(keep), a[keep], b[keep]
         if not len(g):
+            return None
+        grid = belief.grid
+        width = np.minimum(g.width, grip.max_opening_m)
+        from msmem_grasp.fevmf import executable_grasp  # torch: imported on use
+
+        objects = Objects.of(belief, interior_of(shelf), cfg.occupied_threshold)
+        return Candidates(
+            grasps=g, width=width, opening=np.minimum(width + cfg.opening_margin_m, grip.max_opening_m),
+            poses=executable_grasp(g.contact, a, b, width),  # type: ignore[arg-type]
+            objects=objects, label=objects.label_at(grid, g.contact + 0.5 * grid.voxel_m * b),
+            blocked=blocked_mask(belief, shelf, cfg.occupied_threshold, cfg.unknown_vacuity, cfg.unknown_band).ravel(),
+            p=belief.expected_occupancy(), top=float(shelf.interior_upper[2] - cfg.clearance_m),
+        )
+
+    def action(self, c: Candidates, i: int, approach: F64, lift_m: float, shelf: ShelfSpec) -> GraspAction:
+        """Candidate ``i`` as an action: its pose, the approach, then the lift and the retreat out of the front."""
+        cfg = self.config
+        pose = c.poses[i]
+        lab = int(c.label[i])
+        lift = pose[:3, 3] + np.array([0.0, 0.0, lift_m])
+        retreat = (tuple(map(float, lift)), (float(lift[0]), float(min(cfg.retreat_y_m, lift[1])), float(lift[2])))
+        return GraspAction(
+            pose=tuple(tuple(float(v) for v in row) for row in pose),
+            width_m=float(c.width[i]), opening_m=float(c.opening[i]),
+            contact_m=tuple(float(v) for v in c.grasps.contact[i]),  # type: ignore[arg-type]
+            target_class=int(c.objects.classes[lab]),
+            approach_m=tuple(tuple(float(v) for v in p) for p in approach),  # type: ignore[misc]
+            retreat_m=retreat, affordance=float(np.clip(c.grasps.affordance[i], 0, 1)),
+            uncertainty=float(np.clip(c.grasps.uncertainty[i], 0, 1)), predictor=self.predictor, gripper=cfg.gripper,
+            interior_m=interior_of(shelf),
+        )
+
+    def executable(self, belief: EvidentialMap, shelf: ShelfSpec) -> list[GraspAction]:
+        """The executable grasps of the fused buffer (steps 1-5 of the module docstring), best first."""
+        cfg = self.config
+        c = self.candidates(belief, shelf)
+        if c is None:
             return []
         grid = belief.grid
         s = grid.voxel_m
-        width = np.minimum(g.width, grip.max_opening_m)
-        opening = np.minimum(width + cfg.opening_margin_m, grip.max_opening_m)
-        from msmem_grasp.fevmf import executable_grasp  # torch: imported on use
-
-        poses: F64 = executable_grasp(g.contact, a, b, width)  # type: ignore[assignment]
-        objects = Objects.of(belief, interior_of(shelf), cfg.occupied_threshold)
-        label = objects.label_at(grid, g.contact + 0.5 * s * b)
-        blocked = blocked_mask(belief, shelf, cfg.occupied_threshold, cfg.unknown_vacuity, cfg.unknown_band).ravel()
+        n = len(c.grasps)
         # the open gripper's points of every candidate, rotated as the grasp holds them
-        pts = gripper_points_batch(grip, opening, s / 2, cfg.tolerance_m)
-        local = np.stack([pts[i] @ poses[i, :3, :3].T for i in range(len(g))])
+        pts = gripper_points_batch(cfg.gripper, c.opening, s / 2, cfg.tolerance_m)
+        local = np.stack([pts[i] @ c.poses[i, :3, :3].T for i in range(n)])
         # first test of step 4 for all candidates at once: the open gripper at the grasp
-        n = len(g)
-        at_grasp = sweep_hits(grid, blocked, objects.labels, local, poses[:, :3, 3], np.arange(n + 1), np.arange(n),
-                              label, poses, opening, cfg.max_object_radius_m)
-        p = belief.expected_occupancy()
-        top = shelf.interior_upper[2] - cfg.clearance_m
+        at_grasp = sweep_hits(grid, c.blocked, c.objects.labels, local, c.poses[:, :3, 3], np.arange(n + 1),
+                              np.arange(n), c.label, c.poses, c.opening, cfg.max_object_radius_m)
         out: list[GraspAction] = []
         per_object: dict[int, int] = {}
-        predictor = self.predictor
-        for i in range(len(g)):  # candidates in order of E[q]; stops at top_k
-            lab = int(label[i])
+        for i in range(n):  # candidates in order of E[q]; stops at top_k
+            lab = int(c.label[i])
             if lab <= 0 or per_object.get(lab, 0) >= cfg.max_per_object or at_grasp[i]:
                 continue
-            pose = poses[i]
-            approach = self._plan_approach(grid, blocked, objects, local, i, pose, lab, float(opening[i]))
+            pose = c.poses[i]
+            approach = self._plan_approach(grid, c.blocked, c.objects, local, i, pose, lab, float(c.opening[i]))
             if approach is None:
                 continue
-            region = objects.region(grid, lab, pose, opening[i], cfg.max_object_radius_m)
-            lift_m = self._lift(grid, p, objects, lab, region, pose, float(width[i]), top)
+            region = c.objects.region(grid, lab, pose, c.opening[i], cfg.max_object_radius_m)
+            lift_m = self._lift(grid, c.p, c.objects, lab, region, pose, float(c.width[i]), c.top)
             if lift_m is None:
                 continue  # the lifted object or gripper would hit the shelf top
-            lift = pose[:3, 3] + np.array([0.0, 0.0, lift_m])
-            retreat = (tuple(map(float, lift)), (float(lift[0]), float(min(cfg.retreat_y_m, lift[1])), float(lift[2])))
-            out.append(GraspAction(
-                pose=tuple(tuple(float(v) for v in row) for row in pose),
-                width_m=float(width[i]), opening_m=float(opening[i]),
-                contact_m=tuple(float(v) for v in g.contact[i]),  # type: ignore[arg-type]
-                target_class=int(objects.classes[lab]),
-                approach_m=tuple(tuple(float(v) for v in p) for p in approach),  # type: ignore[misc]
-                retreat_m=retreat, affordance=float(np.clip(g.affordance[i], 0, 1)),
-                uncertainty=float(np.clip(g.uncertainty[i], 0, 1)), predictor=predictor, gripper=grip,
-                interior_m=interior_of(shelf),
-            ))
+            out.append(self.action(c, i, approach, lift_m, shelf))
             per_object[lab] = per_object.get(lab, 0) + 1
             if len(out) >= cfg.top_k:
                 break
