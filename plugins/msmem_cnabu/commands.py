@@ -111,14 +111,20 @@ def eval_belief_models(
     repeats: Annotated[int, typer.Option("--repeats", help="Timed repeats (simulate-and-remap: candidates).")] = 3,
     threads: Annotated[int, typer.Option("--threads", help="torch threads.")] = 2,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the metrics as JSON here.")] = None,
+    threshold_check: Annotated[int, typer.Option(
+        "--threshold-check", help="push/grasp: also decide on this many mid-episode beliefs with the change "
+                                  "threshold and with 0.05 and count different choices (0: skip).")] = 0,
 ) -> None:
     """NLL, Brier, ECE of learned vs analytic vs no-change beliefs against the real ground truth; speed."""
-    from msmem_cnabu.evaluation import evaluate, format_table
+    from msmem_cnabu.evaluation import evaluate, format_table, threshold_agreement
 
     kind = _kind(kind)
     r = evaluate(kind, data, weights, change_threshold=change_threshold, timing=timing, candidates=candidates,
                  repeats=repeats, threads=threads, log=typer.echo)
     typer.echo(format_table(r))
+    if threshold_check > 0:
+        r["threshold_agreement"] = threshold_agreement(kind, weights, (change_threshold, 0.05), threshold_check,
+                                                       threads=threads, log=typer.echo)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(r, indent=2))

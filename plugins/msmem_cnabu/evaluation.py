@@ -315,3 +315,71 @@ def format_table(r: dict[str, Any]) -> str:
         lines.append(f"timing: learned update {1000 * t['learned_update_s']:.1f} ms, analytic update "
                      f"{1000 * t['analytic_update_s']:.1f} ms per view (ray masks excluded)")
     return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------- threshold and decisions
+def threshold_agreement(
+    kind: str,
+    weights: str | Path | None = None,
+    thresholds: tuple[float, float] = (0.5, 0.05),
+    beliefs: int = 5,
+    views: int = 10,
+    scene_seed: int = 1,
+    threads: int = 2,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """How often ``change_threshold`` changes the chosen action (issue 8).
+
+    On ``beliefs`` mid-episode beliefs (``msmem perf step``'s: generated scene ``scene_seed``, the
+    start view plus ``views - 1`` seeded random views, seeds 0, 1, ...), method ``ours`` with the
+    learned ``kind`` effect model decides once with each threshold (the MSAS's full ``decide``: views,
+    pushes and grasps through OIG and CDC). Returns per belief the two decisions and whether they agree,
+    and the changed voxels per candidate of the manipulation batch at each threshold.
+    """
+    from msmem_core.config import ComponentRef, load_config
+    from msmem_core.msas import decide
+    from msmem_core.perf_step import _context, clone_skills, mid_episode_state
+    from msmem_core.plugins.manager import get_plugin_manager
+    from msmem_core.runner import build_episode
+
+    if kind not in ("push", "grasp"):
+        raise UserError(f"--threshold-check needs an effect model (push or grasp), not {kind!r}")
+    torch.set_num_threads(threads)
+    params: dict[str, Any] = {"change_threshold": thresholds[0]}
+    if weights is not None:
+        params["weights"] = str(weights)
+    cfg = load_config("ours", None, {"scene": {"seed": scene_seed}})
+    skills = [s.model_copy(update={"effect_model": ComponentRef(name=f"cnabu-{kind}", params=params)})
+              if s.name == kind else s for s in cfg.skills]
+    cfg = cfg.model_copy(update={"skills": skills})
+    ep = build_episode(cfg, get_plugin_manager())
+    ep.sim.reset(ep.scene)
+    bound = next(b for b in ep.skills if b.name == kind)
+    model = bound.effect_model
+    assert model is not None
+    base_cfg = model.config  # type: ignore[attr-defined]
+    rows = []
+    for b in range(beliefs):
+        st = mid_episode_state(ep, views, b)
+        row: dict[str, Any] = {"belief": b}
+        for t in thresholds:
+            model.config = base_cfg.model_copy(update={"change_threshold": t})  # type: ignore[attr-defined]
+            ctx = _context(ep, st.belief, st.visited, st.step, True, 0)
+            d = decide(ctx, clone_skills(st.skills), ep.objective)
+            batch = d.batch if d.skill == kind else None
+            changed = None
+            if batch is not None and batch.prediction is not None and len(batch.actions):
+                changed = float(batch.prediction.changed.reshape(len(batch.actions), -1).sum(1).mean())
+            row[str(t)] = {"skill": d.skill, "index": int(d.index), "action": d.action.model_dump(mode="json"),
+                           "changed_voxels_per_candidate": changed,
+                           "best_per_skill": {k: float(v) for k, v in d.best.items()}}
+        a, c = (row[str(t)] for t in thresholds)
+        row["same"] = a["skill"] == c["skill"] and a["action"] == c["action"]
+        log(f"belief {b}: threshold {thresholds[0]}: {a['skill']} #{a['index']}; threshold {thresholds[1]}: "
+            f"{c['skill']} #{c['index']} -> {'same' if row['same'] else 'DIFFERENT'}")
+        rows.append(row)
+    model.config = base_cfg  # type: ignore[attr-defined]
+    same = sum(r["same"] for r in rows)
+    log(f"the change threshold {thresholds[0]} (vs {thresholds[1]}) changed the chosen action in "
+        f"{len(rows) - same} of {len(rows)} decisions")
+    return {"kind": kind, "thresholds": list(thresholds), "beliefs": rows, "same": same, "decisions": len(rows)}

@@ -183,15 +183,26 @@ class CNABUNet(nn.Module):
         return self.stem_belief(self._pad(self._flatten_z(belief, self.embed_belief)))
 
     def action_stem(self, action_vox: Tensor, action_scalars: Tensor) -> Tensor:
-        """The action's share: its voxel channels through the stem, its scalars as a per-channel offset."""
-        m = self.stem_action(self._pad(self._flatten_z(action_vox, self.embed_action)))
+        """The action's share: its voxel channels through the stem, its scalars as a per-channel offset.
+
+        The same linear map as ``stem_action(pad(flatten_z(action_vox, embed_action)))``, computed with
+        the embedding folded into the stem's kernel: the raw channels are only reordered (z-major),
+        not embedded per voxel (the embedding's bias becomes a fixed map over the unpadded area).
+        """
+        b, f, x, y, z = action_vox.shape
+        emb, stem = self.embed_action, self.stem_action
+        w = stem.weight.reshape(stem.out_channels, z, emb.out_features, 2, 2)
+        kernel = torch.einsum("ozekl,ef->ozfkl", w, emb.weight).reshape(stem.out_channels, z * f, 2, 2)
+        raw = action_vox.to(kernel.dtype).permute(0, 4, 1, 2, 3).reshape(b, z * f, x, y)
+        m = F.conv2d(self._pad(raw), kernel, stride=2)
+        inside = self._pad(torch.ones(1, 1, x, y, dtype=kernel.dtype))
+        m = m + F.conv2d(inside, torch.einsum("ozekl,e->okl", w, emb.bias)[:, None], stride=2)
         if self.stem_scalars is not None:
             m = m + self.stem_scalars(action_scalars.to(m.dtype))[:, :, None, None]
         return m
 
-    def columns(self, stem: Tensor) -> Tensor:
-        """U-Net from the summed stems to the column context [B, Z, context, X, Y]."""
-        cfg = self.config
+    def trunk(self, stem: Tensor) -> Tensor:
+        """U-Net from the summed stems to full-resolution features [B, width, X', Y'] (padded)."""
         h = F.silu(stem)
         skips = []
         for down, enc in zip(self.down, self.enc, strict=True):
@@ -199,7 +210,12 @@ class CNABUNet(nn.Module):
             skips.append(h)
         for up, dec, skip in zip(self.up, self.dec, skips[::-1][1:], strict=True):
             h = dec(torch.cat([up(h), skip], 1))
-        h = self.column(F.silu(self.full(h)))
+        return F.silu(self.full(h))
+
+    def columns(self, stem: Tensor) -> Tensor:
+        """U-Net from the summed stems to the column context [B, Z, context, X, Y]."""
+        cfg = self.config
+        h = self.column(self.trunk(stem))
         x, y, z = cfg.grid_shape
         return h[:, :, :x, :y].reshape(h.shape[0], z, cfg.context, x, y)
 
@@ -240,15 +256,21 @@ class CNABUNet(nn.Module):
         cfg = self.config
         k_n = action_vox.shape[0]
         x, y, z = cfg.grid_shape
-        cols = self.columns(self.belief_stem(belief) + self.action_stem(action_vox, action_scalars))  # [K,Z,c,X,Y]
+        nc, nb = cfg.context, cfg.in_voxel
+        feat = self.trunk(self.belief_stem(belief) + self.action_stem(action_vox, action_scalars))  # [K,w,X',Y']
+        # the column conv (1 x 1, width -> Z * context) only at the selected voxels' columns, and the
+        # change head's context part folded into it: one 1 x 1 conv width -> Z
+        wcol = self.column.weight[:, :, 0, 0].reshape(z, nc, -1)  # [Z, context, width]
+        bcol = self.column.bias.reshape(z, nc)
         bf = belief[0].permute(1, 2, 3, 0).reshape(-1, belief.shape[1])
         pr = prior[0].permute(1, 2, 3, 0).reshape(-1, prior.shape[1])
-        nc, nb = cfg.context, cfg.in_voxel
         if self.change is not None:
             wc = self.change.weight[0]
             base = (bf @ wc[nc:nc + nb] + self.change.bias[0]).reshape(x, y, z)
-            logits = (torch.einsum("kzcxy,c->kxyz", cols, wc[:nc])
-                      + torch.einsum("kaxyz,a->kxyz", action_vox, wc[nc + nb:]) + base)
+            w_logit = torch.einsum("zcw,c->zw", wcol, wc[:nc])
+            ctx_logit = F.conv2d(feat, w_logit[:, :, None, None], bcol @ wc[:nc])[:, :, :x, :y]  # [K, Z, X, Y]
+            act = action_vox.to(feat.dtype)
+            logits = ctx_logit.permute(0, 2, 3, 1) + torch.einsum("kaxyz,a->kxyz", act, wc[nc + nb:]) + base
             probs = torch.sigmoid(logits).reshape(k_n, -1)
             sel_all = probs > threshold
             if region is not None:
@@ -263,8 +285,8 @@ class CNABUNet(nn.Module):
             idx = torch.nonzero(sel_all[k])[:, 0]
             i, rem = idx // (y * z), idx % (y * z)
             j, kz = rem // z, rem % z
-            c = cols[k][kz, :, i, j]  # [M, context]
-            av = action_vox[k][:, i, j, kz].T
+            c = torch.einsum("mw,mcw->mc", feat[k][:, i, j].T, wcol[kz]) + bcol[kz]  # [M, context]
+            av = action_vox[k][:, i, j, kz].T.to(c.dtype)
             ev = self._evidence(torch.cat([c, bf[idx], av], -1), pr[idx])
             out.append((idx, probs[k][idx] if probs is not None else torch.ones(len(idx)), ev))
         return out

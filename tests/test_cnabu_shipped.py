@@ -1,0 +1,64 @@
+"""The shipped CNABU weights against held-out scenes (issue 8's must-holds).
+
+``tests/data/cnabu_heldout/<kind>/`` holds shards made by ``msmem datagen cnabu --seed 10000`` (scene
+seeds the training data never used, see ``plugins/msmem_cnabu/weights/MODEL_CARD.md``). On them:
+
+- the shipped weights load (``weights_only=True``, sha256 of the sidecar) and beat "no change" in
+  NLL where the action acts (a trivial baseline that every trained effect model must beat);
+- the default belief model of each role is whichever of learned and analytic has the better
+  held-out NLL (occupancy + semantics, affected region), as ``msmem eval belief-models`` decides.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from msmem_cnabu.evaluation import evaluate
+from msmem_cnabu.weights import load_cnabu, shipped_weights
+
+from msmem_core.config import RunConfig
+from msmem_core.plugins.manager import get_plugin_manager
+
+HELDOUT = Path(__file__).parent / "data" / "cnabu_heldout"
+KINDS = ("observe", "push", "grasp")
+TWIN = {"observe": "analytic-observation", "push": "push-analytic", "grasp": "grasp-analytic"}
+
+
+def default_model(kind: str) -> str:
+    """The belief model a run uses for ``kind`` when its config names none."""
+    if kind == "observe":
+        return RunConfig().observation_model.name
+    spec = get_plugin_manager().skill_spec(kind)
+    assert spec.effect_model is not None
+    return spec.effect_model
+
+
+@pytest.fixture(scope="module")
+def heldout() -> dict[str, dict]:
+    return {k: evaluate(k, HELDOUT / k, timing=False, threads=1, log=lambda _: None) for k in KINDS}
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_shipped_weights_load_as_plain_tensors(kind):
+    net, meta = load_cnabu(kind)
+    assert meta["kind"] == kind
+    assert not net.training
+    assert shipped_weights(kind).stat().st_size < 4e6
+    assert max(meta["data"]["manifest"]["seeds"]) < 10000  # the held-out scenes are seeds 10000 and up
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_shipped_weights_beat_no_change_on_heldout_scenes(heldout, kind):
+    m = heldout[kind]["metrics"]
+    assert heldout[kind]["samples"] >= 4
+    nll = {k: m[k]["affected"]["occ_nll"] + m[k]["affected"]["sem_nll"] for k in ("learned", "no-change")}
+    assert nll["learned"] < nll["no-change"], nll
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_default_model_per_role_is_the_one_with_better_heldout_nll(heldout, kind):
+    better = heldout[kind]["better_nll"]
+    want = f"cnabu-{kind}" if better == "learned" else TWIN[kind]
+    assert default_model(kind) == want, (kind, heldout[kind]["metrics"]["learned"]["affected"],
+                                         heldout[kind]["metrics"]["analytic"]["affected"])
