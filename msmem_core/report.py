@@ -56,10 +56,15 @@ METRIC_KEYS = ("occupancy_iou", "observable_iou", "semantic_miou", "semantic_mio
 def save_snapshot(
     path: str | Path, belief: EvidentialMap, gt_occ: NDArray[np.bool_], gt_cls: NDArray[np.integer]
 ) -> None:
-    """Belief (float16 evidence, readable by ``EvidentialMap.load``) and ground truth after one step."""
+    """Belief (float16 evidence, readable by ``EvidentialMap.load``) and ground truth after one step.
+    Evidence above float16's largest value (65504, reached by ``cnabu-observe`` over long episodes) is
+    stored as that value: the expected probabilities it implies differ by less than 1e-4."""
+    def half(x: NDArray[np.floating]) -> NDArray[np.float16]:
+        return np.minimum(x, np.finfo(np.float16).max).astype(np.float16)
+
     np.savez_compressed(
-        path, grid=np.array(belief.grid.model_dump_json()), alpha=belief.alpha.astype(np.float16),
-        beta=belief.beta.astype(np.float16), eta=belief.eta.astype(np.float16),
+        path, grid=np.array(belief.grid.model_dump_json()), alpha=half(belief.alpha),
+        beta=half(belief.beta), eta=half(belief.eta),
         gt_occ=np.asarray(gt_occ, dtype=bool), gt_cls=np.asarray(gt_cls, dtype=np.int8),
     )
 

@@ -21,6 +21,7 @@ from msmem_grasp.planning import (
     path_offsets,
     sweep_hits,
     swept_indices,
+    swept_indices_reference,
 )
 from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill, interior_of
 from pydantic import ValidationError
@@ -94,7 +95,8 @@ BYSTANDER = ((0.20, 0.10), (0.36, 0.16), 0.21, CRACKER)
 # ------------------------------------------------------------------------------- registration, config
 def test_grasp_skill_and_its_effect_model_are_registered_and_bound() -> None:
     pm = get_plugin_manager()
-    assert pm.skills()["grasp"].effect_model == "grasp-analytic"
+    assert pm.skills()["grasp"].effect_model == "cnabu-grasp"  # the better held-out NLL (test_cnabu_shipped)
+    assert "effect" in pm.belief_models()["cnabu-grasp"].roles
     assert "effect" in pm.belief_models()["grasp-analytic"].roles
     skill = pm.build("skill", ComponentRef(name="grasp", params={"top_k": 5}), gripper=GripperSpec(max_opening_m=0.07))
     assert isinstance(skill, GraspSkill)
@@ -116,6 +118,18 @@ def test_grasp_actions_are_json_and_reject_a_non_rigid_pose() -> None:
         GraspAction.model_validate({**a.model_dump(), "pose": bad})
     with pytest.raises(ValidationError, match="width_m"):
         GraspAction.model_validate({**a.model_dump(), "width_m": -0.01})
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_swept_indices_kernel_equals_the_numpy_reference(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    pts = gripper_points(GripperSpec(), 0.06, 0.005)
+    # a path partly outside the grid on every side: those points are dropped by both
+    path = path_offsets(rng.uniform(GRID.origin - 0.1, GRID.upper_m + 0.1, size=(4, 3)), 0.005)
+    got = swept_indices(GRID, q, pts, path)
+    assert len(got) > 0
+    np.testing.assert_array_equal(got, swept_indices_reference(GRID, q, pts, path))
 
 
 def test_the_swept_volume_follows_the_approach_the_lift_and_the_retreat() -> None:

@@ -111,7 +111,8 @@ def test_bad_push_config_and_actions_are_rejected_naming_the_field() -> None:
 def test_push_and_its_effect_model_are_registered_and_bound() -> None:
     pm = get_plugin_manager()
     spec = pm.skills()["push"]
-    assert spec.effect_model == "push-analytic"
+    assert spec.effect_model == "cnabu-push"  # the better held-out NLL (test_cnabu_shipped)
+    assert "effect" in pm.belief_models()["cnabu-push"].roles
     assert "effect" in pm.belief_models()["push-analytic"].roles
     assert "semantic-entropy" in pm.objective_terms()
 

@@ -104,13 +104,17 @@ def eval_belief_models(
     kind: Annotated[str, typer.Option("--kind", help=KIND_HELP)],
     data: Annotated[Path, typer.Option("--data", help="Folder of held-out shards from `msmem datagen cnabu`.")],
     weights: Annotated[Path | None, typer.Option("--weights", help="Weights file (default: the shipped ones).")] = None,
-    change_threshold: Annotated[float, typer.Option("--change-threshold", help="p_change threshold.")] = 0.5,
+    change_threshold: Annotated[float, typer.Option("--change-threshold", help="p_change threshold (the belief models' default).")] = 0.85,
     timing: Annotated[bool, typer.Option("--timing/--no-timing", help="Also time predictions vs "
                                                                       "simulate-and-remap.")] = True,
     candidates: Annotated[int, typer.Option("--candidates", help="Candidates per timed prediction.")] = 40,
     repeats: Annotated[int, typer.Option("--repeats", help="Timed repeats (simulate-and-remap: candidates).")] = 3,
     threads: Annotated[int, typer.Option("--threads", help="torch threads.")] = 2,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the metrics as JSON here.")] = None,
+    episodes: Annotated[int, typer.Option(
+        "--episodes", help="observe: closed-loop view-only episodes on generated scenes 10000, 10001, ... whose "
+                           "final-belief NLL decides the better model (0: the rollout of the recorded views).")] = 2,
+    episode_steps: Annotated[int, typer.Option("--episode-steps", help="observe: steps per closed-loop episode.")] = 40,
     threshold_check: Annotated[int, typer.Option(
         "--threshold-check", help="push/grasp: also decide on this many mid-episode beliefs with the change "
                                   "threshold and with 0.05 and count different choices (0: skip).")] = 0,
@@ -120,7 +124,8 @@ def eval_belief_models(
 
     kind = _kind(kind)
     r = evaluate(kind, data, weights, change_threshold=change_threshold, timing=timing, candidates=candidates,
-                 repeats=repeats, threads=threads, log=typer.echo)
+                 repeats=repeats, threads=threads, log=typer.echo, episodes=episodes,
+                 episode_steps=episode_steps)
     typer.echo(format_table(r))
     if threshold_check > 0:
         r["threshold_agreement"] = threshold_agreement(kind, weights, (change_threshold, 0.05), threshold_check,

@@ -33,7 +33,7 @@ class CNABUEffectConfig(BaseModel):
 
     weights: Path | None = None
     """Weights file (None: the shipped ``msmem_cnabu/weights/cnabu_<kind>.pt``)."""
-    change_threshold: float = Field(0.5, gt=0.0, lt=1.0)
+    change_threshold: float = Field(0.85, gt=0.0, lt=1.0)
     """A voxel changes where the predicted change probability exceeds this; elsewhere the prior is copied."""
     batch: int = Field(20, ge=1, le=1000)
     """Candidates per forward pass."""

@@ -38,7 +38,7 @@ import torch
 from numpy.typing import NDArray
 
 from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard
-from msmem_cnabu.features import dilate, wall_mask
+from msmem_cnabu.features import dilate, grid_interior, wall_mask
 from msmem_core.errors import UserError
 
 BINS = 15
@@ -157,14 +157,19 @@ def evaluate(
     kind: str,
     data_dir: str | Path,
     weights: str | Path | None = None,
-    change_threshold: float = 0.5,
+    change_threshold: float = 0.85,
     timing: bool = True,
     candidates: int = 40,
     repeats: int = 3,
     threads: int = 2,
     log: Callable[[str], None] = print,
+    episodes: int = 2,
+    episode_steps: int = 40,
 ) -> dict[str, Any]:
-    """All metrics (see the module docstring) as a JSON-able dict."""
+    """All metrics (see the module docstring) as a JSON-able dict. observe: also the rollout of each
+    scene's recorded views and, with ``episodes`` > 0, closed-loop view-only episodes of
+    ``episode_steps`` on generated scenes 10000, 10001, ... (``episode_nll``), whose NLL then decides
+    ``better_nll`` (else the rollout's)."""
     torch.set_num_threads(threads)
     paths = list_shards(data_dir, kind)
     learned, twin = build_models(kind, Path(weights) if weights is not None else None, change_threshold)
@@ -208,10 +213,90 @@ def evaluate(
     }
     nll = {m: result["metrics"][m]["affected"]["occ_nll"] + result["metrics"][m]["affected"]["sem_nll"]
            for m in ("learned", "analytic")}
-    result["better_nll"] = min(nll, key=nll.__getitem__)
+    result["better_nll"] = result["better_nll_one_step"] = min(nll, key=nll.__getitem__)
+    if kind == "observe":
+        # the observe role is applied recursively (every view of an episode goes through it): it is
+        # judged after integrating a scene's recorded views one after the other, each model on its own output
+        result["rollout"] = rollout(learned, twin, paths)
+        judged = result["rollout"]
+        if episodes > 0:  # closed loop: the MSAS chooses the views on the model's own belief
+            judged = result["episodes"] = episode_nll(weights, tuple(range(10000, 10000 + episodes)),
+                                                      episode_steps, log=log)
+        r_nll = {m: judged["metrics"][m]["occ_nll"] + judged["metrics"][m]["sem_nll"] for m in ("learned", "analytic")}
+        result["better_nll"] = min(r_nll, key=r_nll.__getitem__)
     if timing:
         result["timing"] = time_models(kind, learned, twin, first, candidates, repeats, log)
     return result
+
+
+def rollout(learned: Any, twin: Any, paths: list[Path]) -> dict[str, Any]:
+    """observe: from each scene's first recorded belief, integrate all its recorded views in order with
+    each model (the learned one on its own outputs, as in an episode); calibration of the final beliefs
+    against the ground truth on all voxels but the boards, pooled over scenes ("no-change": the first
+    belief), and the largest evidence each model reached."""
+    cal = {m: Calibration() for m in MODELS}
+    top = {m: 0.0 for m in MODELS}
+    views = 0
+    for path in paths:
+        shard = load_shard(path)
+        if not len(shard):
+            continue
+        valid = ~wall_mask(shard.grid, shard.interior)
+        first = shard.belief(int(shard.state[0]))
+        out = {"learned": first, "analytic": first, "no-change": first}
+        for i in range(len(shard)):
+            masks = shard.masks(i)
+            out["learned"] = learned.update_masks(out["learned"], *masks)
+            out["analytic"] = twin.update(out["analytic"], masks)
+        views += len(shard)
+        last = len(shard) - 1
+        for m, b in out.items():
+            _score({"all": cal[m]}, b, shard.gt_occ[last], shard.gt_cls[last], {"all": valid})
+            top[m] = max(top[m], float(b.alpha.max()), float(b.beta.max()), float(b.eta.sum(0).max()))
+    return {"views": views, "metrics": {m: cal[m].result() for m in MODELS}, "max_evidence": top}
+
+
+def episode_nll(
+    weights: str | Path | None = None,
+    scene_seeds: tuple[int, ...] = (10000,),
+    steps: int = 40,
+    method: str = "view-only",
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """observe, closed loop: ``method`` episodes of ``steps`` actions on generated scenes (``scene_seeds``:
+    10000 and up, never used for training data) with the learned and with the analytic observation
+    model, each integrating every view into its own belief and the MSAS choosing the views on it, as
+    ``msmem run`` does; calibration of the final belief against the final ground truth (all voxels
+    but the boards), pooled over the scenes, plus the episodes' own metrics."""
+    import tempfile
+
+    from msmem_core.config import load_config
+    from msmem_core.plugins.manager import get_plugin_manager
+    from msmem_core.runner import build_episode, run_episode
+
+    models = {"learned": {"name": "cnabu-observe", "params": {} if weights is None else {"weights": str(weights)}},
+              "analytic": {"name": "analytic-observation"}}
+    cal = {m: Calibration() for m in models}
+    episodes: dict[str, list[dict[str, Any]]] = {m: [] for m in models}
+    from msmem_core.belief import EvidentialMap
+
+    for seed in scene_seeds:
+        for m, ref in models.items():
+            cfg = load_config(method, None, {"scene": {"seed": seed, "file": None}, "steps": steps,
+                                             "observation_model": ref})
+            ep = build_episode(cfg, get_plugin_manager())
+            with tempfile.TemporaryDirectory() as tmp:
+                final = run_episode(ep, Path(tmp))
+                belief = EvidentialMap.load(Path(tmp) / "belief_final.npz")
+                gt = np.load(Path(tmp) / "gt_final.npz")
+                gt_occ, gt_cls = gt["occupancy"] > 0, gt["classes"]
+            valid = ~wall_mask(belief.grid, grid_interior(belief.grid, cfg.grid.margin_voxels))
+            _score({"all": cal[m]}, belief, gt_occ, gt_cls, {"all": valid})
+            episodes[m].append({"scene_seed": seed, **{k: v for k, v in final.items() if isinstance(v, float)}})
+            log(f"episode {method} scene seed {seed}, {m} observation model: observable IoU "
+                f"{final['observable_iou']:.3f}, semantic mIoU {final['semantic_miou']:.3f}")
+    return {"method": method, "steps": steps, "scene_seeds": list(scene_seeds),
+            "metrics": {m: cal[m].result() for m in models}, "episodes": episodes}
 
 
 def _best_of(fn: Callable[[], Any], repeats: int) -> float:
@@ -302,7 +387,35 @@ def format_table(r: dict[str, Any]) -> str:
             lines.append(f"| {reg} | {m} | {x['occ_nll']:.4f} | {x['occ_brier']:.4f} | {x['occ_ece']:.4f} | "
                          f"{x['sem_nll']:.4f} | {x['sem_brier']:.4f} | {x['sem_ece']:.4f} | "
                          f"{r['changed_voxels_per_sample'][m]:.0f} |")
-    lines += ["", f"better NLL (occupancy + semantics, affected region): {r['better_nll']}"]
+    if "rollout" in r:
+        ro = r["rollout"]
+        lines += ["", f"rollout: each scene's {ro['views']} recorded views integrated one after the other "
+                      "(all voxels, final belief)", "",
+                  "| model | occ NLL | occ Brier | occ ECE | sem NLL | sem Brier | sem ECE | largest evidence |",
+                  "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for m in MODELS:
+            x = ro["metrics"][m]
+            lines.append(f"| {m} | {x['occ_nll']:.4f} | {x['occ_brier']:.4f} | {x['occ_ece']:.4f} | "
+                         f"{x['sem_nll']:.4f} | {x['sem_brier']:.4f} | {x['sem_ece']:.4f} | "
+                         f"{ro['max_evidence'][m]:.0f} |")
+        ep = r.get("episodes")
+        if ep:
+            lines += ["", f"closed loop: {ep['method']} episodes of {ep['steps']} steps on generated scenes "
+                          f"{', '.join(map(str, ep['scene_seeds']))}, each model integrating every view into its own "
+                          "belief (all voxels, final belief)", "",
+                      "| model | occ NLL | occ Brier | occ ECE | sem NLL | sem Brier | sem ECE | observable IoU "
+                      "| semantic mIoU |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+            for m, x in ep["metrics"].items():
+                eps = ep["episodes"][m]
+                lines.append(f"| {m} | {x['occ_nll']:.4f} | {x['occ_brier']:.4f} | {x['occ_ece']:.4f} | "
+                             f"{x['sem_nll']:.4f} | {x['sem_brier']:.4f} | {x['sem_ece']:.4f} | "
+                             f"{np.mean([e['observable_iou'] for e in eps]):.3f} | "
+                             f"{np.mean([e['semantic_miou'] for e in eps]):.3f} |")
+        lines += ["", f"better NLL one step (occupancy + semantics, affected region): {r['better_nll_one_step']}",
+                  f"better NLL {'in closed loop' if ep else 'after the rollout'} (decides the default): "
+                  f"{r['better_nll']}"]
+    else:
+        lines += ["", f"better NLL (occupancy + semantics, affected region): {r['better_nll']}"]
     t = r.get("timing")
     if t and "learned_batch_s" in t:
         lines.append(

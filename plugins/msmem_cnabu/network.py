@@ -27,6 +27,7 @@ everywhere else.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -266,30 +267,31 @@ class CNABUNet(nn.Module):
         pr = prior[0].permute(1, 2, 3, 0).reshape(-1, prior.shape[1])
         if self.change is not None:
             wc = self.change.weight[0]
-            base = (bf @ wc[nc:nc + nb] + self.change.bias[0]).reshape(x, y, z)
+            # float work in the conv's [K, Z, X, Y] layout; only the boolean selection is permuted to x, y, z
+            base = (bf @ wc[nc:nc + nb] + self.change.bias[0]).reshape(x, y, z).permute(2, 0, 1)
             w_logit = torch.einsum("zcw,c->zw", wcol, wc[:nc])
-            ctx_logit = F.conv2d(feat, w_logit[:, :, None, None], bcol @ wc[:nc])[:, :, :x, :y]  # [K, Z, X, Y]
-            act = action_vox.to(feat.dtype)
-            logits = ctx_logit.permute(0, 2, 3, 1) + torch.einsum("kaxyz,a->kxyz", act, wc[nc + nb:]) + base
-            probs = torch.sigmoid(logits).reshape(k_n, -1)
-            sel_all = probs > threshold
+            logits = F.conv2d(feat, w_logit[:, :, None, None], bcol @ wc[:nc])[:, :, :x, :y] + base  # [K, Z, X, Y]
+            wa = wc[nc + nb:]
+            act_zxy = action_vox.permute(0, 1, 4, 2, 3)
+            for a in range(action_vox.shape[1]):  # binary action channels: a weighted sum, no einsum
+                logits += act_zxy[:, a].to(feat.dtype) * wa[a]
+            sel_all = (logits > math.log(threshold / (1.0 - threshold))).permute(0, 2, 3, 1).reshape(k_n, -1)
             if region is not None:
                 sel_all &= region.reshape(region.shape[0], -1)
         else:
             if region is None:
                 raise ValueError("an observe network needs the region its view reached")
-            probs = None
             sel_all = region.reshape(region.shape[0], -1).expand(k_n, -1)
-        out = []
-        for k in range(k_n):
-            idx = torch.nonzero(sel_all[k])[:, 0]
-            i, rem = idx // (y * z), idx % (y * z)
-            j, kz = rem // z, rem % z
-            c = torch.einsum("mw,mcw->mc", feat[k][:, i, j].T, wcol[kz]) + bcol[kz]  # [M, context]
-            av = action_vox[k][:, i, j, kz].T.to(c.dtype)
-            ev = self._evidence(torch.cat([c, bf[idx], av], -1), pr[idx])
-            out.append((idx, probs[k][idx] if probs is not None else torch.ones(len(idx)), ev))
-        return out
+        # every selected (candidate, voxel) at once: one gather, one evidence MLP call
+        kk, idx = torch.nonzero(sel_all, as_tuple=True)
+        i, rem = idx // (y * z), idx % (y * z)
+        j, kz = rem // z, rem % z
+        c = torch.einsum("mw,mcw->mc", feat[kk, :, i, j], wcol[kz]) + bcol[kz]  # [M, context]
+        av = action_vox[kk, :, i, j, kz].to(c.dtype)
+        ev = self._evidence(torch.cat([c, bf[idx], av], -1), pr[idx])
+        p_sel = torch.sigmoid(logits[kk, kz, i, j]) if self.change is not None else torch.ones(len(idx))
+        bounds = torch.searchsorted(kk, torch.arange(k_n + 1))  # nonzero is row-major: kk is sorted
+        return [(idx[a:b], p_sel[a:b], ev[a:b]) for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)]
 
 
 def parameter_bytes(model: nn.Module) -> int:

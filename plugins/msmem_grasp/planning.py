@@ -27,6 +27,7 @@ from msmem_core.belief import EvidentialMap
 from msmem_core.grid import GridSpec
 from msmem_core.gripper import GripperSpec
 from msmem_core.ig import shelf_wall_mask
+from msmem_core.raycast import grid_params
 from msmem_core.scene import ShelfSpec
 
 F64 = NDArray[np.float64]
@@ -82,12 +83,35 @@ def path_offsets(waypoints: F64, spacing: float) -> F64:
 
 def swept_indices(grid: GridSpec, rotation: F64, local_points: F64, positions: F64) -> I64:
     """Flat indices (sorted, unique) of the voxels holding the body's points (``local_points`` in a
-    frame with ``rotation``) at every origin of ``positions``; points outside the grid are dropped."""
+    frame with ``rotation``) at every origin of ``positions``; points outside the grid are dropped.
+    (A numba kernel marks them in a grid mask: the same voxels as ``swept_indices_reference``.)"""
+    local = np.ascontiguousarray(np.asarray(local_points, dtype=np.float64) @ np.asarray(rotation, dtype=np.float64).T)
+    mask = np.zeros(grid.size, dtype=np.bool_)
+    g0, s, n = grid_params(grid)
+    _mark_swept(mask, g0, s, n, local, np.ascontiguousarray(np.asarray(positions, dtype=np.float64).reshape(-1, 3)))
+    return np.flatnonzero(mask)
+
+
+def swept_indices_reference(grid: GridSpec, rotation: F64, local_points: F64, positions: F64) -> I64:
+    """``swept_indices`` in plain numpy (all points at once, ``np.unique``): the oracle of its test."""
     local = np.asarray(local_points) @ np.asarray(rotation).T
     world = (np.asarray(positions)[:, None, :] + local[None]).reshape(-1, 3)
     ijk = grid.index_of(world)
     ii = ijk[grid.contains_index(ijk)]
     return np.unique((ii[:, 0] * grid.shape[1] + ii[:, 1]) * grid.shape[2] + ii[:, 2])
+
+
+@njit(cache=True, fastmath=False)
+def _mark_swept(mask, g0, s, n, local, positions):  # type: ignore[no-untyped-def]
+    """Mark the voxel of every ``positions[t] + local[m]`` inside the grid (``grid.index_of``'s rounding)."""
+    nx, ny, nz = n[0], n[1], n[2]
+    for t in range(positions.shape[0]):
+        for m in range(local.shape[0]):
+            i = math.floor((positions[t, 0] + local[m, 0] - g0[0]) / s)
+            j = math.floor((positions[t, 1] + local[m, 1] - g0[1]) / s)
+            k = math.floor((positions[t, 2] + local[m, 2] - g0[2]) / s)
+            if 0 <= i < nx and 0 <= j < ny and 0 <= k < nz:
+                mask[(i * ny + j) * nz + k] = True
 
 
 @njit(cache=True, fastmath=False)
