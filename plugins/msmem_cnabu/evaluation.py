@@ -389,7 +389,7 @@ def format_table(r: dict[str, Any]) -> str:
                          f"{r['changed_voxels_per_sample'][m]:.0f} |")
     if "rollout" in r:
         ro = r["rollout"]
-        lines += ["", f"rollout: each scene's {ro['views']} recorded views integrated one after the other "
+        lines += ["", f"rollout: each scene's recorded views ({ro['views']} in all) integrated one after the other "
                       "(all voxels, final belief)", "",
                   "| model | occ NLL | occ Brier | occ ECE | sem NLL | sem Brier | sem ECE | largest evidence |",
                   "| --- | --- | --- | --- | --- | --- | --- | --- |"]
