@@ -104,7 +104,8 @@ def eval_belief_models(
     kind: Annotated[str, typer.Option("--kind", help=KIND_HELP)],
     data: Annotated[Path, typer.Option("--data", help="Folder of held-out shards from `msmem datagen cnabu`.")],
     weights: Annotated[Path | None, typer.Option("--weights", help="Weights file (default: the shipped ones).")] = None,
-    change_threshold: Annotated[float, typer.Option("--change-threshold", help="p_change threshold (the belief models' default).")] = 0.85,
+    change_threshold: Annotated[float, typer.Option(
+        "--change-threshold", help="p_change threshold (the belief models' default).")] = 0.85,
     timing: Annotated[bool, typer.Option("--timing/--no-timing", help="Also time predictions vs "
                                                                       "simulate-and-remap.")] = True,
     candidates: Annotated[int, typer.Option("--candidates", help="Candidates per timed prediction.")] = 40,
