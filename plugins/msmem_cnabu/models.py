@@ -115,7 +115,7 @@ class CNABUObservationModel(ObservationModel):
         _check_grid("observe", self.net, belief)
         with _Threads(self.config.threads):
             feats, prior = _inputs(belief)
-            act = to_tensor(observe_channels(free, occ, seen))[None]
+            act = torch.from_numpy(observe_channels(free, occ, seen))[None]  # bool: the stem scatters its nonzeros
             region = torch.from_numpy((free | occ) & ~self.walls(belief))[None]
             [(idx, p, ev)] = self.net.predict_many(feats, prior, act, torch.zeros(1, 0), 0.5, region=region)
         return _delta(belief, idx, p, ev).apply(belief)
@@ -151,7 +151,8 @@ class _CNABUEffect(EffectModel):
                     if it not in walls:
                         walls[it] = torch.from_numpy(~wall_mask(grid, it))
                 region = torch.stack([walls[it] for it in interiors])
-                outs = self.net.predict_many(feats, prior, to_tensor(vox), torch.from_numpy(scalars),
+                outs = self.net.predict_many(feats, prior, torch.from_numpy(np.ascontiguousarray(vox, dtype=bool)),
+                                             torch.from_numpy(scalars),
                                              cfg.change_threshold, region=region)
                 for j, (idx, p, ev) in enumerate(outs):
                     d = _delta(belief, idx, p, ev)

@@ -183,19 +183,29 @@ class CNABUNet(nn.Module):
         """The belief's share of the stem, [B, width, X'/2, Y'/2] (computed once per belief)."""
         return self.stem_belief(self._pad(self._flatten_z(belief, self.embed_belief)))
 
-    def action_stem(self, action_vox: Tensor, action_scalars: Tensor) -> Tensor:
+    def action_stem(self, action_vox: Tensor, action_scalars: Tensor,
+                    nonzero: tuple[Tensor, ...] | None = None) -> Tensor:
         """The action's share: its voxel channels through the stem, its scalars as a per-channel offset.
 
         The same linear map as ``stem_action(pad(flatten_z(action_vox, embed_action)))``, computed with
-        the embedding folded into the stem's kernel: the raw channels are only reordered (z-major),
-        not embedded per voxel (the embedding's bias becomes a fixed map over the unpadded area).
+        the embedding folded into the stem's kernel and, as the stem's 2 x 2 patches do not overlap,
+        as a scatter of the kernel's weights from the action's nonzero voxels only (action channels are
+        sparse: a swept volume, a grasped region); the embedding's bias becomes a fixed map over the
+        unpadded area. ``nonzero``: ``torch.nonzero(action_vox, as_tuple=True)`` if already computed.
         """
-        b, f, x, y, z = action_vox.shape
+        b, _, x, y, z = action_vox.shape
         emb, stem = self.embed_action, self.stem_action
         w = stem.weight.reshape(stem.out_channels, z, emb.out_features, 2, 2)
-        kernel = torch.einsum("ozekl,ef->ozfkl", w, emb.weight).reshape(stem.out_channels, z * f, 2, 2)
-        raw = action_vox.to(kernel.dtype).permute(0, 4, 1, 2, 3).reshape(b, z * f, x, y)
-        m = F.conv2d(self._pad(raw), kernel, stride=2)
+        kernel = torch.einsum("ozekl,ef->zfklo", w, emb.weight)  # [Z, F, 2, 2, width]
+        k, c, i, j, kz = nonzero if nonzero is not None else torch.nonzero(action_vox, as_tuple=True)
+        vals = kernel[kz, c, i % 2, j % 2]  # [N, width]
+        if action_vox.dtype != torch.bool:
+            vals = vals * action_vox[k, c, i, j, kz].to(vals.dtype)[:, None]
+        px, py = self.config.padded_xy
+        hx, hy = px // 2, py // 2
+        flat = torch.zeros(b * hx * hy, stem.out_channels, dtype=kernel.dtype)
+        flat.index_add_(0, (k * hx + i // 2) * hy + j // 2, vals)
+        m = flat.reshape(b, hx, hy, stem.out_channels).permute(0, 3, 1, 2)
         inside = self._pad(torch.ones(1, 1, x, y, dtype=kernel.dtype))
         m = m + F.conv2d(inside, torch.einsum("ozekl,e->okl", w, emb.bias)[:, None], stride=2)
         if self.stem_scalars is not None:
@@ -258,7 +268,8 @@ class CNABUNet(nn.Module):
         k_n = action_vox.shape[0]
         x, y, z = cfg.grid_shape
         nc, nb = cfg.context, cfg.in_voxel
-        feat = self.trunk(self.belief_stem(belief) + self.action_stem(action_vox, action_scalars))  # [K,w,X',Y']
+        nz = torch.nonzero(action_vox, as_tuple=True)  # the action channels are sparse
+        feat = self.trunk(self.belief_stem(belief) + self.action_stem(action_vox, action_scalars, nz))  # [K,w,X',Y']
         # the column conv (1 x 1, width -> Z * context) only at the selected voxels' columns, and the
         # change head's context part folded into it: one 1 x 1 conv width -> Z
         wcol = self.column.weight[:, :, 0, 0].reshape(z, nc, -1)  # [Z, context, width]
@@ -271,10 +282,10 @@ class CNABUNet(nn.Module):
             base = (bf @ wc[nc:nc + nb] + self.change.bias[0]).reshape(x, y, z).permute(2, 0, 1)
             w_logit = torch.einsum("zcw,c->zw", wcol, wc[:nc])
             logits = F.conv2d(feat, w_logit[:, :, None, None], bcol @ wc[:nc])[:, :, :x, :y] + base  # [K, Z, X, Y]
-            wa = wc[nc + nb:]
-            act_zxy = action_vox.permute(0, 1, 4, 2, 3)
-            for a in range(action_vox.shape[1]):  # binary action channels: a weighted sum, no einsum
-                logits += act_zxy[:, a].to(feat.dtype) * wa[a]
+            ak, ac, ai, aj, az = nz  # the action channels' part, only where they are nonzero
+            av_nz = wc[nc + nb:][ac] * action_vox[ak, ac, ai, aj, az].to(feat.dtype)
+            logits = logits.contiguous()
+            logits.index_put_((ak, az, ai, aj), av_nz, accumulate=True)
             sel_all = (logits > math.log(threshold / (1.0 - threshold))).permute(0, 2, 3, 1).reshape(k_n, -1)
             if region is not None:
                 sel_all &= region.reshape(region.shape[0], -1)
