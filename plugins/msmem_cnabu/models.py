@@ -150,7 +150,8 @@ class _CNABUEffect(EffectModel):
                 for it in set(interiors):
                     if it not in walls:
                         walls[it] = torch.from_numpy(~wall_mask(grid, it))
-                region = torch.stack([walls[it] for it in interiors])
+                region = (walls[interiors[0]][None] if len(set(interiors)) == 1
+                          else torch.stack([walls[it] for it in interiors]))
                 outs = self.net.predict_many(feats, prior, torch.from_numpy(np.ascontiguousarray(vox, dtype=bool)),
                                              torch.from_numpy(scalars),
                                              cfg.change_threshold, region=region)

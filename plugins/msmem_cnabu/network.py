@@ -260,7 +260,7 @@ class CNABUNet(nn.Module):
         """Inference for K actions on one belief (``belief`` [1, Fb, ...], ``prior`` [1, 2 + C, ...],
         ``action_vox`` [K, Fa, ...]). Per action: (flat voxel indices [M], change probability [M],
         new evidence [M, 2 + C]) at the voxels it changes: p_change > ``threshold`` (push, grasp) or
-        ``region`` [K, X, Y, Z] (observe: the voxels the view's rays reached), always within
+        ``region`` [K or 1, X, Y, Z] (observe: the voxels the view's rays reached), always within
         ``region`` if given. The belief's share of the stem is computed once; the change head (linear)
         is evaluated as a sum of its context, belief and action parts, without building the per-voxel
         inputs; the evidence head runs only on the selected voxels."""
@@ -279,7 +279,11 @@ class CNABUNet(nn.Module):
         if self.change is not None:
             wc = self.change.weight[0]
             # float work in the conv's [K, Z, X, Y] layout; only the boolean selection is permuted to x, y, z
-            base = (bf @ wc[nc:nc + nb] + self.change.bias[0]).reshape(x, y, z).permute(2, 0, 1)
+            base = (bf @ wc[nc:nc + nb] + self.change.bias[0]).reshape(x, y, z)
+            if region is not None and region.shape[0] == 1:  # one region for all: fold it into the logits
+                base = base.masked_fill(~region[0], -math.inf)
+                region = None
+            base = base.permute(2, 0, 1)
             w_logit = torch.einsum("zcw,c->zw", wcol, wc[:nc])
             logits = F.conv2d(feat, w_logit[:, :, None, None], bcol @ wc[:nc])[:, :, :x, :y] + base  # [K, Z, X, Y]
             ak, ac, ai, aj, az = nz  # the action channels' part, only where they are nonzero
