@@ -306,12 +306,18 @@ def test_full_method_episode_runs_unchanged_on_each_backend(simulator: str, tmp_
     within the 4 steps (a push at step 2 on both backends), and it must report every object's
     displacement."""
     steps = 4
-    cfg = load_config("ours", None, {**EPISODE, "steps": steps, "simulator": {"name": simulator},
+    # the analytic effect models, pinned: with them a push wins at step 2 on both backends, so the
+    # backends' manipulation paths run; the learned defaults (cnabu-push/grasp) read only the belief
+    # and the action, never the backend, and chose views in all 4 steps of this scene
+    skills = [{"name": "view"}, {"name": "push", "effect_model": {"name": "push-analytic"}},
+              {"name": "grasp", "effect_model": {"name": "grasp-analytic"}}]
+    cfg = load_config("ours", None, {**EPISODE, "steps": steps, "simulator": {"name": simulator}, "skills": skills,
                                      "msas": {"manipulation_window": [1, 38]}, "viewpoints": NARROW_VIEWS})
     ep = build_episode(cfg, get_plugin_manager(), scene=_episode_scene())
     assert ep.sim.capabilities().name == simulator
     assert [b.name for b in ep.skills] == ["view", "push", "grasp"]
     assert [b.effect_model is not None for b in ep.skills] == [False, True, True]
+    assert [type(b.effect_model).__name__ for b in ep.skills[1:]] == ["AnalyticPushEffect", "AnalyticGraspEffect"]
     outcomes: list[tuple[str, Any]] = []
     for bound in ep.skills:
         def execute(sim: Simulator, action: Any, ctx: Any, _name=bound.name, _run=bound.skill.execute) -> Any:
