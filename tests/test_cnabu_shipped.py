@@ -66,3 +66,16 @@ def test_default_model_per_role_is_the_one_with_better_heldout_nll(heldout, kind
     want = f"cnabu-{kind}" if better == "learned" else TWIN[kind]
     assert default_model(kind) == want, (kind, heldout[kind]["metrics"]["learned"]["affected"],
                                          heldout[kind]["metrics"]["analytic"]["affected"])
+
+
+def test_threshold_check_decides_twice_per_belief_and_a_lower_threshold_changes_more():
+    from msmem_cnabu.evaluation import threshold_agreement
+
+    r = threshold_agreement("push", None, (0.85, 0.05), beliefs=1, views=4, threads=1, log=lambda _: None)
+    assert r["decisions"] == 1
+    hi, lo = r["beliefs"][0]["0.85"], r["beliefs"][0]["0.05"]
+    assert r["beliefs"][0]["same"] == (hi["action"] == lo["action"] and hi["skill"] == lo["skill"])
+    # on this belief a push wins at both thresholds (deterministic: seeded scene and views), so the same
+    # 80 candidates were predicted twice and the nearly dense change map changed many more voxels
+    assert hi["skill"] == lo["skill"] == "push"
+    assert lo["changed_voxels_per_candidate"] > 3 * hi["changed_voxels_per_candidate"]
