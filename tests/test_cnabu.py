@@ -11,7 +11,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
 from msmem_cnabu.datagen import CNABUDataConfig, ShardError, generate_dataset, load_shard, shard_path
@@ -21,6 +21,7 @@ from msmem_cnabu.models import CNABUGraspEffect, CNABUObservationModel, CNABUPus
 from msmem_cnabu.network import CNABUNet, CNABUNetConfig, parameter_bytes
 from msmem_cnabu.training import TrainConfig, sha256_file, train, write_weights
 from msmem_cnabu.weights import WeightsError, load_cnabu
+from pydantic import ValidationError
 from typer.testing import CliRunner
 
 from msmem_core.belief import EvidentialMap
@@ -61,6 +62,8 @@ def tiny_net(kind: str, grid_shape=tuple(GRID.shape), change_bias: float | None 
 )
 def test_network_shapes_and_evidence_at_least_one(kind, x, y, z, batch, levels, log_ev, seed):
     c = 4
+    m = 2**levels
+    assume(-(-x // m) * -(-y // m) >= 2)  # smaller grids are rejected (test_config_rejects_...)
     net = CNABUNet(CNABUNetConfig(kind=kind, grid_shape=(x, y, z), num_classes=c, width=4, levels=levels,
                                   context=2, hidden=8))
     g = torch.Generator().manual_seed(seed)
@@ -84,6 +87,12 @@ def test_network_shapes_and_evidence_at_least_one(kind, x, y, z, batch, levels, 
     else:
         assert out.change_logit.shape == (batch, x, y, z)
         assert ((out.change >= 0) & (out.change <= 1)).all()
+
+
+def test_config_rejects_a_grid_too_small_for_its_levels():
+    with pytest.raises(ValidationError, match="grid_shape.*levels=2"):
+        CNABUNetConfig(kind="push", grid_shape=(3, 3, 2), levels=2)
+    CNABUNetConfig(kind="push", grid_shape=(3, 5, 2), levels=2)  # a 1 x 2 coarsest map is enough
 
 
 def test_default_network_is_small_and_starts_as_the_identity_on_the_prior():

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from msmem_objectives.entropy import SemanticEntropyTerm
 from msmem_objectives.ig import IGTerm, IGTermConfig
 from msmem_push.effect import AnalyticPushEffect
-from msmem_push.geometry import leading_half_depth, swept_extent, swept_voxels
+from msmem_push.geometry import leading_half_depth, swept_extent, swept_voxels, swept_voxels_reference, tool_boxes
 from msmem_push.skill import START_FRONT_MARGIN_M, PushAction, PushConfig, PushSkill, interior_of
 from pydantic import ValidationError
 
@@ -157,6 +157,21 @@ def test_push_samples_never_start_in_believed_occupancy_nor_sweep_through_a_wall
         approach = np.array([a.start[0], cfg.approach_y_m])
         corridor = swept_voxels(GRID, approach, a.u, a.height_m, a.tool, a.start - approach)
         assert not occupied[corridor].any(), "the approach crosses believed-occupied space"
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(-0.45, 0.45), st.floats(-0.1, 0.45), st.floats(0.0, 2 * np.pi), st.floats(-0.05, 0.3),
+       st.floats(0.0, 0.3), st.booleans(), st.booleans())
+def test_swept_voxels_kernel_equals_the_numpy_rasterisation(x: float, y: float, angle: float, tip_z: float,
+                                                            length: float, on_grid: bool, palm: bool) -> None:
+    if on_grid:  # voxel-aligned starts, axis-aligned directions, whole-cm heights: the boundary cases
+        x, y, tip_z, angle = round(x, 2) + 0.005, round(y, 2), round(tip_z, 2), round(angle / (np.pi / 4)) * np.pi / 4
+    u = np.array([np.cos(angle), np.sin(angle)])
+    boxes = tool_boxes(GripperSpec(), "across" if palm else "along")
+    want = swept_voxels_reference(GRID, (x, y), u, tip_z, boxes, length * u)
+    np.testing.assert_array_equal(swept_voxels(GRID, (x, y), u, tip_z, boxes, length * u), want)
+    np.testing.assert_array_equal(swept_voxels(GRID, (x, y), u, tip_z, boxes[:1]), swept_voxels_reference(
+        GRID, (x, y), u, tip_z, boxes[:1]))
 
 
 def test_ups_targets_the_occluder_of_a_hidden_region() -> None:

@@ -69,31 +69,48 @@ def observe_channels(free: NDArray[np.bool_], occ: NDArray[np.bool_], seen: NDAr
     return np.concatenate([free[None], occ[None], seen]).astype(bool)
 
 
-def push_channels(grid: GridSpec, action: Any) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
-    """([2, X, Y, Z] swept volume and tool at the start, [4] scalars) of a ``PushAction``."""
+def push_indices(grid: GridSpec, action: Any) -> tuple[list[NDArray[np.int64]], NDArray[np.float32]]:
+    """The voxel channels of a ``PushAction`` as flat indices ([swept volume, tool at the start]) and
+    its [4] scalars."""
     from msmem_push.geometry import swept_voxels
 
-    vox = np.zeros((2, grid.size), dtype=bool)
-    vox[0, action.swept_indices(grid)] = True
-    vox[1, swept_voxels(grid, action.start, action.u, action.height_m, action.tool)] = True
     u = action.u
     scalars = np.array([u[0], u[1], action.length_m / 0.25, action.height_m / 0.1], np.float32)
-    return vox.reshape(2, *grid.shape), scalars
+    return [action.swept_indices(grid), swept_voxels(grid, action.start, action.u, action.height_m, action.tool)], scalars
+
+
+def grasp_indices(grid: GridSpec, action: Any, region: NDArray[np.int64]
+                  ) -> tuple[list[NDArray[np.int64]], NDArray[np.float32]]:
+    """The voxel channels of a ``GraspAction`` as flat indices ([swept volume, grasped region and the
+    contact voxel]) and its [4] scalars; ``region``: flat indices of the grasped object's believed voxels."""
+    second = region
+    ijk = grid.index_of(np.asarray(action.contact_m)[None])[0]
+    if grid.contains_index(ijk):
+        second = np.append(region, np.ravel_multi_index(tuple(ijk), grid.shape))
+    a = action.matrix[:3, 2]
+    scalars = np.array([a[0], a[1], a[2], action.width_m / 0.08], np.float32)
+    return [action.swept_indices(grid), second], scalars
+
+
+def dense_channels(grid: GridSpec, channels: Sequence[NDArray[np.int64]]) -> NDArray[np.bool_]:
+    """[F, X, Y, Z] bool channels from flat indices per channel."""
+    vox = np.zeros((len(channels), grid.size), dtype=bool)
+    for c, ind in enumerate(channels):
+        vox[c, ind] = True
+    return vox.reshape(len(channels), *grid.shape)
+
+
+def push_channels(grid: GridSpec, action: Any) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
+    """([2, X, Y, Z] swept volume and tool at the start, [4] scalars) of a ``PushAction``."""
+    ind, scalars = push_indices(grid, action)
+    return dense_channels(grid, ind), scalars
 
 
 def grasp_channels(grid: GridSpec, action: Any, region: NDArray[np.int64]
                    ) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
-    """([2, X, Y, Z] swept volume and grasped region, [4] scalars) of a ``GraspAction``; ``region``:
-    flat indices of the grasped object's believed voxels."""
-    vox = np.zeros((2, grid.size), dtype=bool)
-    vox[0, action.swept_indices(grid)] = True
-    vox[1, region] = True
-    ijk = grid.index_of(np.asarray(action.contact_m)[None])[0]
-    if grid.contains_index(ijk):
-        vox[1, np.ravel_multi_index(tuple(ijk), grid.shape)] = True
-    a = action.matrix[:3, 2]
-    scalars = np.array([a[0], a[1], a[2], action.width_m / 0.08], np.float32)
-    return vox.reshape(2, *grid.shape), scalars
+    """([2, X, Y, Z] swept volume and grasped region, [4] scalars) of a ``GraspAction``."""
+    ind, scalars = grasp_indices(grid, action, region)
+    return dense_channels(grid, ind), scalars
 
 
 def grasp_regions(belief: Any, actions: Sequence[Any]) -> list[NDArray[np.int64]]:
@@ -112,21 +129,48 @@ def grasp_regions(belief: Any, actions: Sequence[Any]) -> list[NDArray[np.int64]
     return out
 
 
+def manipulation_indices(kind: str, belief: Any, actions: Sequence[Any]
+                         ) -> tuple[list[list[NDArray[np.int64]]], NDArray[np.float32], list[NDArray[np.int64]] | None]:
+    """(per action its two voxel channels as flat indices, [K, 4] scalars, grasped regions or None)."""
+    grid = belief.grid
+    if kind == "push":
+        pairs = [push_indices(grid, a) for a in actions]
+        regions = None
+    elif kind == "grasp":
+        regions = grasp_regions(belief, actions)
+        pairs = [grasp_indices(grid, a, r) for a, r in zip(actions, regions, strict=True)]
+    else:
+        raise ValueError(f"not a manipulation kind: {kind!r}")
+    scalars = np.stack([p[1] for p in pairs]) if pairs else np.zeros((0, 4), np.float32)
+    return [p[0] for p in pairs], scalars, regions
+
+
+def sparse_channels(grid: GridSpec, channels: Sequence[Sequence[NDArray[np.int64]]]
+                    ) -> tuple[Tensor, tuple[Tensor, ...]]:
+    """K actions' channels (flat indices per channel) as the dense bool [K, F, X, Y, Z] tensor and its
+    nonzero coordinates (k, f, i, j, z), as ``torch.nonzero(..., as_tuple=True)`` gives them but
+    without scanning the dense tensor."""
+    k_n, f_n = len(channels), (len(channels[0]) if channels else 0)
+    flat = [np.unique(ind) for per in channels for ind in per]  # (k, f) order
+    counts = np.array([len(ind) for ind in flat], dtype=np.int64)
+    cat = np.concatenate(flat) if flat else np.zeros(0, np.int64)
+    kf = np.repeat(np.arange(k_n * f_n), counts)
+    dense = np.zeros((k_n * f_n, grid.size), dtype=bool)
+    dense[kf, cat] = True
+    ny, nz = grid.shape[1], grid.shape[2]
+    coords = (kf // max(f_n, 1), kf % max(f_n, 1), cat // (ny * nz), (cat // nz) % ny, cat % nz)
+    return (torch.from_numpy(dense.reshape(k_n, f_n, *grid.shape)),
+            tuple(torch.from_numpy(np.ascontiguousarray(c)) for c in coords))
+
+
 def manipulation_channels(kind: str, belief: Any, actions: Sequence[Any]
                           ) -> tuple[NDArray[np.bool_], NDArray[np.float32], list[NDArray[np.int64]] | None]:
     """([K, 2, X, Y, Z], [K, 4], grasped regions or None) of K push or grasp actions on ``belief``."""
     grid = belief.grid
-    if kind == "push":
-        pairs = [push_channels(grid, a) for a in actions]
-        regions = None
-    elif kind == "grasp":
-        regions = grasp_regions(belief, actions)
-        pairs = [grasp_channels(grid, a, r) for a, r in zip(actions, regions, strict=True)]
-    else:
-        raise ValueError(f"not a manipulation kind: {kind!r}")
-    if not pairs:
-        return np.zeros((0, 2, *grid.shape), bool), np.zeros((0, 4), np.float32), regions
-    return np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs]), regions
+    ind, scalars, regions = manipulation_indices(kind, belief, actions)
+    if not ind:
+        return np.zeros((0, 2, *grid.shape), bool), scalars, regions
+    return np.stack([dense_channels(grid, c) for c in ind]), scalars, regions
 
 
 def dilate(mask: NDArray[np.bool_], voxels: int = 1) -> NDArray[np.bool_]:

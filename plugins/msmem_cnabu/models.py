@@ -24,15 +24,17 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
+from numba import njit
 from numpy.typing import NDArray
 
 from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
 from msmem_cnabu.features import (
     belief_features,
     grid_interior,
-    manipulation_channels,
+    manipulation_indices,
     observe_channels,
     prior_evidence,
+    sparse_channels,
     to_tensor,
     wall_mask,
 )
@@ -69,22 +71,57 @@ def _inputs(belief: EvidentialMap) -> tuple[torch.Tensor, torch.Tensor]:
     return belief_features(a, b, e), prior_evidence(a, b, e)
 
 
-def _delta(belief: EvidentialMap, idx: torch.Tensor, p: torch.Tensor, ev: torch.Tensor) -> BeliefDelta:
-    """The blended change at ``idx`` (sorted flat indices), keeping only voxels whose evidence differs."""
-    i = idx.numpy().astype(np.int64)
+def _deltas(belief: EvidentialMap, outs: Sequence[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+            ) -> list[BeliefDelta]:
+    """Per output (sorted flat indices, p_change, evidence) the blended change, keeping only voxels
+    whose evidence differs; all outputs in one pass (``_blend``)."""
     c = belief.num_classes
-    old_a = belief.alpha.reshape(-1)[i]
-    old_b = belief.beta.reshape(-1)[i]
-    old_e = belief.eta.reshape(c, -1)[:, i]
-    pn = p.numpy().astype(np.float32)
-    e = ev.numpy().astype(np.float32)
-    na = old_a * (1 - pn) + e[:, 0] * pn
-    nb = old_b * (1 - pn) + e[:, 1] * pn
-    ne = old_e * (1 - pn)[None] + e[:, 2:].T * pn[None]
-    na, nb, ne = np.maximum(na, 1.0), np.maximum(nb, 1.0), np.maximum(ne, 1.0)  # float rounding only
-    keep = (na != old_a) | (nb != old_b) | np.any(ne != old_e, axis=0)
-    return BeliefDelta(i[keep], na[keep].astype(np.float32), nb[keep].astype(np.float32),
-                       ne[:, keep].astype(np.float32))
+    if not outs:
+        return []
+    counts = np.array([len(o[0]) for o in outs], dtype=np.int64)
+    i = torch.cat([o[0] for o in outs]).numpy().astype(np.int64)  # a copy: _blend compacts it in place
+    pn = torch.cat([o[1] for o in outs]).numpy().astype(np.float32, copy=False)
+    e = torch.cat([o[2] for o in outs]).numpy().astype(np.float32, copy=False)
+    na, nb, ne, kept = _blend(belief.alpha.reshape(-1), belief.beta.reshape(-1), belief.eta.reshape(c, -1), i, pn, e,
+                              counts)
+    out, start = [], 0
+    for n in kept:
+        out.append(BeliefDelta(i[start:start + n], na[start:start + n], nb[start:start + n], ne[:, start:start + n]))
+        start += n
+    return out
+
+
+@njit(cache=True)
+def _blend(alpha, beta, eta, idx, p, ev, counts):  # type: ignore[no-untyped-def]
+    """``old * (1 - p) + pred * p`` per selected voxel in float32, floored at 1 (float rounding only);
+    voxels whose evidence equals the old one are dropped. The kept voxels are compacted in place of
+    the input order (``idx`` is overwritten with the kept indices); returns the new evidence and
+    how many voxels each output (``counts``) kept."""
+    m, c = idx.shape[0], eta.shape[0]
+    one = np.float32(1.0)
+    na = np.empty(m, np.float32)
+    nb = np.empty(m, np.float32)
+    ne = np.empty((c, m), np.float32)
+    kept = np.zeros(counts.shape[0], np.int64)
+    t, n = 0, 0
+    for o in range(counts.shape[0]):
+        for _ in range(counts[o]):
+            v, q = idx[t], p[t]
+            r = one - q
+            a = max(alpha[v] * r + ev[t, 0] * q, one)
+            b = max(beta[v] * r + ev[t, 1] * q, one)
+            na[n], nb[n] = a, b
+            k = a != alpha[v] or b != beta[v]
+            for j in range(c):
+                x = max(eta[j, v] * r + ev[t, 2 + j] * q, one)
+                ne[j, n] = x
+                k = k or x != eta[j, v]
+            if k:
+                idx[n] = v
+                n += 1
+                kept[o] += 1
+            t += 1
+    return na[:n], nb[:n], ne[:, :n], kept
 
 
 class CNABUObservationModel(ObservationModel):
@@ -118,7 +155,7 @@ class CNABUObservationModel(ObservationModel):
             act = torch.from_numpy(observe_channels(free, occ, seen))[None]  # bool: the stem scatters its nonzeros
             region = torch.from_numpy((free | occ) & ~self.walls(belief))[None]
             [(idx, p, ev)] = self.net.predict_many(feats, prior, act, torch.zeros(1, 0), 0.5, region=region)
-        return _delta(belief, idx, p, ev).apply(belief)
+        return _deltas(belief, [(idx, p, ev)])[0].apply(belief)
 
 
 class _CNABUEffect(EffectModel):
@@ -127,6 +164,14 @@ class _CNABUEffect(EffectModel):
     def __init__(self, config: CNABUEffectConfig | None = None) -> None:
         self.config = config or CNABUEffectConfig()
         self.net, self.meta = load_cnabu(self.kind, self.config.weights)
+        self._inside_cache: dict[tuple[Any, tuple[float, ...]], torch.Tensor] = {}
+
+    def _inside(self, grid: Any, interior: tuple[float, ...]) -> torch.Tensor:
+        """[X, Y, Z]: the voxels a prediction may change (not the shelf's boards), cached."""
+        key = (grid, interior)
+        if key not in self._inside_cache:
+            self._inside_cache[key] = torch.from_numpy(~wall_mask(grid, interior))
+        return self._inside_cache[key]
 
     def predict(self, belief: EvidentialMap, actions: Sequence[Action]) -> Prediction:
         cfg = self.config
@@ -136,31 +181,28 @@ class _CNABUEffect(EffectModel):
         k_n = len(actions)
         changed = np.zeros((k_n, grid.size), dtype=bool)
         excluded = np.zeros((k_n, grid.size), dtype=bool) if self.kind == "grasp" else None
-        deltas: list[BeliefDelta] = []
         if k_n == 0:
             return Prediction(DeltaBeliefs(belief, []), changed.reshape(0, *grid.shape),
                               excluded=None if excluded is None else excluded.reshape(0, *grid.shape))
         with _Threads(cfg.threads):
             feats, prior = _inputs(belief)
-            walls: dict[tuple[float, ...], torch.Tensor] = {}
+            interiors = [tuple(a.interior_m) for a in actions]  # type: ignore[attr-defined]
+            inside = {it: self._inside(grid, it) for it in set(interiors)}
+            shared = len(inside) == 1
+            prep = self.net.prepare(feats, prior, inside[interiors[0]][None] if shared else None)
+            ind, scalars, regions = manipulation_indices(self.kind, belief, actions)
+            outs = []
             for start in range(0, k_n, cfg.batch):
-                chunk = list(actions[start:start + cfg.batch])
-                vox, scalars, regions = manipulation_channels(self.kind, belief, chunk)
-                interiors = [tuple(a.interior_m) for a in chunk]  # type: ignore[attr-defined]
-                for it in set(interiors):
-                    if it not in walls:
-                        walls[it] = torch.from_numpy(~wall_mask(grid, it))
-                region = (walls[interiors[0]][None] if len(set(interiors)) == 1
-                          else torch.stack([walls[it] for it in interiors]))
-                outs = self.net.predict_many(feats, prior, torch.from_numpy(np.ascontiguousarray(vox, dtype=bool)),
-                                             torch.from_numpy(scalars),
-                                             cfg.change_threshold, region=region)
-                for j, (idx, p, ev) in enumerate(outs):
-                    d = _delta(belief, idx, p, ev)
-                    changed[start + j, d.idx] = True
-                    if excluded is not None and regions is not None:
-                        excluded[start + j, regions[j]] = True
-                    deltas.append(d)
+                stop = min(start + cfg.batch, k_n)
+                vox, nz = sparse_channels(grid, ind[start:stop])
+                region = None if shared else torch.stack([inside[it] for it in interiors[start:stop]])
+                outs += self.net.predict_many(prep, None, vox, torch.from_numpy(scalars[start:stop]),
+                                              cfg.change_threshold, region=region, nonzero=nz)
+        deltas = _deltas(belief, outs)
+        for j, d in enumerate(deltas):
+            changed[j, d.idx] = True
+            if excluded is not None and regions is not None:
+                excluded[j, regions[j]] = True
         shape = (k_n, *grid.shape)
         return Prediction(DeltaBeliefs(belief, deltas), changed.reshape(shape),
                           excluded=None if excluded is None else excluded.reshape(shape))

@@ -33,7 +33,7 @@ from typing import Literal
 
 import torch
 import torch.nn.functional as F
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor, nn
 
 from msmem_core.scene import NUM_CLASSES
@@ -77,6 +77,15 @@ class CNABUNetConfig(BaseModel):
     """Hidden width of the per-voxel evidence MLP."""
     evidence_scale: float = Field(10.0, gt=0.0)
     """Evidence change per unit of the head's output (the analytic update adds 10 per view)."""
+
+    @model_validator(mode="after")
+    def _coarsest_level_has_room(self) -> CNABUNetConfig:
+        px, py = self.padded_xy
+        if (px >> self.levels) * (py >> self.levels) < 2:
+            raise ValueError(f"grid_shape {self.grid_shape[:2]} is too small for levels={self.levels}: the coarsest "
+                             f"map would be {px >> self.levels} x {py >> self.levels}, GroupNorm needs at least 2 "
+                             "values per channel; use fewer levels")
+        return self
 
     @property
     def change_head(self) -> bool:
@@ -194,23 +203,39 @@ class CNABUNet(nn.Module):
         unpadded area. ``nonzero``: ``torch.nonzero(action_vox, as_tuple=True)`` if already computed.
         """
         b, _, x, y, z = action_vox.shape
-        emb, stem = self.embed_action, self.stem_action
-        w = stem.weight.reshape(stem.out_channels, z, emb.out_features, 2, 2)
-        kernel = torch.einsum("ozekl,ef->zfklo", w, emb.weight)  # [Z, F, 2, 2, width]
+        kernel, bias_map = self._folded_action_stem(x, y, z)
         k, c, i, j, kz = nonzero if nonzero is not None else torch.nonzero(action_vox, as_tuple=True)
         vals = kernel[kz, c, i % 2, j % 2]  # [N, width]
         if action_vox.dtype != torch.bool:
             vals = vals * action_vox[k, c, i, j, kz].to(vals.dtype)[:, None]
         px, py = self.config.padded_xy
         hx, hy = px // 2, py // 2
-        flat = torch.zeros(b * hx * hy, stem.out_channels, dtype=kernel.dtype)
+        flat = torch.zeros(b * hx * hy, kernel.shape[-1], dtype=kernel.dtype)
         flat.index_add_(0, (k * hx + i // 2) * hy + j // 2, vals)
-        m = flat.reshape(b, hx, hy, stem.out_channels).permute(0, 3, 1, 2)
-        inside = self._pad(torch.ones(1, 1, x, y, dtype=kernel.dtype))
-        m = m + F.conv2d(inside, torch.einsum("ozekl,e->okl", w, emb.bias)[:, None], stride=2)
+        m = flat.reshape(b, hx, hy, kernel.shape[-1]).permute(0, 3, 1, 2) + bias_map
         if self.stem_scalars is not None:
             m = m + self.stem_scalars(action_scalars.to(m.dtype))[:, :, None, None]
         return m
+
+    def _folded_action_stem(self, x: int, y: int, z: int) -> tuple[Tensor, Tensor]:
+        """The action embedding folded into the stem's kernel, [Z, F, 2, 2, width], and the embedding's
+        bias through the stem over the unpadded area, [1, width, X'/2, Y'/2]. Cached while the weights
+        are unchanged (their in-place version counters), i.e. computed once at inference; recomputed,
+        with gradients, whenever autograd is on."""
+        emb, stem = self.embed_action, self.stem_action
+        key = (x, y, z, stem.weight._version, emb.weight._version, emb.bias._version,
+               id(stem.weight), id(emb.weight), id(emb.bias))
+        cached = getattr(self, "_fold_cache", None)
+        if torch.is_grad_enabled() or cached is None or cached[0] != key:
+            w = stem.weight.reshape(stem.out_channels, z, emb.out_features, 2, 2)
+            kernel = torch.einsum("ozekl,ef->zfklo", w, emb.weight)
+            inside = self._pad(torch.ones(1, 1, x, y, dtype=kernel.dtype))
+            bias_map = F.conv2d(inside, torch.einsum("ozekl,e->okl", w, emb.bias)[:, None], stride=2)
+            if torch.is_grad_enabled():
+                return kernel, bias_map
+            cached = (key, kernel, bias_map)
+            object.__setattr__(self, "_fold_cache", cached)
+        return cached[1], cached[2]
 
     def trunk(self, stem: Tensor) -> Tensor:
         """U-Net from the summed stems to full-resolution features [B, width, X', Y'] (padded)."""
@@ -242,6 +267,20 @@ class CNABUNet(nn.Module):
         """relu(prior - 1 + scale * out) + 1 for per-voxel inputs h [..., D], prior [..., 2 + C]."""
         return F.relu(prior - 1.0 + self.config.evidence_scale * self.evidence(h)) + 1.0
 
+    def _evidence_at(self, prep: PreparedBelief, idx: Tensor, ctx_action: Tensor) -> Tensor:
+        """``_evidence`` at voxels ``idx`` of a prepared belief from their [context, action channels]:
+        the first layer's belief part comes precomputed per voxel (``prep.hidden``), the output scale,
+        bias and the -1 are folded into the second layer, the activations run in place."""
+        cfg = self.config
+        first, last = self.evidence[0], self.evidence[2]
+        w = first.weight
+        w_ca = torch.cat([w[:, :cfg.context], w[:, cfg.context + cfg.in_voxel:]], 1)
+        h = prep.hidden[idx].addmm_(ctx_action, w_ca.T)  # in place: no copy of the gathered rows
+        F.silu(h, inplace=True)
+        s = cfg.evidence_scale
+        ev = prep.pr[idx].add_(s * last.bias - 1.0).addmm_(h, (s * last.weight).T)
+        return ev.relu_().add_(1.0)
+
     # ---------------------------------------------------------------------------------- forward
     def forward(self, belief: Tensor, prior: Tensor, action_vox: Tensor, action_scalars: Tensor) -> CNABUOutput:
         """All voxels. ``belief`` [B, Fb, X, Y, Z] features, ``prior`` [B, 2 + C, X, Y, Z] evidence
@@ -253,60 +292,115 @@ class CNABUNet(nn.Module):
         return CNABUOutput(ev[:, 0], ev[:, 1], ev[:, 2:], logit)
 
     @torch.no_grad()
+    def prepare(self, belief: Tensor, prior: Tensor, region: Tensor | None = None) -> PreparedBelief:
+        """What ``predict_many`` needs of one belief, computed once for all its candidates: the belief's
+        share of the stem, the prior as rows, the evidence MLP's and the change head's belief parts
+        (with ``region`` [1, X, Y, Z], if given, folded in as -inf outside it)."""
+        cfg = self.config
+        x, y, z = cfg.grid_shape
+        nc, nb = cfg.context, cfg.in_voxel
+        bf = belief[0].permute(1, 2, 3, 0).reshape(-1, belief.shape[1])
+        pr = prior[0].permute(1, 2, 3, 0).reshape(-1, prior.shape[1])
+        base = None
+        if self.change is not None:
+            wc = self.change.weight[0]
+            bias = self.change.bias[0] + self.column.bias.reshape(z, nc) @ wc[:nc]  # [Z]: with the context part's
+            base = (bf @ wc[nc:nc + nb]).reshape(x, y, z) + bias
+            if region is not None:
+                if region.shape[0] != 1:
+                    raise ValueError("prepare() folds one region shared by all candidates")
+                base = base.masked_fill(~region[0], -math.inf)
+        first = self.evidence[0]
+        hidden = torch.addmm(first.bias, bf, first.weight[:, nc:nc + nb].T)  # the evidence MLP's belief part
+        return PreparedBelief(self.belief_stem(belief), pr, hidden, base, region is not None and base is not None)
+
+    @torch.no_grad()
     def predict_many(
-        self, belief: Tensor, prior: Tensor, action_vox: Tensor, action_scalars: Tensor, threshold: float,
-        region: Tensor | None = None,
+        self, belief: Tensor | PreparedBelief, prior: Tensor | None, action_vox: Tensor, action_scalars: Tensor,
+        threshold: float, region: Tensor | None = None, nonzero: tuple[Tensor, ...] | None = None,
     ) -> list[tuple[Tensor, Tensor, Tensor]]:
-        """Inference for K actions on one belief (``belief`` [1, Fb, ...], ``prior`` [1, 2 + C, ...],
-        ``action_vox`` [K, Fa, ...]). Per action: (flat voxel indices [M], change probability [M],
-        new evidence [M, 2 + C]) at the voxels it changes: p_change > ``threshold`` (push, grasp) or
-        ``region`` [K or 1, X, Y, Z] (observe: the voxels the view's rays reached), always within
-        ``region`` if given. The belief's share of the stem is computed once; the change head (linear)
-        is evaluated as a sum of its context, belief and action parts, without building the per-voxel
-        inputs; the evidence head runs only on the selected voxels."""
+        """Inference for K actions on one belief (``belief`` [1, Fb, ...], ``prior`` [1, 2 + C, ...], or
+        ``belief`` = ``prepare(belief, prior, region)`` and ``prior`` None; ``action_vox`` [K, Fa, ...]).
+        Per action: (flat voxel indices [M], sorted; change probability [M]; new evidence [M, 2 + C]) at
+        the voxels it changes: p_change > ``threshold`` (push, grasp) or ``region`` [K or 1, X, Y, Z]
+        (observe: the voxels the view's rays reached), always within ``region`` if given.
+        ``nonzero``: ``torch.nonzero(action_vox, as_tuple=True)`` if the caller has it.
+
+        The same numbers as ``forward`` (up to float rounding; a test), computed sparsely: the belief's
+        part once; the action's stem as a scatter from its nonzero voxels; the change head (linear) as the sum of its context part (folded into one GEMM
+        width -> Z per column), its belief part and its action part (only where the action is nonzero); the
+        column conv and the evidence head only at the selected voxels, the column conv once per
+        selected column (selected voxels come in flat order, so a column's voxels are consecutive)."""
         cfg = self.config
         k_n = action_vox.shape[0]
         x, y, z = cfg.grid_shape
-        nc, nb = cfg.context, cfg.in_voxel
-        nz = torch.nonzero(action_vox, as_tuple=True)  # the action channels are sparse
-        feat = self.trunk(self.belief_stem(belief) + self.action_stem(action_vox, action_scalars, nz))  # [K,w,X',Y']
-        # the column conv (1 x 1, width -> Z * context) only at the selected voxels' columns, and the
-        # change head's context part folded into it: one 1 x 1 conv width -> Z
-        wcol = self.column.weight[:, :, 0, 0].reshape(z, nc, -1)  # [Z, context, width]
-        bcol = self.column.bias.reshape(z, nc)
-        bf = belief[0].permute(1, 2, 3, 0).reshape(-1, belief.shape[1])
-        pr = prior[0].permute(1, 2, 3, 0).reshape(-1, prior.shape[1])
+        nc = cfg.context
+        if isinstance(belief, PreparedBelief):
+            if region is not None and belief.region_folded and region.shape[0] == 1:
+                region = None  # already in the prepared logits
+            prep = belief
+        else:
+            if prior is None:
+                raise ValueError("predict_many needs the prior evidence with an unprepared belief")
+            shared = region is not None and region.shape[0] == 1 and self.change is not None
+            prep = self.prepare(belief, prior, region if shared else None)
+            if shared:
+                region = None
+        nz = nonzero if nonzero is not None else torch.nonzero(action_vox, as_tuple=True)
+        stem = prep.stem + self.action_stem(action_vox, action_scalars, nz)
+        feat = self.trunk(stem)  # [K, w, X', Y']
+        px, py = feat.shape[-2:]
+        rows = feat.permute(0, 2, 3, 1).reshape(-1, feat.shape[1])  # [K * X' * Y', w] (one copy)
+        wcol = self.column.weight[:, :, 0, 0]  # [Z * context, width]
+        bcol = self.column.bias
         if self.change is not None:
             wc = self.change.weight[0]
-            # float work in the conv's [K, Z, X, Y] layout; only the boolean selection is permuted to x, y, z
-            base = (bf @ wc[nc:nc + nb] + self.change.bias[0]).reshape(x, y, z)
-            if region is not None and region.shape[0] == 1:  # one region for all: fold it into the logits
-                base = base.masked_fill(~region[0], -math.inf)
-                region = None
-            base = base.permute(2, 0, 1)
-            w_logit = torch.einsum("zcw,c->zw", wcol, wc[:nc])
-            logits = F.conv2d(feat, w_logit[:, :, None, None], bcol @ wc[:nc])[:, :, :x, :y] + base  # [K, Z, X, Y]
+            w_logit = torch.einsum("zcw,c->zw", wcol.reshape(z, nc, -1), wc[:nc])  # context part folded in
+            # one GEMM gives the logits in flat voxel order [K, X', Y', Z]: no permutes
+            full = (rows @ w_logit.T).reshape(k_n, px, py, z)  # its bias is in prep.base
             ak, ac, ai, aj, az = nz  # the action channels' part, only where they are nonzero
-            av_nz = wc[nc + nb:][ac] * action_vox[ak, ac, ai, aj, az].to(feat.dtype)
-            logits = logits.contiguous()
-            logits.index_put_((ak, az, ai, aj), av_nz, accumulate=True)
-            sel_all = (logits > math.log(threshold / (1.0 - threshold))).permute(0, 2, 3, 1).reshape(k_n, -1)
+            av_nz = wc[nc + cfg.in_voxel:][ac]
+            if action_vox.dtype != torch.bool:
+                av_nz = av_nz * action_vox[ak, ac, ai, aj, az].to(feat.dtype)
+            full.index_put_((ak, ai, aj, az), av_nz, accumulate=True)
+            logits = full[:, :x, :y]
+            logits += prep.base  # [X, Y, Z], -inf outside a folded region
+            sel_all = logits > math.log(threshold / (1.0 - threshold))
             if region is not None:
-                sel_all &= region.reshape(region.shape[0], -1)
+                sel_all &= region.reshape(region.shape[0], x, y, z)
         else:
             if region is None:
                 raise ValueError("an observe network needs the region its view reached")
-            sel_all = region.reshape(region.shape[0], -1).expand(k_n, -1)
-        # every selected (candidate, voxel) at once: one gather, one evidence MLP call
-        kk, idx = torch.nonzero(sel_all, as_tuple=True)
-        i, rem = idx // (y * z), idx % (y * z)
-        j, kz = rem // z, rem % z
-        c = torch.einsum("mw,mcw->mc", feat[kk, :, i, j], wcol[kz]) + bcol[kz]  # [M, context]
-        av = action_vox[kk, :, i, j, kz].to(c.dtype)
-        ev = self._evidence(torch.cat([c, bf[idx], av], -1), pr[idx])
-        p_sel = torch.sigmoid(logits[kk, kz, i, j]) if self.change is not None else torch.ones(len(idx))
-        bounds = torch.searchsorted(kk, torch.arange(k_n + 1))  # nonzero is row-major: kk is sorted
+            sel_all = region.reshape(region.shape[0], x, y, z).expand(k_n, -1, -1, -1)
+        # every selected (candidate, voxel) at once: one column conv per selected column, one evidence MLP call
+        kk, i, j, kz = torch.nonzero(sel_all, as_tuple=True)  # row-major: a column's voxels are consecutive
+        idx = (i * y + j) * z + kz
+        cols, inverse = torch.unique_consecutive((kk * x + i) * y + j, return_inverse=True)
+        ck, cxy = cols // (x * y), cols % (x * y)
+        per_col = torch.addmm(bcol, rows[(ck * px + cxy // y) * py + cxy % y], wcol.T).reshape(-1, z, nc)
+        c = per_col[inverse, kz]  # [M, context]
+        fa = action_vox.shape[1]
+        av = action_vox.reshape(k_n, fa, -1).permute(0, 2, 1)[kk, idx].to(c.dtype)  # [M, Fa]
+        ev = self._evidence_at(prep, idx, torch.cat([c, av], -1))
+        p_sel = torch.sigmoid(logits[kk, i, j, kz]) if self.change is not None else torch.ones(len(idx))
+        bounds = torch.searchsorted(kk, torch.arange(k_n + 1))
         return [(idx[a:b], p_sel[a:b], ev[a:b]) for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)]
+
+
+@dataclass
+class PreparedBelief:
+    """One belief as ``CNABUNet.predict_many`` reuses it over its candidates (``CNABUNet.prepare``)."""
+
+    stem: Tensor
+    """The belief's share of the stem, [1, width, X'/2, Y'/2]."""
+    pr: Tensor
+    """Prior evidence, [X * Y * Z, 2 + C]."""
+    hidden: Tensor
+    """The evidence MLP's first layer on the belief features, with its bias, [X * Y * Z, hidden]."""
+    base: Tensor | None
+    """The change head's belief part and all its biases (its own, the column conv's through it), [X, Y, Z]
+    (-inf outside a folded region); None for observe."""
+    region_folded: bool
 
 
 def parameter_bytes(model: nn.Module) -> int:

@@ -21,9 +21,11 @@ exact overlap at the corners of oblique ones. A voxel only touching the prism's 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from msmem_core.grid import GridSpec
@@ -139,7 +141,21 @@ def swept_voxels(
     grid: GridSpec, start: ArrayLike, u: ArrayLike, tip_z: float, boxes: Sequence[Box],
     travel: ArrayLike = (0.0, 0.0),
 ) -> NDArray[np.int64]:
-    """Voxels (flat, sorted, unique) the tool covers at ``start`` and while translating by ``travel``."""
+    """Voxels (flat, sorted, unique) the tool covers at ``start`` and while translating by ``travel``.
+    (A numba kernel: the same voxels as ``swept_voxels_reference``, its test's oracle.)"""
+    st = np.asarray(start, dtype=np.float64)
+    ua = np.asarray(u, dtype=np.float64)
+    v = np.asarray(travel, dtype=np.float64)
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    return _swept(grid.origin.astype(np.float64), float(grid.voxel_m), np.asarray(grid.shape, dtype=np.int64),
+                  st[0], st[1], ua[0], ua[1], v[0], v[1], float(tip_z), b)
+
+
+def swept_voxels_reference(
+    grid: GridSpec, start: ArrayLike, u: ArrayLike, tip_z: float, boxes: Sequence[Box],
+    travel: ArrayLike = (0.0, 0.0),
+) -> NDArray[np.int64]:
+    """``swept_voxels`` in plain numpy: each part's half-planes rasterised by ``prism_voxels``."""
     st = np.asarray(start, dtype=np.float64)
     ua = np.asarray(u, dtype=np.float64)
     v = np.asarray(travel, dtype=np.float64)
@@ -150,6 +166,95 @@ def swept_voxels(
     if len(parts) == 1:
         return parts[0]
     return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+
+
+@njit(cache=True, fastmath=False)
+def _swept(o, s, shape, sx, sy, ux, uy, vx, vy, tip_z, boxes):  # type: ignore[no-untyped-def]
+    """The kernel of ``swept_voxels``: ``sweep_halfplanes`` and ``prism_voxels`` per part, the parts
+    marked in one mask over their joint bounding box, read out in flat (sorted) order."""
+    nb = boxes.shape[0]
+    wx, wy = -uy, ux
+    vn = math.hypot(vx, vy)
+    nn = 6 if vn > 1e-12 else 4
+    normals = np.empty((nn, 2))
+    normals[0, 0], normals[0, 1] = ux, uy
+    normals[1, 0], normals[1, 1] = -ux, -uy
+    normals[2, 0], normals[2, 1] = wx, wy
+    normals[3, 0], normals[3, 1] = -wx, -wy
+    if nn == 6:
+        px, py = -vy / vn, vx / vn
+        normals[4, 0], normals[4, 1] = px, py
+        normals[5, 0], normals[5, 1] = -px, -py
+    tol = 1e-9 * s
+    lo = np.empty((nb, 3), np.int64)
+    hi = np.empty((nb, 3), np.int64)
+    offsets = np.empty((nb, nn))
+    for p in range(nb):
+        cx = np.empty(4)
+        cy = np.empty(4)
+        for c in range(4):
+            a = -1.0 if c < 2 else 1.0  # _SIGNS' order
+            w = -1.0 if c % 2 == 0 else 1.0
+            cx[c] = sx + a * (boxes[p, 0] * ux) + w * (boxes[p, 1] * wx)
+            cy[c] = sy + a * (boxes[p, 0] * uy) + w * (boxes[p, 1] * wy)
+        for q in range(nn):
+            best = -np.inf
+            for c in range(4):
+                d = cx[c] * normals[q, 0] + cy[c] * normals[q, 1]
+                if d > best:
+                    best = d
+            offsets[p, q] = best + max(0.0, normals[q, 0] * vx + normals[q, 1] * vy)
+        xmin = min(cx.min(), (cx + vx).min())
+        xmax = max(cx.max(), (cx + vx).max())
+        ymin = min(cy.min(), (cy + vy).min())
+        ymax = max(cy.max(), (cy + vy).max())
+        lo[p, 0] = max(math.floor((xmin - o[0]) / s) - 1, 0)
+        lo[p, 1] = max(math.floor((ymin - o[1]) / s) - 1, 0)
+        lo[p, 2] = max(math.floor((tip_z + boxes[p, 2] - o[2]) / s) - 1, 0)
+        hi[p, 0] = min(math.floor((xmax - o[0]) / s) + 1, shape[0] - 1)
+        hi[p, 1] = min(math.floor((ymax - o[1]) / s) + 1, shape[1] - 1)
+        hi[p, 2] = min(math.floor((tip_z + boxes[p, 3] - o[2]) / s) + 1, shape[2] - 1)
+    glo = np.empty(3, np.int64)
+    ghi = np.empty(3, np.int64)
+    for d in range(3):
+        glo[d] = lo[:, d].min()
+        ghi[d] = hi[:, d].max()
+    if ghi[0] < glo[0] or ghi[1] < glo[1] or ghi[2] < glo[2]:
+        return np.zeros(0, np.int64)
+    mx, my, mz = ghi[0] - glo[0] + 1, ghi[1] - glo[1] + 1, ghi[2] - glo[2] + 1
+    mask = np.zeros((mx, my, mz), np.bool_)
+    count = 0
+    for p in range(nb):
+        if hi[p, 0] < lo[p, 0] or hi[p, 1] < lo[p, 1] or hi[p, 2] < lo[p, 2]:
+            continue
+        z_lo, z_hi = tip_z + boxes[p, 2], tip_z + boxes[p, 3]
+        for i in range(lo[p, 0], hi[p, 0] + 1):
+            xc = o[0] + (i + 0.5) * s
+            for j in range(lo[p, 1], hi[p, 1] + 1):
+                yc = o[1] + (j + 0.5) * s
+                inside = True
+                for q in range(nn):
+                    if not normals[q, 0] * xc + normals[q, 1] * yc < offsets[p, q] + s / 2 - tol:
+                        inside = False
+                        break
+                if not inside:
+                    continue
+                for k in range(lo[p, 2], hi[p, 2] + 1):
+                    zc = o[2] + (k + 0.5) * s
+                    if zc > z_lo - s / 2 + tol and zc < z_hi + s / 2 - tol:
+                        m = mask[i - glo[0], j - glo[1], k - glo[2]]
+                        if not m:
+                            mask[i - glo[0], j - glo[1], k - glo[2]] = True
+                            count += 1
+    out = np.empty(count, np.int64)
+    n = 0
+    for i in range(mx):
+        for j in range(my):
+            for k in range(mz):
+                if mask[i, j, k]:
+                    out[n] = ((i + glo[0]) * shape[1] + (j + glo[1])) * shape[2] + (k + glo[2])
+                    n += 1
+    return out
 
 
 def swept_extent(
