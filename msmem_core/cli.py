@@ -346,6 +346,9 @@ else:
 
 
 def main() -> None:
+    from msmem_core._malloc import keep_large_allocations
+
+    keep_large_allocations()
     debug = "--debug" in sys.argv
     try:
         app()

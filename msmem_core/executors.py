@@ -92,6 +92,9 @@ def _call(fn: Callable[[Any], Any], index: int, task: Any, threads: int | None) 
 
 
 def _worker_init(threads: int | None) -> None:
+    from msmem_core._malloc import keep_large_allocations
+
+    keep_large_allocations()
     if threads is not None:  # before any task imports numba/torch, so the env vars take effect too
         limit_threads(threads)
 

@@ -18,7 +18,7 @@ from msmem_cnabu.datagen import CNABUDataConfig, ShardError, generate_dataset, l
 from msmem_cnabu.features import belief_features, grid_interior, prior_evidence, wall_mask
 from msmem_cnabu.losses import CNABULossConfig, cnabu_loss, dirichlet_kl_uniform
 from msmem_cnabu.models import CNABUGraspEffect, CNABUObservationModel, CNABUPushEffect
-from msmem_cnabu.network import CNABUNet, CNABUNetConfig, parameter_bytes
+from msmem_cnabu.network import CNABUNet, CNABUNetConfig, flat_nonzero, parameter_bytes
 from msmem_cnabu.training import TrainConfig, sha256_file, train, write_weights
 from msmem_cnabu.weights import WeightsError, load_cnabu
 from pydantic import ValidationError
@@ -108,6 +108,17 @@ def test_default_network_is_small_and_starts_as_the_identity_on_the_prior():
     torch.testing.assert_close(out.alpha, a)
     torch.testing.assert_close(out.eta, e)
     assert float(out.change.max()) < 0.1  # untrained: (almost) nothing changes
+
+
+@settings(max_examples=40, deadline=None)
+@given(shape=st.tuples(st.integers(1, 5), st.integers(1, 9), st.integers(1, 31)), density=st.floats(0.0, 1.0),
+       runs=st.booleans(), seed=st.integers(0, 1000))
+def test_flat_nonzero_equals_torch_nonzero(shape, density, runs, seed):
+    g = torch.Generator().manual_seed(seed)
+    mask = torch.rand(shape, generator=g) < density
+    if runs:  # clustered, as changed voxels are: whole rows of the last axis
+        mask = mask[..., :1].expand(shape).contiguous()
+    torch.testing.assert_close(flat_nonzero(mask), torch.nonzero(mask.reshape(-1)).squeeze(1), rtol=0, atol=0)
 
 
 def test_batched_inference_matches_the_training_forward():

@@ -81,7 +81,7 @@ def _deltas(belief: EvidentialMap, outs: Sequence[tuple[torch.Tensor, torch.Tens
     counts = np.array([len(o[0]) for o in outs], dtype=np.int64)
     i = torch.cat([o[0] for o in outs]).numpy().astype(np.int64)  # a copy: _blend compacts it in place
     pn = torch.cat([o[1] for o in outs]).numpy().astype(np.float32, copy=False)
-    e = torch.cat([o[2] for o in outs]).numpy().astype(np.float32, copy=False)
+    e = torch.cat([o[2].T for o in outs], 1).numpy().astype(np.float32, copy=False)  # [2 + C, M], channel-first
     na, nb, ne, kept = _blend(belief.alpha.reshape(-1), belief.beta.reshape(-1), belief.eta.reshape(c, -1), i, pn, e,
                               counts)
     out, start = [], 0
@@ -93,7 +93,7 @@ def _deltas(belief: EvidentialMap, outs: Sequence[tuple[torch.Tensor, torch.Tens
 
 @njit(cache=True)
 def _blend(alpha, beta, eta, idx, p, ev, counts):  # type: ignore[no-untyped-def]
-    """``old * (1 - p) + pred * p`` per selected voxel in float32, floored at 1 (float rounding only);
+    """``old * (1 - p) + pred * p`` per selected voxel (``ev``: [2 + C, M]) in float32, floored at 1 (float rounding only);
     voxels whose evidence equals the old one are dropped. The kept voxels are compacted in place of
     the input order (``idx`` is overwritten with the kept indices); returns the new evidence and
     how many voxels each output (``counts``) kept."""
@@ -108,12 +108,12 @@ def _blend(alpha, beta, eta, idx, p, ev, counts):  # type: ignore[no-untyped-def
         for _ in range(counts[o]):
             v, q = idx[t], p[t]
             r = one - q
-            a = max(alpha[v] * r + ev[t, 0] * q, one)
-            b = max(beta[v] * r + ev[t, 1] * q, one)
+            a = max(alpha[v] * r + ev[0, t] * q, one)
+            b = max(beta[v] * r + ev[1, t] * q, one)
             na[n], nb[n] = a, b
             k = a != alpha[v] or b != beta[v]
             for j in range(c):
-                x = max(eta[j, v] * r + ev[t, 2 + j] * q, one)
+                x = max(eta[j, v] * r + ev[2 + j, t] * q, one)
                 ne[j, n] = x
                 k = k or x != eta[j, v]
             if k:

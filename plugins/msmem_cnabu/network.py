@@ -205,7 +205,8 @@ class CNABUNet(nn.Module):
         b, _, x, y, z = action_vox.shape
         kernel, bias_map = self._folded_action_stem(x, y, z)
         k, c, i, j, kz = nonzero if nonzero is not None else torch.nonzero(action_vox, as_tuple=True)
-        vals = kernel[kz, c, i % 2, j % 2]  # [N, width]
+        zf = kernel.shape[1]
+        vals = kernel.reshape(-1, kernel.shape[-1]).index_select(0, ((kz * zf + c) * 2 + i % 2) * 2 + j % 2)  # [N, width]
         if action_vox.dtype != torch.bool:
             vals = vals * action_vox[k, c, i, j, kz].to(vals.dtype)[:, None]
         px, py = self.config.padded_xy
@@ -239,6 +240,10 @@ class CNABUNet(nn.Module):
 
     def trunk(self, stem: Tensor) -> Tensor:
         """U-Net from the summed stems to full-resolution features [B, width, X', Y'] (padded)."""
+        return F.silu(self.full(self._decode(stem)))
+
+    def _decode(self, stem: Tensor) -> Tensor:
+        """The U-Net up to its last transposed conv: [B, width, X'/2, Y'/2]."""
         h = F.silu(stem)
         skips = []
         for down, enc in zip(self.down, self.enc, strict=True):
@@ -246,7 +251,19 @@ class CNABUNet(nn.Module):
             skips.append(h)
         for up, dec, skip in zip(self.up, self.dec, skips[::-1][1:], strict=True):
             h = dec(torch.cat([up(h), skip], 1))
-        return F.silu(self.full(h))
+        return h
+
+    def _trunk_rows(self, stem: Tensor) -> Tensor:
+        """``trunk`` as per-pixel rows [B * X' * Y', width] in (b, x, y) order: the last transposed conv
+        (2 x 2, stride 2: each half-resolution pixel's features map linearly to its 2 x 2 block) as
+        one GEMM, its output shuffled into place by one copy."""
+        h = self._decode(stem)
+        b, w, hx, hy = h.shape
+        o = self.full.out_channels
+        kernel = self.full.weight.permute(0, 2, 3, 1).reshape(w, 4 * o)  # [in, (a, b, out)]
+        t = h.permute(0, 2, 3, 1).reshape(-1, w) @ kernel  # [B * hx * hy, (a, b, out)]
+        rows = t.reshape(b, hx, hy, 2, 2, o).permute(0, 1, 3, 2, 4, 5).reshape(-1, o)  # x = 2i + a, y = 2j + b
+        return F.silu(rows.add_(self.full.bias), inplace=True)
 
     def columns(self, stem: Tensor) -> Tensor:
         """U-Net from the summed stems to the column context [B, Z, context, X, Y]."""
@@ -268,18 +285,19 @@ class CNABUNet(nn.Module):
         return F.relu(prior - 1.0 + self.config.evidence_scale * self.evidence(h)) + 1.0
 
     def _evidence_at(self, prep: PreparedBelief, idx: Tensor, ctx_action: Tensor) -> Tensor:
-        """``_evidence`` at voxels ``idx`` of a prepared belief from their [context, action channels]:
-        the first layer's belief part comes precomputed per voxel (``prep.hidden``), the output scale,
-        bias and the -1 are folded into the second layer, the activations run in place."""
+        """``_evidence`` at voxels ``idx`` of a prepared belief from their [context, action channels]
+        [M, context + Fa], as a [M, 2 + C] view of a channel-first [2 + C, M] result: the first
+        layer's belief part comes precomputed per voxel (``prep.hidden``), the output scale, bias and
+        the -1 are folded into the second layer, the activations run in place."""
         cfg = self.config
         first, last = self.evidence[0], self.evidence[2]
         w = first.weight
         w_ca = torch.cat([w[:, :cfg.context], w[:, cfg.context + cfg.in_voxel:]], 1)
-        h = prep.hidden[idx].addmm_(ctx_action, w_ca.T)  # in place: no copy of the gathered rows
+        h = prep.hidden.index_select(0, idx).addmm_(ctx_action, w_ca.T)  # [M, hidden], in place
         F.silu(h, inplace=True)
         s = cfg.evidence_scale
-        ev = prep.pr[idx].add_(s * last.bias - 1.0).addmm_(h, (s * last.weight).T)
-        return ev.relu_().add_(1.0)
+        ev = prep.pr.index_select(1, idx).add_((s * last.bias - 1.0)[:, None]).addmm_(s * last.weight, h.T)
+        return ev.relu_().add_(1.0).T
 
     # ---------------------------------------------------------------------------------- forward
     def forward(self, belief: Tensor, prior: Tensor, action_vox: Tensor, action_scalars: Tensor) -> CNABUOutput:
@@ -294,25 +312,28 @@ class CNABUNet(nn.Module):
     @torch.no_grad()
     def prepare(self, belief: Tensor, prior: Tensor, region: Tensor | None = None) -> PreparedBelief:
         """What ``predict_many`` needs of one belief, computed once for all its candidates: the belief's
-        share of the stem, the prior as rows, the evidence MLP's and the change head's belief parts
+        share of the stem, the prior, the evidence MLP's and the change head's belief parts
         (with ``region`` [1, X, Y, Z], if given, folded in as -inf outside it)."""
         cfg = self.config
         x, y, z = cfg.grid_shape
         nc, nb = cfg.context, cfg.in_voxel
-        bf = belief[0].permute(1, 2, 3, 0).reshape(-1, belief.shape[1])
-        pr = prior[0].permute(1, 2, 3, 0).reshape(-1, prior.shape[1])
+        bf = belief[0].reshape(belief.shape[1], -1)  # [Fb, N]: channel-first, never copied transposed
+        emb = self.embed_belief  # belief_stem from the same rows: the embedding per voxel, z bins as channels
+        e = torch.addmm(emb.bias[:, None], emb.weight, bf).reshape(-1, x, y, z).permute(3, 0, 1, 2)
+        stem = self.stem_belief(self._pad(e.reshape(1, z * emb.out_features, x, y)))
         base = None
         if self.change is not None:
             wc = self.change.weight[0]
             bias = self.change.bias[0] + self.column.bias.reshape(z, nc) @ wc[:nc]  # [Z]: with the context part's
-            base = (bf @ wc[nc:nc + nb]).reshape(x, y, z) + bias
+            base = (wc[nc:nc + nb] @ bf).reshape(x, y, z) + bias
             if region is not None:
                 if region.shape[0] != 1:
                     raise ValueError("prepare() folds one region shared by all candidates")
                 base = base.masked_fill(~region[0], -math.inf)
         first = self.evidence[0]
-        hidden = torch.addmm(first.bias, bf, first.weight[:, nc:nc + nb].T)  # the evidence MLP's belief part
-        return PreparedBelief(self.belief_stem(belief), pr, hidden, base, region is not None and base is not None)
+        hidden = torch.addmm(first.bias, bf.T, first.weight[:, nc:nc + nb].T)  # the evidence MLP's belief part, rows
+        pr = prior[0].reshape(prior.shape[1], -1)
+        return PreparedBelief(stem, pr, hidden, base, region is not None and base is not None)
 
     @torch.no_grad()
     def predict_many(
@@ -348,9 +369,8 @@ class CNABUNet(nn.Module):
                 region = None
         nz = nonzero if nonzero is not None else torch.nonzero(action_vox, as_tuple=True)
         stem = prep.stem + self.action_stem(action_vox, action_scalars, nz)
-        feat = self.trunk(stem)  # [K, w, X', Y']
-        px, py = feat.shape[-2:]
-        rows = feat.permute(0, 2, 3, 1).reshape(-1, feat.shape[1])  # [K * X' * Y', w] (one copy)
+        rows = self._trunk_rows(stem)  # [K * X' * Y', w]
+        px, py = self.config.padded_xy
         wcol = self.column.weight[:, :, 0, 0]  # [Z * context, width]
         bcol = self.column.bias
         if self.change is not None:
@@ -361,7 +381,7 @@ class CNABUNet(nn.Module):
             ak, ac, ai, aj, az = nz  # the action channels' part, only where they are nonzero
             av_nz = wc[nc + cfg.in_voxel:][ac]
             if action_vox.dtype != torch.bool:
-                av_nz = av_nz * action_vox[ak, ac, ai, aj, az].to(feat.dtype)
+                av_nz = av_nz * action_vox[ak, ac, ai, aj, az].to(rows.dtype)
             full.index_put_((ak, ai, aj, az), av_nz, accumulate=True)
             logits = full[:, :x, :y]
             logits += prep.base  # [X, Y, Z], -inf outside a folded region
@@ -373,16 +393,21 @@ class CNABUNet(nn.Module):
                 raise ValueError("an observe network needs the region its view reached")
             sel_all = region.reshape(region.shape[0], x, y, z).expand(k_n, -1, -1, -1)
         # every selected (candidate, voxel) at once: one column conv per selected column, one evidence MLP call
-        kk, i, j, kz = torch.nonzero(sel_all, as_tuple=True)  # row-major: a column's voxels are consecutive
-        idx = (i * y + j) * z + kz
+        pos = flat_nonzero(sel_all)  # sorted: a candidate's voxels, and a column's, are consecutive
+        kk, idx = pos // (x * y * z), pos % (x * y * z)
+        i, j, kz = idx // (y * z), (idx // z) % y, idx % z
         cols, inverse = torch.unique_consecutive((kk * x + i) * y + j, return_inverse=True)
-        ck, cxy = cols // (x * y), cols % (x * y)
-        per_col = torch.addmm(bcol, rows[(ck * px + cxy // y) * py + cxy % y], wcol.T).reshape(-1, z, nc)
-        c = per_col[inverse, kz]  # [M, context]
-        fa = action_vox.shape[1]
-        av = action_vox.reshape(k_n, fa, -1).permute(0, 2, 1)[kk, idx].to(c.dtype)  # [M, Fa]
-        ev = self._evidence_at(prep, idx, torch.cat([c, av], -1))
-        p_sel = torch.sigmoid(logits[kk, i, j, kz]) if self.change is not None else torch.ones(len(idx))
+        ck, cxy = cols // (x * y), cols % (x * y)  # row gathers by index_select: much faster than indexing
+        per_col = torch.addmm(bcol, rows.index_select(0, (ck * px + cxy // y) * py + cxy % y), wcol.T)
+        c = per_col.reshape(-1, nc).index_select(0, inverse * z + kz)  # [M, context]
+        fa, n = action_vox.shape[1], x * y * z
+        flat_action = action_vox.reshape(-1)
+        av = torch.stack([flat_action.index_select(0, (kk * fa + f) * n + idx) for f in range(fa)], 1)
+        ev = self._evidence_at(prep, idx, torch.cat([c, av.to(c.dtype)], -1))
+        if self.change is not None:
+            p_sel = torch.sigmoid(full.reshape(-1).index_select(0, ((kk * px + i) * py + j) * z + kz))
+        else:
+            p_sel = torch.ones(len(idx))
         bounds = torch.searchsorted(kk, torch.arange(k_n + 1))
         return [(idx[a:b], p_sel[a:b], ev[a:b]) for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)]
 
@@ -394,13 +419,26 @@ class PreparedBelief:
     stem: Tensor
     """The belief's share of the stem, [1, width, X'/2, Y'/2]."""
     pr: Tensor
-    """Prior evidence, [X * Y * Z, 2 + C]."""
+    """Prior evidence, [2 + C, X * Y * Z]."""
     hidden: Tensor
-    """The evidence MLP's first layer on the belief features, with its bias, [X * Y * Z, hidden]."""
+    """The evidence MLP's first layer on the belief features, with its bias, [X * Y * Z, hidden] (rows:
+    gathered per selected voxel)."""
     base: Tensor | None
     """The change head's belief part and all its biases (its own, the column conv's through it), [X, Y, Z]
     (-inf outside a folded region); None for observe."""
     region_folded: bool
+
+
+def flat_nonzero(mask: Tensor) -> Tensor:
+    """Sorted flat positions of the True entries of a bool tensor, as ``torch.nonzero(mask.reshape(-1))``.
+    For sparse, clustered masks (changed voxels come in z-runs) scanning 8 bytes at a time as int64
+    words and expanding only the nonzero words is about twice as fast."""
+    flat = mask.reshape(-1)
+    if flat.numel() % 8 or flat.dtype != torch.bool:
+        return torch.nonzero(flat).squeeze(1)
+    words = torch.nonzero(flat.view(torch.int64)).squeeze(1)
+    bytes_ = torch.nonzero(flat.view(-1, 8).index_select(0, words))
+    return words.index_select(0, bytes_[:, 0]) * 8 + bytes_[:, 1]
 
 
 def parameter_bytes(model: nn.Module) -> int:

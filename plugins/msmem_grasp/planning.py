@@ -44,9 +44,21 @@ def box_lattice(centre: F64, half: F64, spacing: float, shrink: float = 0.0) -> 
 
 
 def gripper_points(gripper: GripperSpec, opening_m: float, spacing: float, shrink: float = 0.0) -> F64:
-    """Sample points [P, 3] of the two fingers (at ``opening_m``) and the palm, in the gripper frame."""
-    boxes = gripper.boxes(float(np.clip(opening_m, 0.0, gripper.max_opening_m)))
-    return np.concatenate([box_lattice(c, h, spacing, shrink) for c, h in boxes])
+    """Sample points [P, 3] of the two fingers (at ``opening_m``) and the palm, in the gripper frame
+    (read-only; the last few hundred are cached: candidates share openings)."""
+    key = (tuple(gripper.model_dump().values()), float(opening_m), float(spacing), float(shrink))
+    pts = _POINTS.get(key)
+    if pts is None:
+        boxes = gripper.boxes(float(np.clip(opening_m, 0.0, gripper.max_opening_m)))
+        pts = np.concatenate([box_lattice(c, h, spacing, shrink) for c, h in boxes])
+        pts.flags.writeable = False
+        if len(_POINTS) >= 512:
+            _POINTS.pop(next(iter(_POINTS)))
+        _POINTS[key] = pts
+    return pts
+
+
+_POINTS: dict[tuple[object, ...], F64] = {}
 
 
 def gripper_points_batch(gripper: GripperSpec, openings_m: F64, spacing: float, shrink: float = 0.0) -> F64:
@@ -85,11 +97,16 @@ def swept_indices(grid: GridSpec, rotation: F64, local_points: F64, positions: F
     """Flat indices (sorted, unique) of the voxels holding the body's points (``local_points`` in a
     frame with ``rotation``) at every origin of ``positions``; points outside the grid are dropped.
     (A numba kernel marks them in a grid mask: the same voxels as ``swept_indices_reference``.)"""
-    local = np.ascontiguousarray(np.asarray(local_points, dtype=np.float64) @ np.asarray(rotation, dtype=np.float64).T)
     mask = np.zeros(grid.size, dtype=np.bool_)
+    mark_swept(mask, grid, rotation, local_points, positions)
+    return np.flatnonzero(mask)
+
+
+def mark_swept(mask: NDArray[np.bool_], grid: GridSpec, rotation: F64, local_points: F64, positions: F64) -> None:
+    """Set, in the flat grid ``mask``, the voxels ``swept_indices`` returns (several sweeps, one mask)."""
+    local = np.ascontiguousarray(np.asarray(local_points, dtype=np.float64) @ np.asarray(rotation, dtype=np.float64).T)
     g0, s, n = grid_params(grid)
     _mark_swept(mask, g0, s, n, local, np.ascontiguousarray(np.asarray(positions, dtype=np.float64).reshape(-1, 3)))
-    return np.flatnonzero(mask)
 
 
 def swept_indices_reference(grid: GridSpec, rotation: F64, local_points: F64, positions: F64) -> I64:
@@ -214,6 +231,13 @@ class Objects:
             classes += [int(c_id)] * m
         return cls(labels, np.asarray(classes, dtype=np.int64), k)
 
+    def voxels_of(self, label: int) -> I64:
+        """Flat indices of component ``label`` (cached: candidates share targets)."""
+        cache = self.__dict__.setdefault("_voxels", {})
+        if label not in cache:
+            cache[label] = np.flatnonzero(self.labels.reshape(-1) == label)
+        return cache[label]
+
     def label_at(self, grid: GridSpec, points: F64, target_class: I64 | None = None) -> I64:
         """Component at each point [N, 3]: that of the nearest voxel of its 3x3x3 neighbourhood (its
         own voxel first) holding one (of ``target_class`` when given); 0 if none."""
@@ -235,7 +259,7 @@ class Objects:
         within ``opening_m / 2`` plus half a voxel of the grasp centre along the closing axis, within
         ``max_radius_m`` across it, and from the palm to ``max_depth_m`` beyond the fingertips along
         the approach (touching objects of one class stay separate)."""
-        vox = np.flatnonzero(self.labels.reshape(-1) == label)
+        vox = self.voxels_of(label)
         if not len(vox) or label <= 0:
             return np.zeros(0, np.int64)
         s = grid.voxel_m

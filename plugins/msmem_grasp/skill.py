@@ -78,6 +78,7 @@ from msmem_grasp.planning import (
     blocked_mask,
     fill_down,
     gripper_points,
+    mark_swept,
     gripper_points_batch,
     path_offsets,
     sweep_hits,
@@ -159,9 +160,10 @@ class GraspAction(Action):
         grasp = self.matrix[:3, 3]
         app = path_offsets(np.array([*self.approach_m, grasp]), s / 2)
         ret = path_offsets(np.array([grasp, *self.retreat_m]), s / 2)
-        a = swept_indices(grid, r, gripper_points(self.gripper, self.opening_m, s / 2), app)
-        b = swept_indices(grid, r, gripper_points(self.gripper, self.width_m, s / 2), ret)
-        return np.union1d(a, b)
+        mask = np.zeros(grid.size, dtype=bool)
+        mark_swept(mask, grid, r, gripper_points(self.gripper, self.opening_m, s / 2), app)
+        mark_swept(mask, grid, r, gripper_points(self.gripper, self.width_m, s / 2), ret)
+        return np.flatnonzero(mask)
 
     def swept_volume(self, grid: GridSpec) -> NDArray[np.bool_]:
         mask = np.zeros(grid.size, dtype=bool)
