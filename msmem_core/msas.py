@@ -179,6 +179,28 @@ def mapped_fraction(belief: EvidentialMap, interior: NDArray[np.bool_], conf_cut
 StepCallback = Callable[[int, Decision, Outcome, "EvidentialMap"], None]
 
 
+def cap_evidence(belief: EvidentialMap, changed: NDArray[np.bool_], cap: float, margin_voxels: int) -> EvidentialMap:
+    """``belief`` with the evidence of ``changed`` (dilated by ``margin_voxels``) shrunk towards the prior:
+    where alpha + beta > cap, alpha - 1, beta - 1 and eta - 1 are scaled by (cap - 2) / (alpha + beta - 2).
+    Expected occupancy moves towards 0.5 but stays on its side of it; the class argmax is kept."""
+    from scipy import ndimage
+
+    region = changed if margin_voxels <= 0 else ndimage.binary_dilation(
+        changed, structure=np.ones((3, 3, 3), dtype=bool), iterations=margin_voxels)
+    idx = np.flatnonzero(region)
+    a, b = belief.alpha.reshape(-1)[idx], belief.beta.reshape(-1)[idx]
+    s = a + b
+    big = s > cap
+    idx, a, b, s = idx[big], a[big], b[big], s[big]
+    f = ((cap - 2.0) / (s - 2.0)).astype(np.float32)
+    out = belief.copy()
+    out.alpha.reshape(-1)[idx] = 1.0 + f * (a - 1.0)
+    out.beta.reshape(-1)[idx] = 1.0 + f * (b - 1.0)
+    eta = out.eta.reshape(belief.num_classes, -1)
+    eta[:, idx] = 1.0 + f[None] * (eta[:, idx] - 1.0)
+    return out
+
+
 def run_msas(
     sim: Simulator,
     belief: EvidentialMap,
@@ -218,7 +240,11 @@ def run_msas(
             belief = observe_model.update(belief, outcome.observation)
             visited.add(int(getattr(decision.action, "view", -1)))
         elif just_manipulated:
-            belief = decision.batch.prediction.beliefs[decision.index]  # type: ignore[union-attr]
+            prediction = decision.batch.prediction
+            belief = prediction.beliefs[decision.index]  # type: ignore[union-attr]
+            if cfg.disturbed_evidence_cap is not None:
+                belief = cap_evidence(belief, prediction.changed[decision.index],  # type: ignore[union-attr]
+                                      cfg.disturbed_evidence_cap, cfg.disturbed_margin_voxels)
             visited.clear()
             last_manipulation = step
             manipulation_ok = manipulation_ok and not outcome.fell_or_left

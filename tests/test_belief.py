@@ -200,3 +200,28 @@ def test_a_voxel_an_object_left_flips_to_free_within_two_views_with_contradictio
     assert cleared.sum() > 0.9 * was_occ.sum()
     was_occ_plain, p_plain = run(1.0)  # pure evidence counting keeps the stale surface
     assert (was_occ_plain & (p_plain < 0.5)).sum() < 0.1 * was_occ_plain.sum()
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), cap=st.floats(2.5, 40.0), margin=st.integers(0, 2))
+def test_cap_evidence_shrinks_disturbed_evidence_and_keeps_the_side_of_one_half(seed, cap, margin):
+    from msmem_core.msas import cap_evidence
+
+    rng = np.random.default_rng(seed)
+    b = EvidentialMap.empty(GRID, NUM_CLASSES)
+    b.alpha[:] = 1 + rng.gamma(1.0, 20.0, GRID.shape).astype(np.float32)
+    b.beta[:] = 1 + rng.gamma(1.0, 20.0, GRID.shape).astype(np.float32)
+    b.eta[:] = 1 + rng.gamma(0.5, 10.0, b.eta.shape).astype(np.float32)
+    changed = np.zeros(GRID.shape, bool)
+    changed[5:8, 4:6, 3:9] = True
+    out = cap_evidence(b, changed, cap, margin)
+    region = np.zeros(GRID.shape, bool)
+    region[5 - margin:8 + margin, 4 - margin:6 + margin, 3 - margin:9 + margin] = True
+    s_in, s_out = (out.alpha + out.beta)[region], (out.alpha + out.beta)[~region]
+    assert np.all(s_in <= cap * (1 + 1e-5))  # above the cap: shrunk to it; below: as it was
+    np.testing.assert_array_equal(s_out, (b.alpha + b.beta)[~region])  # outside: untouched
+    np.testing.assert_array_equal(out.eta[:, ~region], b.eta[:, ~region])
+    assert out.alpha.min() >= 1 and out.beta.min() >= 1 and out.eta.min() >= 1
+    p_before, p_after = b.alpha / (b.alpha + b.beta), out.alpha / (out.alpha + out.beta)
+    assert np.array_equal(p_before > 0.5, p_after > 0.5)
+    np.testing.assert_array_equal(np.argmax(out.eta, axis=0), np.argmax(b.eta, axis=0))

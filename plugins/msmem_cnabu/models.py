@@ -38,6 +38,7 @@ from msmem_cnabu.features import (
     to_tensor,
     wall_mask,
 )
+from msmem_cnabu.network import FlatPrediction
 from msmem_cnabu.weights import WeightsError, load_cnabu
 from msmem_core.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
 from msmem_core.camera import Observation
@@ -71,57 +72,55 @@ def _inputs(belief: EvidentialMap) -> tuple[torch.Tensor, torch.Tensor]:
     return belief_features(a, b, e), prior_evidence(a, b, e)
 
 
-def _deltas(belief: EvidentialMap, outs: Sequence[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
-            ) -> list[BeliefDelta]:
-    """Per output (sorted flat indices, p_change, evidence) the blended change, keeping only voxels
-    whose evidence differs; all outputs in one pass (``_blend``)."""
+def _deltas(belief: EvidentialMap, out: FlatPrediction) -> list[BeliefDelta]:
+    """Per action the blended change (``_blend``), keeping only voxels whose evidence differs."""
     c = belief.num_classes
-    if not outs:
-        return []
-    counts = np.array([len(o[0]) for o in outs], dtype=np.int64)
-    i = torch.cat([o[0] for o in outs]).numpy().astype(np.int64)  # a copy: _blend compacts it in place
-    pn = torch.cat([o[1] for o in outs]).numpy().astype(np.float32, copy=False)
-    e = torch.cat([o[2].T for o in outs], 1).numpy().astype(np.float32, copy=False)  # [2 + C, M], channel-first
-    na, nb, ne, kept = _blend(belief.alpha.reshape(-1), belief.beta.reshape(-1), belief.eta.reshape(c, -1), i, pn, e,
-                              counts)
-    out, start = [], 0
+    i = out.idx.numpy().astype(np.int64)  # a copy: _blend compacts it in place
+    na, nb, ne, kept = _blend(belief.alpha.reshape(-1), belief.beta.reshape(-1), belief.eta.reshape(c, -1), i,
+                              out.p.numpy().astype(np.float32, copy=False),
+                              np.ascontiguousarray(out.residual.numpy(), dtype=np.float32),
+                              out.counts.numpy().astype(np.int64))
+    res, start = [], 0
     for n in kept:
-        out.append(BeliefDelta(i[start:start + n], na[start:start + n], nb[start:start + n], ne[:, start:start + n]))
+        res.append(BeliefDelta(i[start:start + n], na[start:start + n], nb[start:start + n], ne[:, start:start + n]))
         start += n
-    return out
+    return res
 
 
 @njit(cache=True)
 def _blend(alpha, beta, eta, idx, p, ev, counts):  # type: ignore[no-untyped-def]
-    """``old * (1 - p) + pred * p`` per selected voxel (``ev``: [2 + C, M]) in float32, floored at 1 (float rounding only);
-    voxels whose evidence equals the old one are dropped. The kept voxels are compacted in place of
-    the input order (``idx`` is overwritten with the kept indices); returns the new evidence and
-    how many voxels each output (``counts``) kept."""
+    """``old * (1 - p) + pred * p`` per selected voxel in float32, floored at 1 (float rounding only),
+    with the network's evidence ``pred = relu(old - 1 + res) + 1`` from its residual ``res``
+    ([2 + C, M]); voxels whose evidence equals the old one are dropped. Channel by channel
+    (streaming through each of the belief's arrays), then compacted in input order: ``idx`` is
+    overwritten with the kept indices. Returns the new evidence and how many voxels each action
+    (``counts``) kept."""
     m, c = idx.shape[0], eta.shape[0]
     one = np.float32(1.0)
-    na = np.empty(m, np.float32)
-    nb = np.empty(m, np.float32)
-    ne = np.empty((c, m), np.float32)
+    new = np.empty((2 + c, m), np.float32)
+    keep = np.zeros(m, np.bool_)
+    for ch in range(2 + c):
+        old = alpha if ch == 0 else beta if ch == 1 else eta[ch - 2]
+        row = new[ch]
+        for t in range(m):
+            v, q = idx[t], p[t]
+            o = old[v]
+            x = max(o * (one - q) + (max(o - one + ev[ch, t], np.float32(0.0)) + one) * q, one)
+            row[t] = x
+            if x != o:
+                keep[t] = True
     kept = np.zeros(counts.shape[0], np.int64)
-    t, n = 0, 0
+    n, t = 0, 0
     for o in range(counts.shape[0]):
         for _ in range(counts[o]):
-            v, q = idx[t], p[t]
-            r = one - q
-            a = max(alpha[v] * r + ev[0, t] * q, one)
-            b = max(beta[v] * r + ev[1, t] * q, one)
-            na[n], nb[n] = a, b
-            k = a != alpha[v] or b != beta[v]
-            for j in range(c):
-                x = max(eta[j, v] * r + ev[2 + j, t] * q, one)
-                ne[j, n] = x
-                k = k or x != eta[j, v]
-            if k:
-                idx[n] = v
+            if keep[t]:
+                idx[n] = idx[t]
+                for ch in range(2 + c):
+                    new[ch, n] = new[ch, t]
                 n += 1
                 kept[o] += 1
             t += 1
-    return na[:n], nb[:n], ne[:, :n], kept
+    return new[0, :n], new[1, :n], new[2:, :n], kept
 
 
 class CNABUObservationModel(ObservationModel):
@@ -154,8 +153,8 @@ class CNABUObservationModel(ObservationModel):
             feats, prior = _inputs(belief)
             act = torch.from_numpy(observe_channels(free, occ, seen))[None]  # bool: the stem scatters its nonzeros
             region = torch.from_numpy((free | occ) & ~self.walls(belief))[None]
-            [(idx, p, ev)] = self.net.predict_many(feats, prior, act, torch.zeros(1, 0), 0.5, region=region)
-        return _deltas(belief, [(idx, p, ev)])[0].apply(belief)
+            out = self.net.predict_flat(feats, prior, act, torch.zeros(1, 0), 0.5, region=region)
+        return _deltas(belief, out)[0].apply(belief)
 
 
 class _CNABUEffect(EffectModel):
@@ -191,14 +190,14 @@ class _CNABUEffect(EffectModel):
             shared = len(inside) == 1
             prep = self.net.prepare(feats, prior, inside[interiors[0]][None] if shared else None)
             ind, scalars, regions = manipulation_indices(self.kind, belief, actions)
-            outs = []
+            parts = []
             for start in range(0, k_n, cfg.batch):
                 stop = min(start + cfg.batch, k_n)
                 vox, nz = sparse_channels(grid, ind[start:stop])
                 region = None if shared else torch.stack([inside[it] for it in interiors[start:stop]])
-                outs += self.net.predict_many(prep, None, vox, torch.from_numpy(scalars[start:stop]),
-                                              cfg.change_threshold, region=region, nonzero=nz)
-        deltas = _deltas(belief, outs)
+                parts.append(self.net.predict_flat(prep, None, vox, torch.from_numpy(scalars[start:stop]),
+                                                   cfg.change_threshold, region=region, nonzero=nz))
+        deltas = _deltas(belief, FlatPrediction.cat(parts))
         for j, d in enumerate(deltas):
             changed[j, d.idx] = True
             if excluded is not None and regions is not None:

@@ -284,11 +284,11 @@ class CNABUNet(nn.Module):
         """relu(prior - 1 + scale * out) + 1 for per-voxel inputs h [..., D], prior [..., 2 + C]."""
         return F.relu(prior - 1.0 + self.config.evidence_scale * self.evidence(h)) + 1.0
 
-    def _evidence_at(self, prep: PreparedBelief, idx: Tensor, ctx_action: Tensor) -> Tensor:
-        """``_evidence`` at voxels ``idx`` of a prepared belief from their [context, action channels]
-        [M, context + Fa], as a [M, 2 + C] view of a channel-first [2 + C, M] result: the first
-        layer's belief part comes precomputed per voxel (``prep.hidden``), the output scale, bias and
-        the -1 are folded into the second layer, the activations run in place."""
+    def _residual_at(self, prep: PreparedBelief, idx: Tensor, ctx_action: Tensor) -> Tensor:
+        """The evidence head's residual ``evidence_scale * out`` at voxels ``idx`` of a prepared belief
+        from their [context, action channels] [M, context + Fa], channel-first [2 + C, M]; the evidence
+        is ``relu(prior - 1 + residual) + 1`` (``FlatPrediction.evidence``). The first layer's belief
+        part comes precomputed per voxel (``prep.hidden``), the activations run in place."""
         cfg = self.config
         first, last = self.evidence[0], self.evidence[2]
         w = first.weight
@@ -296,8 +296,7 @@ class CNABUNet(nn.Module):
         h = prep.hidden.index_select(0, idx).addmm_(ctx_action, w_ca.T)  # [M, hidden], in place
         F.silu(h, inplace=True)
         s = cfg.evidence_scale
-        ev = prep.pr.index_select(1, idx).add_((s * last.bias - 1.0)[:, None]).addmm_(s * last.weight, h.T)
-        return ev.relu_().add_(1.0).T
+        return torch.addmm((s * last.bias)[:, None], s * last.weight, h.T)
 
     # ---------------------------------------------------------------------------------- forward
     def forward(self, belief: Tensor, prior: Tensor, action_vox: Tensor, action_scalars: Tensor) -> CNABUOutput:
@@ -340,10 +339,20 @@ class CNABUNet(nn.Module):
         self, belief: Tensor | PreparedBelief, prior: Tensor | None, action_vox: Tensor, action_scalars: Tensor,
         threshold: float, region: Tensor | None = None, nonzero: tuple[Tensor, ...] | None = None,
     ) -> list[tuple[Tensor, Tensor, Tensor]]:
+        """``predict_flat`` split per action: (indices [M], change probability [M], evidence [M, 2 + C])."""
+        out = self.predict_flat(belief, prior, action_vox, action_scalars, threshold, region, nonzero)
+        b = [0, *torch.cumsum(out.counts, 0).tolist()]
+        return [(out.idx[s:e], out.p[s:e], out.evidence[:, s:e].T) for s, e in zip(b[:-1], b[1:], strict=True)]
+
+    @torch.no_grad()
+    def predict_flat(
+        self, belief: Tensor | PreparedBelief, prior: Tensor | None, action_vox: Tensor, action_scalars: Tensor,
+        threshold: float, region: Tensor | None = None, nonzero: tuple[Tensor, ...] | None = None,
+    ) -> FlatPrediction:
         """Inference for K actions on one belief (``belief`` [1, Fb, ...], ``prior`` [1, 2 + C, ...], or
         ``belief`` = ``prepare(belief, prior, region)`` and ``prior`` None; ``action_vox`` [K, Fa, ...]).
-        Per action: (flat voxel indices [M], sorted; change probability [M]; new evidence [M, 2 + C]) at
-        the voxels it changes: p_change > ``threshold`` (push, grasp) or ``region`` [K or 1, X, Y, Z]
+        Per action (concatenated, see ``FlatPrediction``): flat voxel indices, sorted; change
+        probability; new evidence, at the voxels it changes: p_change > ``threshold`` (push, grasp) or ``region`` [K or 1, X, Y, Z]
         (observe: the voxels the view's rays reached), always within ``region`` if given.
         ``nonzero``: ``torch.nonzero(action_vox, as_tuple=True)`` if the caller has it.
 
@@ -403,13 +412,42 @@ class CNABUNet(nn.Module):
         fa, n = action_vox.shape[1], x * y * z
         flat_action = action_vox.reshape(-1)
         av = torch.stack([flat_action.index_select(0, (kk * fa + f) * n + idx) for f in range(fa)], 1)
-        ev = self._evidence_at(prep, idx, torch.cat([c, av.to(c.dtype)], -1))
+        res = self._residual_at(prep, idx, torch.cat([c, av.to(c.dtype)], -1))
         if self.change is not None:
             p_sel = torch.sigmoid(full.reshape(-1).index_select(0, ((kk * px + i) * py + j) * z + kz))
         else:
             p_sel = torch.ones(len(idx))
-        bounds = torch.searchsorted(kk, torch.arange(k_n + 1))
-        return [(idx[a:b], p_sel[a:b], ev[a:b]) for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)]
+        return FlatPrediction(torch.bincount(kk, minlength=k_n), idx, p_sel, res, prep.pr)
+
+
+@dataclass
+class FlatPrediction:
+    """K actions' predictions concatenated in action order (``CNABUNet.predict_flat``)."""
+
+    counts: Tensor
+    """[K] selected voxels per action."""
+    idx: Tensor
+    """[M] flat voxel indices, sorted within each action."""
+    p: Tensor
+    """[M] change probability (1 for observe)."""
+    residual: Tensor
+    """[2 + C, M] the evidence head's residual on the prior (``evidence_scale * out``), channel-first."""
+    prior: Tensor
+    """[2 + C, X * Y * Z] the belief's evidence (alpha, beta, eta)."""
+
+    @property
+    def evidence(self) -> Tensor:
+        """[2 + C, M] new evidence ``relu(prior - 1 + residual) + 1`` (the belief models fuse this into
+        their blend instead of gathering the prior here)."""
+        return F.relu(self.prior.index_select(1, self.idx) - 1.0 + self.residual) + 1.0
+
+    @staticmethod
+    def cat(parts: list[FlatPrediction]) -> FlatPrediction:
+        if len(parts) == 1:
+            return parts[0]
+        return FlatPrediction(torch.cat([q.counts for q in parts]), torch.cat([q.idx for q in parts]),
+                              torch.cat([q.p for q in parts]), torch.cat([q.residual for q in parts], 1),
+                              parts[0].prior)
 
 
 @dataclass
