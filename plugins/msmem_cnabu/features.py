@@ -151,7 +151,7 @@ def sparse_channels(grid: GridSpec, channels: Sequence[Sequence[NDArray[np.int64
     nonzero coordinates (k, f, i, j, z), as ``torch.nonzero(..., as_tuple=True)`` gives them but
     without scanning the dense tensor."""
     k_n, f_n = len(channels), (len(channels[0]) if channels else 0)
-    flat = [np.unique(ind) for per in channels for ind in per]  # (k, f) order
+    flat = [ind if _increasing(ind) else np.unique(ind) for per in channels for ind in per]  # (k, f) order
     counts = np.array([len(ind) for ind in flat], dtype=np.int64)
     cat = np.concatenate(flat) if flat else np.zeros(0, np.int64)
     kf = np.repeat(np.arange(k_n * f_n), counts)
@@ -161,6 +161,10 @@ def sparse_channels(grid: GridSpec, channels: Sequence[Sequence[NDArray[np.int64
     coords = (kf // max(f_n, 1), kf % max(f_n, 1), cat // (ny * nz), (cat // nz) % ny, cat % nz)
     return (torch.from_numpy(dense.reshape(k_n, f_n, *grid.shape)),
             tuple(torch.from_numpy(np.ascontiguousarray(c)) for c in coords))
+
+
+def _increasing(a: NDArray[np.int64]) -> bool:
+    return bool(len(a) < 2 or np.all(a[1:] > a[:-1]))
 
 
 def manipulation_channels(kind: str, belief: Any, actions: Sequence[Any]

@@ -24,7 +24,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from numba import njit
+from numba import njit, prange
 from numpy.typing import NDArray
 
 from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
@@ -87,28 +87,30 @@ def _deltas(belief: EvidentialMap, out: FlatPrediction) -> list[BeliefDelta]:
     return res
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _blend(alpha, beta, eta, idx, p, ev, counts):  # type: ignore[no-untyped-def]
     """``old * (1 - p) + pred * p`` per selected voxel in float32, floored at 1 (float rounding only),
     with the network's evidence ``pred = relu(old - 1 + res) + 1`` from its residual ``res``
-    ([2 + C, M]); voxels whose evidence equals the old one are dropped. Channel by channel
-    (streaming through each of the belief's arrays), then compacted in input order: ``idx`` is
-    overwritten with the kept indices. Returns the new evidence and how many voxels each action
-    (``counts``) kept."""
+    ([2 + C, M]); voxels whose evidence equals the old one are dropped. Channel by channel in
+    parallel (each streaming through one of the belief's arrays), then compacted in input order:
+    ``idx`` is overwritten with the kept indices. Returns the new evidence and how many voxels each
+    action (``counts``) kept."""
     m, c = idx.shape[0], eta.shape[0]
     one = np.float32(1.0)
     new = np.empty((2 + c, m), np.float32)
-    keep = np.zeros(m, np.bool_)
-    for ch in range(2 + c):
+    differs = np.zeros((2 + c, m), np.bool_)
+    for ch in prange(2 + c):
         old = alpha if ch == 0 else beta if ch == 1 else eta[ch - 2]
-        row = new[ch]
         for t in range(m):
             v, q = idx[t], p[t]
             o = old[v]
             x = max(o * (one - q) + (max(o - one + ev[ch, t], np.float32(0.0)) + one) * q, one)
-            row[t] = x
-            if x != o:
-                keep[t] = True
+            new[ch, t] = x
+            differs[ch, t] = x != o
+    keep = np.zeros(m, np.bool_)
+    for ch in range(2 + c):
+        for t in range(m):
+            keep[t] |= differs[ch, t]
     kept = np.zeros(counts.shape[0], np.int64)
     n, t = 0, 0
     for o in range(counts.shape[0]):

@@ -403,18 +403,22 @@ class CNABUNet(nn.Module):
             sel_all = region.reshape(region.shape[0], x, y, z).expand(k_n, -1, -1, -1)
         # every selected (candidate, voxel) at once: one column conv per selected column, one evidence MLP call
         pos = flat_nonzero(sel_all)  # sorted: a candidate's voxels, and a column's, are consecutive
-        kk, idx = pos // (x * y * z), pos % (x * y * z)
-        i, j, kz = idx // (y * z), (idx // z) % y, idx % z
-        cols, inverse = torch.unique_consecutive((kk * x + i) * y + j, return_inverse=True)
+        n = x * y * z
+        kk = pos // n
+        idx = pos - kk * n
+        cols, inverse = torch.unique_consecutive(pos // z, return_inverse=True)  # (candidate, x, y) columns
+        kz = pos - cols.index_select(0, inverse) * z
         ck, cxy = cols // (x * y), cols % (x * y)  # row gathers by index_select: much faster than indexing
-        per_col = torch.addmm(bcol, rows.index_select(0, (ck * px + cxy // y) * py + cxy % y), wcol.T)
+        col_row = (ck * px + cxy // y) * py + cxy % y  # each column's row in the padded maps
+        per_col = torch.addmm(bcol, rows.index_select(0, col_row), wcol.T)
         c = per_col.reshape(-1, nc).index_select(0, inverse * z + kz)  # [M, context]
-        fa, n = action_vox.shape[1], x * y * z
+        fa = action_vox.shape[1]
         flat_action = action_vox.reshape(-1)
-        av = torch.stack([flat_action.index_select(0, (kk * fa + f) * n + idx) for f in range(fa)], 1)
+        at = kk * (fa * n) + idx
+        av = torch.stack([flat_action.index_select(0, at + f * n) for f in range(fa)], 1)
         res = self._residual_at(prep, idx, torch.cat([c, av.to(c.dtype)], -1))
         if self.change is not None:
-            p_sel = torch.sigmoid(full.reshape(-1).index_select(0, ((kk * px + i) * py + j) * z + kz))
+            p_sel = torch.sigmoid(full.reshape(-1).index_select(0, col_row.index_select(0, inverse) * z + kz))
         else:
             p_sel = torch.ones(len(idx))
         return FlatPrediction(torch.bincount(kk, minlength=k_n), idx, p_sel, res, prep.pr)
