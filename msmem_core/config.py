@@ -70,11 +70,12 @@ class MSASConfig(_Strict):
     """Manipulation is disabled once this fraction of BEV cells is mapped ([MEM])."""
     start_view: int | None = None
     """Viewpoint of the initial observation (None: the centre of the middle grid)."""
-    disturbed_evidence_cap: float | None = Field(None, gt=2.0)
+    disturbed_evidence_cap: float | None = Field(None, ge=2.0)
     """After a manipulation, occupancy and class evidence in the voxels its prediction changed (dilated
     by ``disturbed_margin_voxels``) is shrunk towards the prior until alpha + beta <= this, keeping
     which side of 0.5 each expected occupancy is on, so later views can overturn a wrong prediction and
-    IG looks there again (None: the belief is the prediction as is, the paper's rule)."""
+    IG looks there again; 2 resets them to the prior (unknown). None: the belief is the prediction as
+    is, the paper's rule."""
     disturbed_margin_voxels: int = Field(2, ge=0, le=10)
     """Dilation (voxels) of the changed mask for ``disturbed_evidence_cap``."""
 

@@ -182,7 +182,8 @@ StepCallback = Callable[[int, Decision, Outcome, "EvidentialMap"], None]
 def cap_evidence(belief: EvidentialMap, changed: NDArray[np.bool_], cap: float, margin_voxels: int) -> EvidentialMap:
     """``belief`` with the evidence of ``changed`` (dilated by ``margin_voxels``) shrunk towards the prior:
     where alpha + beta > cap, alpha - 1, beta - 1 and eta - 1 are scaled by (cap - 2) / (alpha + beta - 2).
-    Expected occupancy moves towards 0.5 but stays on its side of it; the class argmax is kept."""
+    Expected occupancy moves towards 0.5 but stays on its side of it and the class argmax is kept,
+    except with ``cap`` 2, which resets those voxels to the prior."""
     from scipy import ndimage
 
     region = changed if margin_voxels <= 0 else ndimage.binary_dilation(

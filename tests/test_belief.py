@@ -225,3 +225,6 @@ def test_cap_evidence_shrinks_disturbed_evidence_and_keeps_the_side_of_one_half(
     p_before, p_after = b.alpha / (b.alpha + b.beta), out.alpha / (out.alpha + out.beta)
     assert np.array_equal(p_before > 0.5, p_after > 0.5)
     np.testing.assert_array_equal(np.argmax(out.eta, axis=0), np.argmax(b.eta, axis=0))
+    reset = cap_evidence(b, changed, 2.0, margin)  # cap 2: back to the prior
+    assert np.all(reset.alpha[region] == 1) and np.all(reset.beta[region] == 1) and np.all(reset.eta[:, region] == 1)
+    np.testing.assert_array_equal(reset.alpha[~region], b.alpha[~region])
