@@ -2,26 +2,35 @@
 
 from __future__ import annotations
 
+import json
 import platform
-import resource
+import subprocess
+import sys
 
-import numpy as np
 import pytest
 
+PROBE = """
+import json, resource, sys
+import numpy as np
 from msmem_core._malloc import keep_large_allocations
 
-
-def _faults_of_a_64mb_temporary() -> int:
+def faults():  # minor page faults of one 64 MB temporary, every page written
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-    a = np.ones(16 * 1024 * 1024, dtype=np.float32)  # 64 MB, every page written
+    a = np.ones(16 * 1024 * 1024, dtype=np.float32)
     del a
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+untuned = [faults(), faults()]
+ok = keep_large_allocations()
+tuned = [faults(), faults()]
+print(json.dumps({"ok": ok, "untuned": untuned, "tuned": tuned}))
+"""
 
 
 def test_large_temporaries_are_reused_instead_of_page_faulted_again():
     if platform.libc_ver()[0] != "glibc":
         pytest.skip("not glibc: keep_large_allocations is a no-op there")
-    assert keep_large_allocations()
-    first = _faults_of_a_64mb_temporary()  # grows the heap (untuned: a fresh mmap, faulted every time)
-    again = _faults_of_a_64mb_temporary()
-    assert first > 0 and again < first // 10, (first, again)
+    r = json.loads(subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, check=True).stdout)
+    assert r["ok"]
+    assert r["untuned"][1] > 0, r  # untuned, each 64 MB temporary is a fresh mmap, faulted page by page
+    assert r["tuned"][1] < r["untuned"][1] // 10, r  # tuned, the freed block is reused
