@@ -352,15 +352,17 @@ class CNABUNet(nn.Module):
         """Inference for K actions on one belief (``belief`` [1, Fb, ...], ``prior`` [1, 2 + C, ...], or
         ``belief`` = ``prepare(belief, prior, region)`` and ``prior`` None; ``action_vox`` [K, Fa, ...]).
         Per action (concatenated, see ``FlatPrediction``): flat voxel indices, sorted; change
-        probability; new evidence, at the voxels it changes: p_change > ``threshold`` (push, grasp) or ``region`` [K or 1, X, Y, Z]
-        (observe: the voxels the view's rays reached), always within ``region`` if given.
-        ``nonzero``: ``torch.nonzero(action_vox, as_tuple=True)`` if the caller has it.
+        probability; the evidence head's residual, at the voxels it changes: p_change > ``threshold``
+        (push, grasp) or ``region`` [K or 1, X, Y, Z] (observe: the voxels the view's rays reached),
+        always within ``region`` if given. ``nonzero``: ``torch.nonzero(action_vox, as_tuple=True)``
+        if the caller has it.
 
-        The same numbers as ``forward`` (up to float rounding; a test), computed sparsely: the belief's
-        part once; the action's stem as a scatter from its nonzero voxels; the change head (linear) as the sum of its context part (folded into one GEMM
-        width -> Z per column), its belief part and its action part (only where the action is nonzero); the
-        column conv and the evidence head only at the selected voxels, the column conv once per
-        selected column (selected voxels come in flat order, so a column's voxels are consecutive)."""
+        The same numbers as ``forward`` (up to float rounding; a test), computed sparsely: the
+        belief's part once; the action's stem as a scatter from its nonzero voxels; the change head
+        (linear) as the sum of its context part (folded into one GEMM width -> Z per pixel), its
+        belief part and its action part (only where the action is nonzero); the column conv and the
+        evidence head only at the selected voxels, the column conv once per selected column (selected
+        voxels come in flat order, so a column's voxels are consecutive)."""
         cfg = self.config
         k_n = action_vox.shape[0]
         x, y, z = cfg.grid_shape
