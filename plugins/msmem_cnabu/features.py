@@ -3,7 +3,8 @@
 - *Belief features* ``[3 + C, X, Y, Z]``: expected occupancy alpha / S, occupancy uncertainty 2 / S
   (S = alpha + beta), semantic vacuity C / sum(eta) and the expected class probabilities. Prior
   evidence (alpha, beta, eta) is handed to the network separately (its evidence is a residual on it).
-- *Action channels* (``action_channels``), from the belief and the action only, never ground truth:
+- *Action channels* (``observe_channels``, ``manipulation_indices``), from the belief and the action
+  only, never ground truth:
   - observe: the view's per-voxel masks of the analytic ray traversal (``AnalyticObservationModel
     .masks``): free, occupied, and one "seen as class c" channel per class (2 + C voxel channels);
   - push: the tool's swept volume and the tool at its start (2 voxel channels); scalars: the push
@@ -76,7 +77,8 @@ def push_indices(grid: GridSpec, action: Any) -> tuple[list[NDArray[np.int64]], 
 
     u = action.u
     scalars = np.array([u[0], u[1], action.length_m / 0.25, action.height_m / 0.1], np.float32)
-    return [action.swept_indices(grid), swept_voxels(grid, action.start, action.u, action.height_m, action.tool)], scalars
+    at_start = swept_voxels(grid, action.start, action.u, action.height_m, action.tool)
+    return [action.swept_indices(grid), at_start], scalars
 
 
 def grasp_indices(grid: GridSpec, action: Any, region: NDArray[np.int64]
@@ -98,19 +100,6 @@ def dense_channels(grid: GridSpec, channels: Sequence[NDArray[np.int64]]) -> NDA
     for c, ind in enumerate(channels):
         vox[c, ind] = True
     return vox.reshape(len(channels), *grid.shape)
-
-
-def push_channels(grid: GridSpec, action: Any) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
-    """([2, X, Y, Z] swept volume and tool at the start, [4] scalars) of a ``PushAction``."""
-    ind, scalars = push_indices(grid, action)
-    return dense_channels(grid, ind), scalars
-
-
-def grasp_channels(grid: GridSpec, action: Any, region: NDArray[np.int64]
-                   ) -> tuple[NDArray[np.bool_], NDArray[np.float32]]:
-    """([2, X, Y, Z] swept volume and grasped region, [4] scalars) of a ``GraspAction``."""
-    ind, scalars = grasp_indices(grid, action, region)
-    return dense_channels(grid, ind), scalars
 
 
 def grasp_regions(belief: Any, actions: Sequence[Any]) -> list[NDArray[np.int64]]:

@@ -33,7 +33,6 @@ from msmem_cnabu.features import (
     grid_interior,
     manipulation_indices,
     observe_channels,
-    prior_evidence,
     sparse_channels,
     to_tensor,
     wall_mask,
@@ -67,9 +66,9 @@ def _check_grid(kind: str, net: Any, belief: EvidentialMap) -> None:
                            "weights for this grid with `msmem datagen cnabu --voxel ...` and `msmem train cnabu`")
 
 
-def _inputs(belief: EvidentialMap) -> tuple[torch.Tensor, torch.Tensor]:
-    a, b, e = to_tensor(belief.alpha)[None], to_tensor(belief.beta)[None], to_tensor(belief.eta)[None]
-    return belief_features(a, b, e), prior_evidence(a, b, e)
+def _features(belief: EvidentialMap) -> torch.Tensor:
+    """The network's belief features (its prior evidence is not needed: ``_blend`` reads the belief)."""
+    return belief_features(to_tensor(belief.alpha)[None], to_tensor(belief.beta)[None], to_tensor(belief.eta)[None])
 
 
 def _deltas(belief: EvidentialMap, out: FlatPrediction) -> list[BeliefDelta]:
@@ -152,10 +151,10 @@ class CNABUObservationModel(ObservationModel):
         """The update from a view's ray masks (free, occ [X, Y, Z], seen [C, X, Y, Z])."""
         _check_grid("observe", self.net, belief)
         with _Threads(self.config.threads):
-            feats, prior = _inputs(belief)
+            feats = _features(belief)
             act = torch.from_numpy(observe_channels(free, occ, seen))[None]  # bool: the stem scatters its nonzeros
             region = torch.from_numpy((free | occ) & ~self.walls(belief))[None]
-            out = self.net.predict_flat(feats, prior, act, torch.zeros(1, 0), 0.5, region=region)
+            out = self.net.predict_flat(feats, None, act, torch.zeros(1, 0), 0.5, region=region)
         return _deltas(belief, out)[0].apply(belief)
 
 
@@ -186,11 +185,11 @@ class _CNABUEffect(EffectModel):
             return Prediction(DeltaBeliefs(belief, []), changed.reshape(0, *grid.shape),
                               excluded=None if excluded is None else excluded.reshape(0, *grid.shape))
         with _Threads(cfg.threads):
-            feats, prior = _inputs(belief)
+            feats = _features(belief)
             interiors = [tuple(a.interior_m) for a in actions]  # type: ignore[attr-defined]
             inside = {it: self._inside(grid, it) for it in set(interiors)}
             shared = len(inside) == 1
-            prep = self.net.prepare(feats, prior, inside[interiors[0]][None] if shared else None)
+            prep = self.net.prepare(feats, None, inside[interiors[0]][None] if shared else None)
             ind, scalars, regions = manipulation_indices(self.kind, belief, actions)
             parts = []
             for start in range(0, k_n, cfg.batch):

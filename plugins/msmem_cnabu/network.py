@@ -27,6 +27,7 @@ everywhere else.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Literal
@@ -180,9 +181,9 @@ class CNABUNet(nn.Module):
     @staticmethod
     def _flatten_z(vox: Tensor, embed: nn.Linear) -> Tensor:
         """[B, F, X, Y, Z] -> per-voxel embedding flattened over z: [B, Z * E, X, Y]."""
-        b, _, x, y, z = vox.shape
-        e = torch.einsum("bfxyz,ef->bzexy", vox, embed.weight) + embed.bias[None, None, :, None, None]
-        return e.reshape(b, z * embed.out_features, x, y)
+        b, f, x, y, z = vox.shape
+        e = torch.matmul(embed.weight, vox.reshape(b, f, -1)) + embed.bias[:, None]  # [B, E, N], channel-first
+        return e.reshape(b, -1, x, y, z).permute(0, 4, 1, 2, 3).reshape(b, z * embed.out_features, x, y)
 
     def _pad(self, m: Tensor) -> Tensor:
         px, py = self.config.padded_xy
@@ -206,7 +207,8 @@ class CNABUNet(nn.Module):
         kernel, bias_map = self._folded_action_stem(x, y, z)
         k, c, i, j, kz = nonzero if nonzero is not None else torch.nonzero(action_vox, as_tuple=True)
         zf = kernel.shape[1]
-        vals = kernel.reshape(-1, kernel.shape[-1]).index_select(0, ((kz * zf + c) * 2 + i % 2) * 2 + j % 2)  # [N, width]
+        rows = ((kz * zf + c) * 2 + i % 2) * 2 + j % 2
+        vals = kernel.reshape(-1, kernel.shape[-1]).index_select(0, rows)  # [N, width]
         if action_vox.dtype != torch.bool:
             vals = vals * action_vox[k, c, i, j, kz].to(vals.dtype)[:, None]
         px, py = self.config.padded_xy
@@ -309,17 +311,15 @@ class CNABUNet(nn.Module):
         return CNABUOutput(ev[:, 0], ev[:, 1], ev[:, 2:], logit)
 
     @torch.no_grad()
-    def prepare(self, belief: Tensor, prior: Tensor, region: Tensor | None = None) -> PreparedBelief:
-        """What ``predict_many`` needs of one belief, computed once for all its candidates: the belief's
-        share of the stem, the prior, the evidence MLP's and the change head's belief parts
-        (with ``region`` [1, X, Y, Z], if given, folded in as -inf outside it)."""
+    def prepare(self, belief: Tensor, prior: Tensor | None = None, region: Tensor | None = None) -> PreparedBelief:
+        """What ``predict_flat`` needs of one belief, computed once for all its candidates: the belief's
+        share of the stem, the evidence MLP's and the change head's belief parts (with ``region``
+        [1, X, Y, Z], if given, folded in as -inf outside it), and the prior if given (only
+        ``FlatPrediction.evidence`` reads it; the belief models blend the residual themselves)."""
         cfg = self.config
         x, y, z = cfg.grid_shape
         nc, nb = cfg.context, cfg.in_voxel
         bf = belief[0].reshape(belief.shape[1], -1)  # [Fb, N]: channel-first, never copied transposed
-        emb = self.embed_belief  # belief_stem from the same rows: the embedding per voxel, z bins as channels
-        e = torch.addmm(emb.bias[:, None], emb.weight, bf).reshape(-1, x, y, z).permute(3, 0, 1, 2)
-        stem = self.stem_belief(self._pad(e.reshape(1, z * emb.out_features, x, y)))
         base = None
         if self.change is not None:
             wc = self.change.weight[0]
@@ -331,8 +331,8 @@ class CNABUNet(nn.Module):
                 base = base.masked_fill(~region[0], -math.inf)
         first = self.evidence[0]
         hidden = torch.addmm(first.bias, bf.T, first.weight[:, nc:nc + nb].T)  # the evidence MLP's belief part, rows
-        pr = prior[0].reshape(prior.shape[1], -1)
-        return PreparedBelief(stem, pr, hidden, base, region is not None and base is not None)
+        pr = None if prior is None else prior[0].reshape(prior.shape[1], -1)
+        return PreparedBelief(self.belief_stem(belief), pr, hidden, base, region is not None and base is not None)
 
     @torch.no_grad()
     def predict_many(
@@ -342,7 +342,8 @@ class CNABUNet(nn.Module):
         """``predict_flat`` split per action: (indices [M], change probability [M], evidence [M, 2 + C])."""
         out = self.predict_flat(belief, prior, action_vox, action_scalars, threshold, region, nonzero)
         b = [0, *torch.cumsum(out.counts, 0).tolist()]
-        return [(out.idx[s:e], out.p[s:e], out.evidence[:, s:e].T) for s, e in zip(b[:-1], b[1:], strict=True)]
+        ev = out.evidence
+        return [(out.idx[s:e], out.p[s:e], ev[:, s:e].T) for s, e in itertools.pairwise(b)]
 
     @torch.no_grad()
     def predict_flat(
@@ -372,8 +373,6 @@ class CNABUNet(nn.Module):
                 region = None  # already in the prepared logits
             prep = belief
         else:
-            if prior is None:
-                raise ValueError("predict_many needs the prior evidence with an unprepared belief")
             shared = region is not None and region.shape[0] == 1 and self.change is not None
             prep = self.prepare(belief, prior, region if shared else None)
             if shared:
@@ -438,13 +437,15 @@ class FlatPrediction:
     """[M] change probability (1 for observe)."""
     residual: Tensor
     """[2 + C, M] the evidence head's residual on the prior (``evidence_scale * out``), channel-first."""
-    prior: Tensor
-    """[2 + C, X * Y * Z] the belief's evidence (alpha, beta, eta)."""
+    prior: Tensor | None
+    """[2 + C, X * Y * Z] the belief's evidence (alpha, beta, eta), if it was given."""
 
     @property
     def evidence(self) -> Tensor:
         """[2 + C, M] new evidence ``relu(prior - 1 + residual) + 1`` (the belief models fuse this into
         their blend instead of gathering the prior here)."""
+        if self.prior is None:
+            raise ValueError("FlatPrediction.evidence needs the prior: pass it to predict_flat / prepare")
         return F.relu(self.prior.index_select(1, self.idx) - 1.0 + self.residual) + 1.0
 
     @staticmethod
@@ -462,8 +463,8 @@ class PreparedBelief:
 
     stem: Tensor
     """The belief's share of the stem, [1, width, X'/2, Y'/2]."""
-    pr: Tensor
-    """Prior evidence, [2 + C, X * Y * Z]."""
+    pr: Tensor | None
+    """Prior evidence, [2 + C, X * Y * Z] (None if not given)."""
     hidden: Tensor
     """The evidence MLP's first layer on the belief features, with its bias, [X * Y * Z, hidden] (rows:
     gathered per selected voxel)."""
