@@ -214,11 +214,13 @@ def perf_push(
     samples: Annotated[int, typer.Option("--samples", help="Push candidates (UPS max_samples).")] = 80,
     scene_seed: Annotated[int, typer.Option("--scene-seed", help="Generated scene of the belief.")] = 0,
     reference: Annotated[bool, typer.Option("--reference/--no-reference", help="Also time the full re-score.")] = True,
+    effect_model: Annotated[str | None, typer.Option("--effect-model", help="Push effect model (default: the push "
+                                                                           "skill's, cnabu-push).")] = None,
 ) -> None:
     """Time sampling, effect prediction and scoring of push candidates on all 300 views (mid-episode belief)."""
     from msmem_core.perf_push import perf_push as run_perf
 
-    run_perf(repeats=repeats, samples=samples, scene_seed=scene_seed, reference=reference)
+    run_perf(repeats=repeats, samples=samples, scene_seed=scene_seed, reference=reference, effect_model=effect_model)
 
 
 @perf_app.command("step")

@@ -63,7 +63,7 @@ class MSASConfig(_Strict):
     tau_chi: float = Field(0.5, gt=0.0, le=1.0)
     """Semantic vacuity below which a voxel's class counts as known (paper: tau_chi)."""
     manipulation_window: tuple[int, int] = (3, 38)
-    """Steps (inclusive) in which manipulation may be chosen ([MEM]: 3 to 38)."""
+    """Steps (inclusive) in which manipulation may be chosen ([MEM]: 3 to 38; the push-only preset: 3 to 25)."""
     conf_cutoff: float = Field(0.85, gt=0.0, lt=1.0)
     """A BEV cell counts as mapped when its max class probability (MEM's p^1.8 scaling) exceeds this."""
     mapped_fraction: float = Field(0.99, gt=0.0, le=1.0)
@@ -75,7 +75,7 @@ class MSASConfig(_Strict):
     by ``disturbed_margin_voxels``) is shrunk towards the prior until alpha + beta <= this, keeping
     which side of 0.5 each expected occupancy is on, so later views can overturn a wrong prediction and
     IG looks there again; 2 resets them to the prior (unknown). None: the belief is the prediction as
-    is, the paper's rule."""
+    is, the paper's rule (the push-only preset sets 4, measured in docs/results.md)."""
     disturbed_margin_voxels: int = Field(2, ge=0, le=10)
     """Dilation (voxels) of the changed mask for ``disturbed_evidence_cap``."""
 

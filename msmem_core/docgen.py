@@ -152,6 +152,14 @@ def model_table(model: type[BaseModel], link: dict[type, str] | None = None, nes
     return "\n".join(rows)
 
 
+def _flat(d: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    """Dotted ``(key, value)`` pairs of a nested mapping, in order."""
+    out: list[tuple[str, Any]] = []
+    for k, v in d.items():
+        out += _flat(v, f"{prefix}{k}.") if isinstance(v, dict) else [(f"{prefix}{k}", v)]
+    return out
+
+
 def _anchor(path: str) -> str:
     return re.sub(r"[^a-z0-9 _-]", "", path.lower()).replace(" ", "-")
 
@@ -193,12 +201,15 @@ def config_reference() -> str:
 
     parts += ["## Method presets (`--method`)", "",
               "Each preset is a partial config (`msmem_core/presets/<method>.yaml`); a config file and flags "
-              "override it.", "", "| method | skills | objective (weight * term) |", "| --- | --- | --- |"]
+              "override it.", "", "| method | skills | objective (weight * term) | other settings |",
+              "| --- | --- | --- | --- |"]
     for m in METHODS:
         p = preset(m)
         skills = ", ".join(s["name"] for s in p.get("skills", [])) or "(default)"
         terms = " + ".join(f"{t.get('weight', 1.0):g} * {t['name']}" for t in p.get("objective", [])) or "(default)"
-        parts.append(f"| `{m}` | {skills} | {terms} |")
+        other = ", ".join(f"`{k}: {json.dumps(v)}`" for k, v in _flat(
+            {k: v for k, v in p.items() if k not in ("method", "skills", "objective")})) or "-"
+        parts.append(f"| `{m}` | {skills} | {terms} | {other} |")
     parts.append("")
 
     pm = get_plugin_manager()

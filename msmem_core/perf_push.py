@@ -1,6 +1,7 @@
 """``msmem perf push``: time the push skill's per-step work on a mid-episode belief.
 
-Stages: sampling (UPS, ``push`` skill), prediction (``push-analytic`` effect model), and scoring
+Stages: sampling (UPS, ``push`` skill), prediction (the push skill's default effect model, or the one
+named by ``effect_model``), and scoring
 (``ig`` term on all 300 views, as configured by default: screened at every 2nd ray, finalists
 re-scored at full density; plus ``semantic-entropy``). For comparison: the incremental ``ig`` term
 without screening (exact for every candidate) and the brute-force reference, a full batched IG
@@ -64,7 +65,7 @@ def _best(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
 
 def perf_push(
     repeats: int = 3, samples: int = 80, scene_seed: int = 0, views: int = 4, reference: bool = True,
-    report: Callable[[str], None] = print,
+    report: Callable[[str], None] = print, effect_model: str | None = None,
 ) -> dict[str, float]:
     """Time sampling, prediction and scoring of ``samples`` push candidates on all candidate views."""
     from msmem_core.scenegen import generate_scene
@@ -78,7 +79,8 @@ def perf_push(
     belief = mid_episode_scene_belief(scene, grid, camera, viewpoints, views, scene_seed)
     ig = IGService(grid, camera, viewpoints, scene.shelf, ig_cfg)
     skill = pm.build("skill", ComponentRef(name="push", params={"max_samples": samples}))
-    effect = pm.build("belief-model", ComponentRef(name=pm.skills()["push"].effect_model or "push-analytic"))
+    effect_name = effect_model or pm.skills()["push"].effect_model or "push-analytic"
+    effect = pm.build("belief-model", ComponentRef(name=effect_name), where="--effect-model")
     ig_term = pm.build("objective-term", "ig")
     exact_term = pm.build("objective-term", ComponentRef(name="ig", params={"screen_ray_step": 1}))
     dh_term = pm.build("objective-term", "semantic-entropy")
@@ -134,12 +136,12 @@ def perf_push(
         f"wall-clock best of {repeats}, {numba.get_num_threads()} numba threads, load average {load:.1f}; "
         f"setup {setup_s:.1f} s; 'sweeps' = seconds / one IG sweep, comparable across machine loads"
     )
-    report(f"  {'stage':44} {'seconds':>8} {'sweeps':>7}")
+    report(f"  {'stage':52} {'seconds':>8} {'sweeps':>7}")
     rows = [
         ("ig.prepare (once per step, shared with views)", t_prep),
         ("one IG sweep: base belief, all views (unit)", t_sweep),
         (f"sample (UPS): {len(actions)} candidates", t_sample),
-        (f"predict (push-analytic), mean {res['changed_voxels_mean']:.0f} changed voxels", t_predict),
+        (f"predict ({effect_name}), mean {res['changed_voxels_mean']:.0f} changed voxels", t_predict),
         ("score: ig (screened, 8 finalists exact)", t_ig),
         ("score: semantic-entropy", t_dh),
         ("total: sample + predict + score", res["total_s"]),
@@ -148,7 +150,7 @@ def perf_push(
     if "reference_s" in res:
         rows.append(("  ig reference (full re-score of every belief)", res["reference_s"]))
     for name, sec in rows:
-        report(f"  {name:44} {sec:8.3f} {sec / t_sweep:7.1f}")
+        report(f"  {name:52} {sec:8.3f} {sec / t_sweep:7.1f}")
     if "reference_s" in res:
         report(
             f"  reference / incremental: {res['reference_over_exact']:.1f}x (/ screened: "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -23,6 +24,18 @@ def test_file_overrides_preset_and_flags_override_file(tmp_path):
     cfg = load_config("view-only", f, {"steps": 5})
     assert (cfg.steps, cfg.seed, cfg.ig.ray_stride_px) == (5, 3, 16)
     assert cfg.objective[0].name == "ig"  # untouched preset value survives
+
+
+def test_push_only_departs_from_mem_rules_and_a_file_restores_them():
+    """push-only caps the evidence a push changed and stops pushing at step 25 (benchmarked in
+    docs/results.md); the other methods keep MEM's rules, and a config file brings them back."""
+    cfg = load_config("push-only")
+    assert (cfg.msas.disturbed_evidence_cap, cfg.msas.manipulation_window) == (4.0, (3, 25))
+    for method in ("ours", "no-cdc", "grasp-only"):
+        other = load_config(method).msas
+        assert (other.disturbed_evidence_cap, other.manipulation_window) == (None, (3, 38))
+    mem = load_config("push-only", Path(__file__).parents[1] / "examples" / "mem-rules.yaml").msas
+    assert (mem.disturbed_evidence_cap, mem.manipulation_window, mem.disturbed_margin_voxels) == (None, (3, 38), 2)
 
 
 def test_json_config_files_work(tmp_path):

@@ -415,3 +415,14 @@ def test_push_only_episode_executes_a_push_and_records_it(tmp_path: Path, monkey
     assert set(rec["terms"]) == {"ig", "semantic-entropy", "manipulation-bonus"}
     assert rec["terms"]["semantic-entropy"] <= 0.0
     assert final["actions"] == {"view": 2, "push": 1}
+
+
+def test_perf_push_times_the_named_effect_model_and_matches_the_reference() -> None:
+    from msmem_core.perf_push import perf_push
+
+    lines: list[str] = []
+    res = perf_push(repeats=1, samples=6, reference=True, report=lines.append, effect_model="push-analytic")
+    assert res["candidates"] > 0
+    assert any("predict (push-analytic)" in line for line in lines)
+    assert res["max_rel_diff_exact_vs_reference"] < 1e-9
+    assert res["total_s"] >= res["sample_s"] + res["predict_s"]
