@@ -48,7 +48,7 @@ def suite_scenes(suite: str) -> list[SceneSpec]:
     if suite not in SUITES:
         raise UserError(f"unknown suite {suite!r}; suites: {', '.join(SUITES)}")
     folder = resources.files("msmem_core.suites").joinpath(suite)
-    files = sorted(f for f in folder.iterdir() if f.name.endswith(".json"))
+    files = sorted((f for f in folder.iterdir() if f.name.endswith(".json")), key=lambda f: f.name)
     return [SceneSpec.model_validate_json(f.read_text()) for f in files]
 
 

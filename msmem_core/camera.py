@@ -59,7 +59,6 @@ class Observation:
 
     def points_world(self) -> NDArray[np.float64]:
         """World coordinates (N, 3) of every pixel with a depth return."""
-        h, w = self.depth.shape
         v, u = np.nonzero(self.depth > 0)
         z = self.depth[v, u].astype(np.float64)
         k = self.intrinsics

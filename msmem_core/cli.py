@@ -12,7 +12,8 @@ import typer
 from msmem_core.errors import UserError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="Multi-Skill Manipulation-Enhanced Mapping: map a cluttered shelf by looking, pushing and grasping.")
+                  help="Multi-Skill Manipulation-Enhanced Mapping: map a cluttered shelf by looking, pushing "
+                       "and grasping.")
 config_app = typer.Typer(no_args_is_help=True, help="Inspect configuration.")
 perf_app = typer.Typer(no_args_is_help=True, help="Speed benchmarks.")
 scene_app = typer.Typer(no_args_is_help=True, help="Generate and inspect scenes.")
@@ -28,7 +29,8 @@ app.add_typer(datagen_app, name="datagen")
 app.add_typer(train_app, name="train")
 app.add_typer(eval_app, name="eval")
 
-MethodOpt = Annotated[str | None, typer.Option("--method", "-m", help="Method preset: view-only, push-only, grasp-only, no-cdc, ours.")]
+MethodOpt = Annotated[str | None, typer.Option(
+    "--method", "-m", help="Method preset: view-only, push-only, grasp-only, no-cdc, ours.")]
 ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML/JSON config file overriding the preset.")]
 
 
@@ -84,7 +86,8 @@ def run(
     scene_seed: Annotated[int | None, typer.Option("--scene-seed", help="Generate the scene from this seed.")] = None,
     steps: Annotated[int | None, typer.Option("--steps", help="T_max: number of actions.")] = None,
     seed: Annotated[int | None, typer.Option("--seed", help="Root seed of the episode.")] = None,
-    out: Annotated[Path | None, typer.Option("--out", help="Run folder (default runs/<method>-scene<N>-seed<S>).")] = None,
+    out: Annotated[Path | None,
+                   typer.Option("--out", help="Run folder (default runs/<method>-scene<N>-seed<S>).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
     report: Annotated[bool, typer.Option("--report/--no-report",
                                          help="Write report.html and PNGs to the run folder.")] = True,

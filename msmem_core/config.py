@@ -119,7 +119,8 @@ class RunConfig(_Strict):
         return sorted({s for s in wanted if s < self.steps})
 
     def grid_spec(self, shelf: Any) -> GridSpec:
-        return GridSpec.around_box(shelf.interior_lower, shelf.interior_upper, self.grid.voxel_m, self.grid.margin_voxels)
+        return GridSpec.around_box(shelf.interior_lower, shelf.interior_upper, self.grid.voxel_m,
+                                   self.grid.margin_voxels)
 
 
 def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

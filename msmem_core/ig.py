@@ -277,7 +277,8 @@ class IGService:
         return IGField(field.p, h)
 
     def best_two_step(
-        self, field: IGField, excluded: set[int] | frozenset[int] = frozenset(), first: NDArray[np.float64] | None = None
+        self, field: IGField, excluded: set[int] | frozenset[int] = frozenset(),
+        first: NDArray[np.float64] | None = None,
     ) -> tuple[int, float, int, float]:
         """Greedy two-view lookahead (paper eq. oig, view branch, as MEM).
 

@@ -162,7 +162,7 @@ class Prediction:
     object's region); None: none."""
 
 
-class BeliefModel(ABC):
+class BeliefModel(ABC):  # noqa: B024 - a plugin implements one or both roles, so neither is abstract
     """Base of belief models; a plugin implements one or both roles."""
 
     roles: ClassVar[frozenset[str]] = frozenset()

@@ -60,7 +60,8 @@ class BoundSkill:
             return CandidateBatch(self.name, "perception", actions, view_indices=views)
         if self.effect_model is None:
             raise RuntimeError(f"manipulation skill {self.name!r} has no effect model")
-        return CandidateBatch(self.name, "manipulation", actions, prediction=self.effect_model.predict(ctx.belief, actions))
+        prediction = self.effect_model.predict(ctx.belief, actions)
+        return CandidateBatch(self.name, "manipulation", actions, prediction=prediction)
 
 
 @dataclass
@@ -69,7 +70,8 @@ class Objective:
 
     terms: list[tuple[str, float, Term]]
 
-    def score(self, ctx: DecisionContext, batch: CandidateBatch) -> tuple[NDArray[np.float64], dict[str, NDArray[np.float64]]]:
+    def score(self, ctx: DecisionContext,
+              batch: CandidateBatch) -> tuple[NDArray[np.float64], dict[str, NDArray[np.float64]]]:
         total = np.zeros(len(batch.actions))
         parts: dict[str, NDArray[np.float64]] = {}
         for name, weight, term in self.terms:
@@ -155,7 +157,7 @@ def bev_confidence(belief: EvidentialMap, interior: NDArray[np.bool_], power: fl
     occ = (belief.expected_occupancy() > 0.5) & interior
     nz = interior.shape[2]
     top = nz - 1 - np.argmax(occ[:, :, ::-1], axis=2)
-    has_top = occ.any(axis=2)
+    has_top = np.asarray(occ.any(axis=2))
     at_top = np.take_along_axis(probs, top[None, :, :, None], axis=3)[..., 0]
     n_in = np.maximum(interior.sum(axis=2), 1)
     mean = (probs * interior[None]).sum(axis=3) / n_in

@@ -47,7 +47,7 @@ def set_threads(n: int) -> None:
     import numba
     import torch
 
-    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))  # type: ignore[attr-defined]
     torch.set_num_threads(n)
 
 
@@ -219,7 +219,7 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None) 
     finally:
         if out_dir is not None:
             steps_file.close()
-    final = dict(ep.records[-1]["metrics"]) if ep.records else initial
+    final: dict[str, Any] = dict(ep.records[-1]["metrics"]) if ep.records else dict(initial)
     final.update({
         "initial": initial,
         "actions": dict(counts),

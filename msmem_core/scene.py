@@ -87,7 +87,8 @@ def _ring(r_out: float, wall: float, h: float, z0: float, n: int = 10) -> list[P
         rc = r_out - wall / 2
         q = (0.0, 0.0, float(np.sin(a / 2)), float(np.cos(a / 2)))
         parts.append(
-            Part(kind="box", size_m=(wall, chord, h), position_m=(rc * np.cos(a), rc * np.sin(a), z0 + h / 2), quat_xyzw=q)
+            Part(kind="box", size_m=(wall, chord, h), position_m=(rc * np.cos(a), rc * np.sin(a), z0 + h / 2),
+                 quat_xyzw=q)
         )
     return parts
 
@@ -102,7 +103,8 @@ def _catalogue() -> tuple[ObjectClass, ...]:
         ("sugar_box", [_box(0.090, 0.040, 0.175)], 0.51, "cracker_box"),
         ("master_chef_can", [_cyl(0.051, 0.140)], 0.41, "tomato_soup_can"),
         ("tomato_soup_can", [_cyl(0.033, 0.101)], 0.35, "master_chef_can"),
-        ("mustard_bottle", [_box(0.095, 0.058, 0.150), _cyl(0.015, 0.040, (0.02, 0.0, 0.170))], 0.60, "bleach_cleanser"),
+        ("mustard_bottle", [_box(0.095, 0.058, 0.150), _cyl(0.015, 0.040, (0.02, 0.0, 0.170))], 0.60,
+         "bleach_cleanser"),
         ("tuna_fish_can", [_cyl(0.043, 0.033)], 0.17, "potted_meat_can"),
         ("pudding_box", [_box(0.110, 0.089, 0.035)], 0.19, "gelatin_box"),
         ("gelatin_box", [_box(0.085, 0.073, 0.028)], 0.10, "pudding_box"),

@@ -221,10 +221,14 @@ def test_cap_evidence_shrinks_disturbed_evidence_and_keeps_the_side_of_one_half(
     assert np.all(s_in <= cap * (1 + 1e-5))  # above the cap: shrunk to it; below: as it was
     np.testing.assert_array_equal(s_out, (b.alpha + b.beta)[~region])  # outside: untouched
     np.testing.assert_array_equal(out.eta[:, ~region], b.eta[:, ~region])
-    assert out.alpha.min() >= 1 and out.beta.min() >= 1 and out.eta.min() >= 1
+    assert out.alpha.min() >= 1
+    assert out.beta.min() >= 1
+    assert out.eta.min() >= 1
     p_before, p_after = b.alpha / (b.alpha + b.beta), out.alpha / (out.alpha + out.beta)
     assert np.array_equal(p_before > 0.5, p_after > 0.5)
     np.testing.assert_array_equal(np.argmax(out.eta, axis=0), np.argmax(b.eta, axis=0))
     reset = cap_evidence(b, changed, 2.0, margin)  # cap 2: back to the prior
-    assert np.all(reset.alpha[region] == 1) and np.all(reset.beta[region] == 1) and np.all(reset.eta[:, region] == 1)
+    assert np.all(reset.alpha[region] == 1)
+    assert np.all(reset.beta[region] == 1)
+    assert np.all(reset.eta[:, region] == 1)
     np.testing.assert_array_equal(reset.alpha[~region], b.alpha[~region])

@@ -90,7 +90,7 @@ def test_network_shapes_and_evidence_at_least_one(kind, x, y, z, batch, levels, 
 
 
 def test_config_rejects_a_grid_too_small_for_its_levels():
-    with pytest.raises(ValidationError, match="grid_shape.*levels=2"):
+    with pytest.raises(ValidationError, match=r"grid_shape.*levels=2"):
         CNABUNetConfig(kind="push", grid_shape=(3, 3, 2), levels=2)
     CNABUNetConfig(kind="push", grid_shape=(3, 5, 2), levels=2)  # a 1 x 2 coarsest map is enough
 

@@ -88,13 +88,16 @@ def test_invalid_scene_file_names_file_and_field(tmp_path):
     assert out.returncode == 2
     assert f"invalid scene file {bad}: field objects.0.position_m" in out.stderr
     missing = cli("run", "--scene", str(tmp_path / "nope.json"), "--steps", "1")
-    assert "cannot read scene file" in missing.stderr and "nope.json" in missing.stderr
+    assert "cannot read scene file" in missing.stderr
+    assert "nope.json" in missing.stderr
 
 
 def test_config_show_prints_the_resolved_preset():
     out = cli("config", "show", "--method", "push-only")
     assert out.returncode == 0, out.stderr
-    assert "method: push-only" in out.stdout and "name: push" in out.stdout
+    assert "method: push-only" in out.stdout
+    assert "name: push" in out.stdout
+    assert "disturbed_evidence_cap: 4.0" in out.stdout
 
 
 @pytest.mark.slow
@@ -104,7 +107,8 @@ def test_ig_views_beat_random_views_at_step_10(tmp_path, monkeypatch):
     pm = get_plugin_manager()
     ig_iou, rnd_iou = [], []
     for seed in range(5):
-        for objective, out in (([{"name": "ig"}], ig_iou), ([{"name": "random-score", "params": {"seed": seed}}], rnd_iou)):
+        random_term = {"name": "random-score", "params": {"seed": seed}}
+        for objective, out in (([{"name": "ig"}], ig_iou), ([random_term], rnd_iou)):
             cfg = load_config("view-only", None, {"steps": 10, "seed": seed, "scene": {"seed": 100 + seed},
                                                   "objective": objective})
             out.append(run_episode(build_episode(cfg, pm))["occupancy_iou"])

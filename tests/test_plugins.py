@@ -71,7 +71,8 @@ def test_duplicate_name_is_refused_naming_both_origins(monkeypatch):
         pm.skills()
     msg = str(e.value)
     assert "'view' is registered twice" in msg
-    assert "'view' from msmem" in msg and "'clash' from MSMEM_PLUGINS" in msg
+    assert "'view' from msmem" in msg
+    assert "'clash' from MSMEM_PLUGINS" in msg
 
 
 def test_hook_name_typo_is_caught(monkeypatch):
@@ -154,7 +155,8 @@ def test_separately_installed_plugin_appears_in_cli_and_builds(installed_third_p
     assert out.returncode == 0, out.stderr
     rows = json.loads(out.stdout)["components"]
     tiny = [r for r in rows if r["name"] == "time-cost"]
-    assert tiny and tiny[0]["distribution"] == installed_third_party
+    assert tiny
+    assert tiny[0]["distribution"] == installed_third_party
     assert tiny[0]["config"]["seconds_per_action"]["default"] == 1.0
     pm = get_plugin_manager()
     term = pm.build("objective-term", ComponentRef(name="time-cost", params={"seconds_per_action": 2.5}))
@@ -164,4 +166,5 @@ def test_separately_installed_plugin_appears_in_cli_and_builds(installed_third_p
 def test_disable_autoload_keeps_builtins_only(installed_third_party):
     out = run_cli("plugins", "--json", env={"MSMEM_DISABLE_PLUGIN_AUTOLOAD": "1"})
     names = {r["name"] for r in json.loads(out.stdout)["components"]}
-    assert "time-cost" not in names and {"view", "pybullet", "ig"} <= names
+    assert "time-cost" not in names
+    assert {"view", "pybullet", "ig"} <= names

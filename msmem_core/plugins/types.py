@@ -36,7 +36,8 @@ class _Spec:
             raise PluginError(f"{self.kind} name {self.name!r} must be lower-case letters, digits, '-' or '_'")
         extra = self.config_model.model_config.get("extra")
         if extra != "forbid":
-            raise PluginError(f"{self.kind} {self.name!r}: config model {self.config_model.__name__} must set extra='forbid'")
+            raise PluginError(f"{self.kind} {self.name!r}: config model {self.config_model.__name__} "
+                              "must set extra='forbid'")
 
 
 @dataclass(frozen=True)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import pytest
 
 from msmem_core.plugins.manager import MsmemPluginManager, get_plugin_manager
@@ -11,15 +9,15 @@ from msmem_core.testing.fake import FakeSimulator
 
 
 @pytest.fixture
-def plugin_manager() -> Iterator[MsmemPluginManager]:
+def plugin_manager() -> MsmemPluginManager:
     """A fresh manager with every installed plugin loaded (plus ``MSMEM_PLUGINS``)."""
-    yield get_plugin_manager()
+    return get_plugin_manager()
 
 
 @pytest.fixture
-def bare_plugin_manager() -> Iterator[MsmemPluginManager]:
+def bare_plugin_manager() -> MsmemPluginManager:
     """A fresh manager with nothing loaded: register what the test needs."""
-    yield MsmemPluginManager()
+    return MsmemPluginManager()
 
 
 @pytest.fixture
