@@ -80,7 +80,7 @@ def perf_push(
     ig = IGService(grid, camera, viewpoints, scene.shelf, ig_cfg)
     skill = pm.build("skill", ComponentRef(name="push", params={"max_samples": samples}))
     effect_name = effect_model or pm.skills()["push"].effect_model or "push-analytic"
-    effect = pm.build("belief-model", ComponentRef(name=effect_name), where="--effect-model")
+    effect = pm.build("belief-model", effect_name)
     ig_term = pm.build("objective-term", "ig")
     exact_term = pm.build("objective-term", ComponentRef(name="ig", params={"screen_ray_step": 1}))
     dh_term = pm.build("objective-term", "semantic-entropy")

@@ -155,6 +155,13 @@ class GraspAction(Action):
     def swept_indices(self, grid: GridSpec) -> NDArray[np.int64]:
         """Flat voxel indices the gripper covers: open along the approach, closed to the width
         while lifting and retreating (the grasped object's own sweep is not included)."""
+        return np.flatnonzero(self._swept_mask(grid))
+
+    def swept_volume(self, grid: GridSpec) -> NDArray[np.bool_]:
+        return self._swept_mask(grid).reshape(grid.shape)
+
+    def _swept_mask(self, grid: GridSpec) -> NDArray[np.bool_]:
+        """The flat grid mask of ``swept_indices``."""
         s = grid.voxel_m
         r = self.matrix[:3, :3]
         grasp = self.matrix[:3, 3]
@@ -163,12 +170,7 @@ class GraspAction(Action):
         mask = np.zeros(grid.size, dtype=bool)
         mark_swept(mask, grid, r, gripper_points(self.gripper, self.opening_m, s / 2), app)
         mark_swept(mask, grid, r, gripper_points(self.gripper, self.width_m, s / 2), ret)
-        return np.flatnonzero(mask)
-
-    def swept_volume(self, grid: GridSpec) -> NDArray[np.bool_]:
-        mask = np.zeros(grid.size, dtype=bool)
-        mask[self.swept_indices(grid)] = True
-        return mask.reshape(grid.shape)
+        return mask
 
 
 class GraspConfig(BaseModel):
