@@ -1,0 +1,27 @@
+"""Behaviour guard: every preset's short seeded episode matches its recorded golden run.
+
+A refactor that is meant to preserve behaviour must leave these unchanged; see
+``tests/golden/episodes.py`` for how they were recorded and how to regenerate them on purpose.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from msmem_core.config import METHODS
+from tests.golden.episodes import GOLDEN_DIR, record
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_golden_episode(method: str) -> None:
+    want = json.loads((GOLDEN_DIR / f"{method}.json").read_text())
+    got = json.loads(json.dumps(record(method)))
+    assert [s["skill"] for s in got["steps"]] == [s["skill"] for s in want["steps"]]
+    for g, w in zip(got["steps"], want["steps"], strict=True):
+        assert g["action"] == w["action"], f"step {w['step']}: action differs"
+        assert g["success"] == w["success"], f"step {w['step']}: outcome differs"
+        assert g["metrics"] == pytest.approx(w["metrics"], abs=2e-5), f"step {w['step']}: metrics differ"
+        assert g["objective"] == pytest.approx(w["objective"], rel=1e-4, abs=1e-4), f"step {w['step']}"
+    assert got["actions"] == want["actions"]
