@@ -14,12 +14,12 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
-from msmem_core.camera import Observation
+from msmem_core.world.camera import Observation
 
 if TYPE_CHECKING:
-    from msmem_core.belief import EvidentialMap
-    from msmem_core.grid import GridSpec
-    from msmem_core.scene import SceneSpec
+    from msmem_core.map.belief import EvidentialMap
+    from msmem_core.world.grid import GridSpec
+    from msmem_core.world.scene import SceneSpec
 
 Category = Literal["perception", "manipulation"]
 GRIPPER_ID = -1

@@ -13,12 +13,12 @@ from numpy.typing import NDArray
 from msmem_core.interfaces import Action, CandidateBatch, EffectModel, ObservationModel, Outcome, Simulator, Skill, Term
 
 if TYPE_CHECKING:
-    from msmem_core.belief import EvidentialMap
+    from msmem_core.map.belief import EvidentialMap
     from msmem_core.config import MSASConfig
-    from msmem_core.grid import GridSpec
-    from msmem_core.gripper import GripperSpec
-    from msmem_core.ig import IGField, IGService
-    from msmem_core.scene import ShelfSpec
+    from msmem_core.world.grid import GridSpec
+    from msmem_core.world.gripper import GripperSpec
+    from msmem_core.map.ig import IGField, IGService
+    from msmem_core.world.scene import ShelfSpec
 
 
 @dataclass
@@ -219,7 +219,7 @@ def run_msas(
     model's prediction, visited views are cleared and the manipulation's associated best view is
     executed (both count towards T_max). Manipulation stops for good once an object falls or leaves,
     and is not allowed once ``cfg.mapped_fraction`` of the BEV cells are mapped (``mapped_fraction``)."""
-    from msmem_core.groundtruth import interior_mask
+    from msmem_core.world.groundtruth import interior_mask
 
     visited: set[int] = set()
     interior: NDArray[np.bool_] | None = None

@@ -10,9 +10,9 @@ import pytest
 import trimesh
 from msmem_grasp.antipodal import AntipodalConfig, GraspSet, Solids, class_grasps, grasps_in_scene, gripper_boxes
 
-from msmem_core.gripper import GripperSpec
-from msmem_core.meshes import class_mesh
-from msmem_core.scene import OBJECT_CLASSES, ObjectSpec, SceneSpec, object_class
+from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.meshes import class_mesh
+from msmem_core.world.scene import OBJECT_CLASSES, ObjectSpec, SceneSpec, object_class
 
 GRIPPER = GripperSpec()
 COS_CONE = 1 / np.sqrt(1 + 0.5**2)  # friction cone half-angle atan(0.5)

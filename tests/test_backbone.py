@@ -9,7 +9,7 @@ import torch
 from msmem_grasp.backbone import PointTransformer, hilbert_encode, morton_encode
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig, executable_grasp, project_approach
 
-from msmem_core.gripper import GripperSpec
+from msmem_core.world.gripper import GripperSpec
 
 torch.set_num_threads(1)
 F64 = torch.float64

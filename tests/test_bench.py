@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from msmem_core.bench import (
+from msmem_core.run.bench import (
     BenchTask,
     parse_range,
     run_bench,
@@ -20,7 +20,7 @@ from msmem_core.bench import (
     table_markdown,
 )
 from msmem_core.errors import UserError
-from msmem_core.executors import run_tasks
+from msmem_core.run.executors import run_tasks
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {"steps": 2, "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
@@ -79,7 +79,7 @@ def test_table_ii_sums_the_object_counts_over_scenes():
 
 def test_kill_and_resume_loses_at_most_the_inflight_episode(tmp_path):
     script = (
-        "import sys, json; from pathlib import Path; from msmem_core.bench import run_bench, suite_scenes;"
+        "import sys, json; from pathlib import Path; from msmem_core.run.bench import run_bench, suite_scenes;"
         f"run_bench(['view-only'], suite_scenes('hard25'), [0, 1, 2], Path(sys.argv[1]), {FAST!r}, None,"
         " 'local', 1, 1, progress=False)"
     )

@@ -24,9 +24,9 @@ from msmem_cnabu.weights import WeightsError, load_cnabu
 from pydantic import ValidationError
 from typer.testing import CliRunner
 
-from msmem_core.belief import EvidentialMap
-from msmem_core.grid import GridSpec
-from msmem_core.scene import ShelfSpec
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.scene import ShelfSpec
 
 torch.set_num_threads(1)
 SHELF = ShelfSpec()
@@ -341,7 +341,7 @@ def test_observe_datagen_resumes_and_regenerates_a_corrupt_shard(observe_data):
 
 
 def test_train_and_eval_end_to_end_on_tiny_push_data(push_data, tmp_path):
-    from msmem_core.cli import app
+    from msmem_core.cli.app import app
 
     out = tmp_path / "cnabu_push.pt"
     runner = CliRunner()

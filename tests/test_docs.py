@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from msmem_core.docgen import cli_reference, config_reference
+from msmem_core.cli.docgen import cli_reference, config_reference
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [*sorted((ROOT / "docs").glob("*.md")), ROOT / "README.md", ROOT / "examples" / "msmem-nudge" / "README.md"]

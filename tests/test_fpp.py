@@ -21,11 +21,11 @@ from msmem_grasp.fpp import (
     virtual_front_views,
 )
 
-from msmem_core import raycast
-from msmem_core.belief import EvidentialMap
-from msmem_core.grid import GridSpec
-from msmem_core.scene import ShelfSpec
-from msmem_core.viewpoints import ViewpointConfig, generate_viewpoints
+from msmem_core.map import raycast
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.scene import ShelfSpec
+from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
 GRID = GridSpec.around_box(ShelfSpec().interior_lower, ShelfSpec().interior_upper, 0.01, 1)
 SMALL = FPPConfig(ray_stride_px=8, num_points=2000)

@@ -8,8 +8,8 @@ import torch
 from msmem_grasp.fevmf import GraspPrediction
 from msmem_grasp.fusion import FusionConfig, GraspBuffer, GraspHypotheses, project_approach_np
 
-from msmem_core.belief import EvidentialMap
-from msmem_core.grid import GridSpec
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.grid import GridSpec
 
 torch.set_num_threads(1)
 GRID = GridSpec(origin_m=(0.0, 0.0, 0.0), voxel_m=0.01, shape=(20, 20, 20))

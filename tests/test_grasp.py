@@ -26,22 +26,22 @@ from msmem_grasp.planning import (
 from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill, interior_of
 from pydantic import ValidationError
 
-from msmem_core.belief import DeltaBeliefs, EvidentialMap
-from msmem_core.camera import CameraConfig
+from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
+from msmem_core.world.camera import CameraConfig
 from msmem_core.errors import PluginError
-from msmem_core.geometry import yaw_quat
-from msmem_core.grid import GridSpec
-from msmem_core.gripper import GripperSpec
-from msmem_core.groundtruth import interior_mask, voxelize
-from msmem_core.ig import IGService
+from msmem_core.world.geometry import yaw_quat
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.groundtruth import interior_mask, voxelize
+from msmem_core.map.ig import IGService
 from msmem_core.interfaces import CandidateBatch
-from msmem_core.metrics import occupancy_iou, position_change_m
+from msmem_core.run.metrics import occupancy_iou, position_change_m
 from msmem_core.msas import DecisionContext
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.plugins.manager import ComponentRef
-from msmem_core.scene import ObjectSpec, SceneSpec, ShelfSpec
+from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec
 from msmem_core.testing.conformance import gripper_pose
-from msmem_core.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 
 torch.set_num_threads(1)
 SHELF = ShelfSpec()
@@ -579,7 +579,7 @@ def test_predicted_occupancy_after_a_disturbing_grasp_beats_removal_alone() -> N
 @pytest.mark.slow
 def test_a_grasp_only_episode_executes_a_grasp(tmp_path) -> None:  # type: ignore[no-untyped-def]
     from msmem_core.config import load_config
-    from msmem_core.runner import build_episode, run_episode
+    from msmem_core.run.runner import build_episode, run_episode
 
     cfg = load_config("grasp-only", overrides={"steps": 8, "scene": {"seed": 1}})
     ep = build_episode(cfg, get_plugin_manager())

@@ -15,7 +15,7 @@ from msmem_grasp.fevmf import FEVMFConfig
 from msmem_grasp.fpp import FPPConfig
 from msmem_grasp.training import TrainConfig, collate, train, validate
 
-from msmem_core.executors import TaskFailure, run_tasks
+from msmem_core.run.executors import TaskFailure, run_tasks
 
 TINY = GraspDataConfig(min_views=2, max_views=3, fpp=FPPConfig(num_points=768, ray_stride_px=8))
 SEEDS = [11, 12]

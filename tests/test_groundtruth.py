@@ -8,10 +8,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from msmem_core.camera import CameraConfig
-from msmem_core.geometry import look_at, pose_matrix, yaw_quat
-from msmem_core.grid import GridSpec
-from msmem_core.groundtruth import (
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.geometry import look_at, pose_matrix, yaw_quat
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.groundtruth import (
     HIT_NUDGE_VOXELS,
     count_views_seeing,
     hidden_objects,
@@ -23,9 +23,9 @@ from msmem_core.groundtruth import (
     voxelize,
     voxelize_instances,
 )
-from msmem_core.meshes import object_mesh, shelf_meshes
-from msmem_core.scene import ObjectSpec, ShelfSpec, object_class
-from msmem_core.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+from msmem_core.world.meshes import object_mesh, shelf_meshes
+from msmem_core.world.scene import ObjectSpec, ShelfSpec, object_class
+from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)

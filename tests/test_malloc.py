@@ -1,4 +1,4 @@
-"""The allocator tuning the CLI and the executor workers apply (msmem_core._malloc)."""
+"""The allocator tuning the CLI and the executor workers apply (msmem_core.util.malloc)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 PROBE = """
 import json, resource, sys
 import numpy as np
-from msmem_core._malloc import keep_large_allocations
+from msmem_core.util.malloc import keep_large_allocations
 
 def faults():  # minor page faults of one 64 MB temporary, every page written
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt

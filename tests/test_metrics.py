@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from msmem_core.geometry import pose_matrix
-from msmem_core.metrics import (
+from msmem_core.world.geometry import pose_matrix
+from msmem_core.run.metrics import (
     observable_iou,
     occupancy_iou,
     position_change_m,

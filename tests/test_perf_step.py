@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from msmem_core.interfaces import Action
-from msmem_core.perf_step import is_valid_action, perf_step
+from msmem_core.perf.step import is_valid_action, perf_step
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENE = ROOT / "msmem_core" / "suites" / "hard25" / "scene_00.json"

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msmem_core.report import REPORT_FILES, load_run, render_html, write_report
+from msmem_core.run.report import REPORT_FILES, load_run, render_html, write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 MSMEM = str(Path(sys.executable).with_name("msmem"))
@@ -98,7 +98,7 @@ def test_pushes_and_grasps_are_drawn_from_any_action_with_their_fields(run_dir, 
                           "width_m": 0.05}
     (copy / "steps.jsonl").write_text("".join(json.dumps(s) + "\n" for s in steps))
     run = load_run(copy)
-    from msmem_core.report import figure_3d
+    from msmem_core.run.report import figure_3d
 
     fig = figure_3d(run)
     final = [t for t in fig.data if t.visible is True]
@@ -140,8 +140,8 @@ def test_report_steps_choose_the_snapshots_and_an_empty_shelf_still_reports(tmp_
     truth is empty (the fake simulator: nothing but the back wall) still gets a report."""
     from msmem_core.config import load_config
     from msmem_core.plugins import get_plugin_manager
-    from msmem_core.runner import build_episode, run_episode
-    from msmem_core.scene import SceneSpec
+    from msmem_core.run.runner import build_episode, run_episode
+    from msmem_core.world.scene import SceneSpec
     from msmem_core.testing import FakeSimulator
 
     cfg = load_config("view-only", None, {**SMALL, "steps": 3, "report_steps": [1, 7]})

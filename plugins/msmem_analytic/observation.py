@@ -23,9 +23,9 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core import raycast
-from msmem_core.belief import EvidentialMap
-from msmem_core.camera import Observation
+from msmem_core.map import raycast
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.camera import Observation
 from msmem_core.interfaces import ObservationModel
 
 

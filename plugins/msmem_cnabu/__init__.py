@@ -8,7 +8,7 @@ training, evaluation and the belief-model plugins ``cnabu-observe``, ``cnabu-pus
 - ``datagen``: ``msmem datagen cnabu`` (PyBullet episodes -> sharded samples);
 - ``training``: ``msmem train cnabu``; ``weights``: loading with sha256 checks;
 - ``models``: the belief models; ``evaluation``: ``msmem eval belief-models``;
-- ``commands``: the CLI commands (registered by ``msmem_core.cli``).
+- ``commands``: the CLI commands (registered by ``msmem_core.cli.app``).
 """
 
 import msmem_core as _msmem_core  # noqa: F401 - sets the OpenMP wait policy before torch loads

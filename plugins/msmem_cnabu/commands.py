@@ -1,7 +1,7 @@
 """The ``msmem datagen cnabu``, ``msmem train cnabu`` and ``msmem eval belief-models`` commands.
 
 ``register(datagen_app, train_app, eval_app)`` adds them to msmem's typer groups (called by
-``msmem_core.cli`` when this package is installed). Importing this module is cheap (typer only);
+``msmem_core.cli.app`` when this package is installed). Importing this module is cheap (typer only);
 everything heavy is imported inside the command bodies.
 """
 
@@ -44,7 +44,7 @@ def datagen_cnabu(
     from pydantic import ValidationError
 
     from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset
-    from msmem_core.datagen import seed_range
+    from msmem_core.learn.datagen import seed_range
 
     kind = _kind(kind)
     seeds = seed_range(scenes, seed)

@@ -1,7 +1,7 @@
 """Training data for the CNABU networks: belief before, action, simulator ground truth after.
 
 Per scene seed (every random choice from ``np.random.default_rng([seed, kind])``, the scene and the
-simulator's segmentation noise from the seed): generate a shelf scene (``msmem_core.scenegen``),
+simulator's segmentation noise from the seed): generate a shelf scene (``msmem_core.world.scenegen``),
 reset PyBullet, observe the episode's start view and ``min_views``-``max_views`` random views into an
 analytic belief (``msmem_analytic``), then by kind:
 
@@ -50,10 +50,10 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from msmem_cnabu.network import KINDS, Kind, action_channel_counts
-from msmem_core import datagen
-from msmem_core.datagen import DatagenSummary, ShardTask, read_manifest, read_npz, save_npz, shard_path
+from msmem_core.learn import datagen
+from msmem_core.learn.datagen import DatagenSummary, ShardTask, read_manifest, read_npz, save_npz, shard_path
 from msmem_core.errors import UserError
-from msmem_core.grid import GridSpec
+from msmem_core.world.grid import GridSpec
 
 SHARD_VERSION = 1
 
@@ -133,7 +133,7 @@ class CNABUShard:
 
     def belief(self, s: int) -> Any:
         """State ``s``'s belief as a float32 ``EvidentialMap``."""
-        from msmem_core.belief import EvidentialMap
+        from msmem_core.map.belief import EvidentialMap
 
         return EvidentialMap(self.grid, self.alpha[s].astype(np.float32), self.beta[s].astype(np.float32),
                              self.eta[s].astype(np.float32))
@@ -285,7 +285,7 @@ class _Recorder:
 
 
 def _ground_truth(sim: Any, scene: Any, grid: GridSpec) -> tuple[NDArray[np.bool_], NDArray[np.int16]]:
-    from msmem_core.groundtruth import voxelize
+    from msmem_core.world.groundtruth import voxelize
 
     poses = sim.object_poses()
     objects = {o.id: o for o in scene.objects}
@@ -297,9 +297,9 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
     from msmem_analytic.observation import AnalyticObservationModel
     from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
 
-    from msmem_core.belief import EvidentialMap
-    from msmem_core.scenegen import SceneGenConfig, generate_scene
-    from msmem_core.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+    from msmem_core.map.belief import EvidentialMap
+    from msmem_core.world.scenegen import SceneGenConfig, generate_scene
+    from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 
     cfg = config
     rng = np.random.default_rng([seed, KINDS.index(cfg.kind)])

@@ -270,10 +270,10 @@ def episode_nll(
     but the boards), pooled over the scenes, plus the episodes' own metrics."""
     import tempfile
 
-    from msmem_core.belief import EvidentialMap
+    from msmem_core.map.belief import EvidentialMap
     from msmem_core.config import load_config
     from msmem_core.plugins.manager import get_plugin_manager
-    from msmem_core.runner import build_episode, run_episode
+    from msmem_core.run.runner import build_episode, run_episode
 
     models = {"learned": {"name": "cnabu-observe", "params": {} if weights is None else {"weights": str(weights)}},
               "analytic": {"name": "analytic-observation"}}
@@ -346,8 +346,8 @@ def simulate_and_remap(kind: str, shard: CNABUShard, state: int, actions: list[A
     from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
 
     from msmem_cnabu.datagen import _skill
-    from msmem_core.scenegen import SceneGenConfig, generate_scene
-    from msmem_core.viewpoints import ViewpointConfig, generate_viewpoints
+    from msmem_core.world.scenegen import SceneGenConfig, generate_scene
+    from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
     hard = bool(shard.info.get("config", {}).get("require_hard", False))
     scene = generate_scene(shard.seed, SceneGenConfig(require_hard=hard))
@@ -450,9 +450,9 @@ def threshold_agreement(
     """
     from msmem_core.config import ComponentRef, load_config
     from msmem_core.msas import decide
-    from msmem_core.perf_step import _context, clone_skills, mid_episode_state
+    from msmem_core.perf.step import _context, clone_skills, mid_episode_state
     from msmem_core.plugins.manager import get_plugin_manager
-    from msmem_core.runner import build_episode
+    from msmem_core.run.runner import build_episode
 
     if kind not in ("push", "grasp"):
         raise UserError(f"--threshold-check needs an effect model (push or grasp), not {kind!r}")

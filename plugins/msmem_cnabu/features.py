@@ -26,7 +26,7 @@ import torch
 from numpy.typing import NDArray
 from torch import Tensor
 
-from msmem_core.grid import GridSpec
+from msmem_core.world.grid import GridSpec
 
 Interior = tuple[float, float, float, float, float, float]
 

@@ -37,7 +37,7 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor, nn
 
-from msmem_core.scene import NUM_CLASSES
+from msmem_core.world.scene import NUM_CLASSES
 
 Kind = Literal["observe", "push", "grasp"]
 KINDS: tuple[str, ...] = ("observe", "push", "grasp")

@@ -11,7 +11,7 @@ from typing import Any
 
 from msmem_cnabu.network import KINDS, CNABUNet, CNABUNetConfig
 from msmem_cnabu.training import WEIGHTS_FORMAT
-from msmem_core import artifacts
+from msmem_core.util import artifacts
 from msmem_core.errors import UserError
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"

@@ -29,10 +29,10 @@ import trimesh
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.geometry import pose_matrix
-from msmem_core.gripper import GripperSpec
-from msmem_core.meshes import class_mesh
-from msmem_core.scene import OBJECT_CLASSES, ObjectClass, Part, SceneSpec, object_class
+from msmem_core.world.geometry import pose_matrix
+from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.meshes import class_mesh
+from msmem_core.world.scene import OBJECT_CLASSES, ObjectClass, Part, SceneSpec, object_class
 from msmem_grasp.fevmf import executable_grasp
 
 F64 = NDArray[np.float64]

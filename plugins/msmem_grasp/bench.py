@@ -66,12 +66,12 @@ def run_scene(task: tuple[int, GraspBenchConfig]) -> list[dict[str, Any]]:
     from msmem_analytic.observation import AnalyticObservationModel
     from msmem_pybullet.simulator import PyBulletSimulator
 
-    from msmem_core.belief import EvidentialMap
-    from msmem_core.camera import CameraConfig
-    from msmem_core.grid import GridSpec
-    from msmem_core.ig import IGService
-    from msmem_core.scenegen import SceneGenConfig, generate_scene
-    from msmem_core.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+    from msmem_core.map.belief import EvidentialMap
+    from msmem_core.world.camera import CameraConfig
+    from msmem_core.world.grid import GridSpec
+    from msmem_core.map.ig import IGService
+    from msmem_core.world.scenegen import SceneGenConfig, generate_scene
+    from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
     from msmem_grasp.skill import GraspConfig, GraspSkill
 
     seed, cfg = task
@@ -149,7 +149,7 @@ def bench_grasp(cfg: GraspBenchConfig, out: Path | None = None, executor: str = 
                 progress: bool = True) -> dict[str, Any]:
     """Run every scene (one task each) and return the summary; with ``out``, write ``trials.jsonl``
     and ``summary.json`` there."""
-    from msmem_core.executors import TaskFailure, run_tasks
+    from msmem_core.run.executors import TaskFailure, run_tasks
 
     results = run_tasks(run_scene, [(s, cfg) for s in cfg.scene_seeds], executor=executor, workers=workers,
                         progress=progress, threads=1, description="bench-grasp", on_error="raise")

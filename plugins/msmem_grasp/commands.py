@@ -1,6 +1,6 @@
 """Bodies of the ``msmem datagen grasp``, ``msmem train fe-vmf`` and ``msmem eval fe-vmf`` commands.
 
-The typer signatures live in ``msmem_core.cli``; everything heavy is imported here, on use.
+The typer signatures live in ``msmem_core.cli.app``; everything heavy is imported here, on use.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import typer
 
 
 def datagen_grasp(*, scenes: int, out: Path, workers: int, seed: int, executor: str, points: int, quiet: bool) -> None:
-    from msmem_core.datagen import seed_range
+    from msmem_core.learn.datagen import seed_range
     from msmem_grasp.datagen import GraspDataConfig, generate_dataset
     from msmem_grasp.fpp import FPPConfig
 

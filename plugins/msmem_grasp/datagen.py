@@ -24,8 +24,8 @@ import torch
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core import datagen
-from msmem_core.datagen import DatagenSummary, ShardTask, read_npz, save_npz, shard_path
+from msmem_core.learn import datagen
+from msmem_core.learn.datagen import DatagenSummary, ShardTask, read_npz, save_npz, shard_path
 from msmem_core.errors import UserError
 from msmem_grasp.antipodal import AntipodalConfig, GraspSet
 from msmem_grasp.fpp import FPPConfig, SurfaceCloud, frontier_points
@@ -175,10 +175,10 @@ def make_shard(seed: int, config: GraspDataConfig | None = None) -> GraspShard:
     from msmem_analytic.observation import AnalyticObservationModel
     from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
 
-    from msmem_core.belief import EvidentialMap
-    from msmem_core.grid import GridSpec
-    from msmem_core.scenegen import SceneGenConfig, generate_scene
-    from msmem_core.viewpoints import ViewpointConfig, generate_viewpoints
+    from msmem_core.map.belief import EvidentialMap
+    from msmem_core.world.grid import GridSpec
+    from msmem_core.world.scenegen import SceneGenConfig, generate_scene
+    from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
     from msmem_grasp.antipodal import grasps_in_scene
 
     cfg = config or GraspDataConfig()

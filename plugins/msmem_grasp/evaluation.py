@@ -188,7 +188,7 @@ def evaluate(
 ) -> dict[str, Any]:
     """Metrics of FE-vMF (weights at ``weights``, default the shipped ones) and of the heuristic on
     every shard of ``data_dir``; optionally write the kappa calibration plot."""
-    from msmem_core.artifacts import sha256_file
+    from msmem_core.util.artifacts import sha256_file
     from msmem_grasp.weights import SHIPPED_WEIGHTS, load_fe_vmf
 
     torch.set_num_threads(threads)

@@ -1,7 +1,7 @@
 """Frontier point projection (paper eq. frontier_projection): pcd = FPP(E[Phi^O]).
 
 Camera rays of the visited views (or of virtual front cameras) are cast into the expected occupancy
-p of a belief. Per ray, the exact DDA traversal of :mod:`msmem_core.raycast` (as in
+p of a belief. Per ray, the exact DDA traversal of :mod:`msmem_core.map.raycast` (as in
 ``raycast.first_hit``) finds the first voxel with p > threshold; the crossing is then located
 continuously: p is sampled trilinearly (voxel centres as samples) at sub-voxel steps from one voxel
 before that voxel to its exit, and the first upward crossing of the threshold is interpolated
@@ -37,12 +37,12 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from msmem_core import raycast
-from msmem_core.belief import EvidentialMap
-from msmem_core.camera import CameraConfig
-from msmem_core.grid import GridSpec
-from msmem_core.scene import ShelfSpec
-from msmem_core.viewpoints import ViewpointConfig, generate_viewpoints
+from msmem_core.map import raycast
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.scene import ShelfSpec
+from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
 F32 = NDArray[np.float32]
 FEATURES = ("nx", "ny", "nz", "occupancy")

@@ -39,7 +39,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 if TYPE_CHECKING:
-    from msmem_core.belief import EvidentialMap
+    from msmem_core.map.belief import EvidentialMap
     from msmem_grasp.fevmf import GraspPrediction
 
 F64 = NDArray[np.float64]

@@ -31,9 +31,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.belief import EvidentialMap
-from msmem_core.gripper import GripperSpec
-from msmem_core.scene import ShelfSpec
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.scene import ShelfSpec
 from msmem_grasp.fpp import SurfaceCloud, _trilinear, occupancy_normals
 from msmem_grasp.fusion import GraspHypotheses
 

@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from msmem_core.artifacts import sidecar_path
+from msmem_core.util.artifacts import sidecar_path
 from msmem_grasp.evaluation import format_table
 
 
@@ -59,7 +59,7 @@ def model_card(weights: Path, metrics: dict[str, Any], notes: dict[str, Any] | N
         "",
         "## Data",
         "",
-        "Simulated shelf scenes (`msmem_core.scenegen`, random arrangements at 30-45 % floor occupancy,",
+        "Simulated shelf scenes (`msmem_core.world.scenegen`, random arrangements at 30-45 % floor occupancy,",
         f"require_hard={gen_cfg.get('require_hard')}), settled in PyBullet, observed from "
         f"{gen_cfg.get('min_views')}-{gen_cfg.get('max_views')} random viewpoints of the 300",
         "into an analytic evidential belief (1 cm voxels); FPP from the visited views, "

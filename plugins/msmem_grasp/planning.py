@@ -23,12 +23,12 @@ from numba import njit
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from msmem_core.belief import EvidentialMap
-from msmem_core.grid import GridSpec
-from msmem_core.gripper import GripperSpec
-from msmem_core.ig import shelf_wall_mask
-from msmem_core.raycast import grid_params
-from msmem_core.scene import ShelfSpec
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
+from msmem_core.map.ig import shelf_wall_mask
+from msmem_core.map.raycast import grid_params
+from msmem_core.world.scene import ShelfSpec
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]

@@ -64,12 +64,12 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from msmem_core.belief import EvidentialMap
-from msmem_core.camera import CameraConfig
-from msmem_core.grid import GridSpec
-from msmem_core.gripper import GripperSpec
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
 from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
-from msmem_core.scene import ShelfSpec
+from msmem_core.world.scene import ShelfSpec
 from msmem_grasp.fpp import FPPConfig, frontier_points, virtual_front_views
 from msmem_grasp.fusion import FusionConfig, FusionStats, GraspBuffer, GraspHypotheses
 from msmem_grasp.geometric import GeometricConfig, predict_geometric

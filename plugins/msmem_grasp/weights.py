@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from msmem_core import artifacts
+from msmem_core.util import artifacts
 from msmem_core.errors import UserError
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction, executable_grasp
 from msmem_grasp.fpp import SurfaceCloud

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.belief import DeltaBeliefs
+from msmem_core.map.belief import DeltaBeliefs
 from msmem_core.interfaces import CandidateBatch, Category, Term
 
 

@@ -28,8 +28,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from msmem_core.grid import GridSpec
-from msmem_core.gripper import GripperSpec
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
 
 _SIGNS = np.array([[-1.0, -1.0], [-1.0, 1.0], [1.0, -1.0], [1.0, 1.0]])
 Box = tuple[float, float, float, float]

@@ -1,6 +1,6 @@
 from collections.abc import Iterable
 
-from msmem_core._quiet import quiet_stdio
+from msmem_core.util.quiet import quiet_stdio
 from msmem_core.plugins import SimulatorSpec, hookimpl
 
 with quiet_stdio():  # pybullet prints its build time on import

@@ -4,8 +4,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.camera import CameraConfig
-from msmem_core.gripper import GripperSpec
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.gripper import GripperSpec
 
 
 class SapienConfig(BaseModel):

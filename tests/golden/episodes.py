@@ -18,7 +18,7 @@ import numpy as np
 
 from msmem_core.config import METHODS, load_config
 from msmem_core.plugins import get_plugin_manager
-from msmem_core.runner import build_episode, run_episode
+from msmem_core.run.runner import build_episode, run_episode
 
 GOLDEN_DIR = Path(__file__).resolve().parents[1] / "data" / "golden"
 STEPS = 5

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from msmem_core.interfaces import GRIPPER_ID, Simulator
-from msmem_core.scene import ObjectSpec, SceneSpec, object_class
+from msmem_core.world.scene import ObjectSpec, SceneSpec, object_class
 from msmem_core.testing.conformance import (
     conformance_scene,
     front_view,

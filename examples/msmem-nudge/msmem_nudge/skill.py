@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from msmem_core.gripper import GripperSpec
+from msmem_core.world.gripper import GripperSpec
 from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
 
 Box = tuple[float, float, float, float, float, float]

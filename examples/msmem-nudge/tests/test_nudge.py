@@ -12,12 +12,12 @@ from msmem_nudge.effect import NudgeEffect
 from msmem_nudge.skill import NudgeAction, NudgeConfig, NudgeSkill
 from msmem_nudge.travel import TravelCost, TravelCostConfig
 
-from msmem_core.belief import EvidentialMap
-from msmem_core.camera import CameraConfig
-from msmem_core.grid import GridSpec
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.grid import GridSpec
 from msmem_core.interfaces import CandidateBatch
-from msmem_core.scene import ObjectSpec, SceneSpec, ShelfSpec, object_class
-from msmem_core.viewpoints import ViewpointConfig, generate_viewpoints
+from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec, object_class
+from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01, 1)

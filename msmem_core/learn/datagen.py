@@ -2,7 +2,7 @@
 
 A data folder holds one compressed ``scene_<seed>.npz`` shard per scene seed, each written atomically
 (a temporary file, then a rename), and a ``dataset.json`` manifest. :func:`generate_shards` makes the
-shards of a list of seeds in parallel (``msmem_core.executors``); a rerun skips the shards that exist
+shards of a list of seeds in parallel (``msmem_core.run.executors``); a rerun skips the shards that exist
 and pass the plugin's check and regenerates corrupt ones, so a killed run resumes. The plugin
 supplies what a shard holds: the task function that makes and writes one, and the check. Every
 shard has a ``version`` array.
@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from msmem_core.artifacts import atomic_text, tmp_path
+from msmem_core.util.artifacts import atomic_text, tmp_path
 from msmem_core.errors import UserError
 
 SHARD_GLOB = "scene_*.npz"
@@ -140,10 +140,10 @@ def generate_shards(
     A shard that exists is kept if ``check(path)`` passes; a :class:`ShardError` from it is logged as
     a warning and the shard regenerated. ``manifest`` is written to ``dataset.json``, then
     ``task_fn(ShardTask(seed, out_dir, config_json))`` (a module-level function: it is pickled) makes
-    and writes each missing shard on ``msmem_core.executors`` (one thread per task). Its results are
+    and writes each missing shard on ``msmem_core.run.executors`` (one thread per task). Its results are
     ``generated``; the tasks that raised are logged and listed in ``failed``.
     """
-    from msmem_core.executors import TaskFailure, run_tasks
+    from msmem_core.run.executors import TaskFailure, run_tasks
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -9,7 +9,7 @@ the IG kernels), then its voxels are visited in order with the parameter interva
 of each (Amanatides-Woo: the next boundary crossing per axis, advanced by ``s / |d|``; rounding
 ~1e-15 relative). Voxels the ray only touches at an edge or corner (zero length) are skipped, so the
 sequence is exactly the voxels the segment passes through (tested against Siddon's method in
-:mod:`msmem_core.ig_reference`).
+:mod:`msmem_core.map.ig_reference`).
 
 Parallel kernels (``prange``) write shared uint8 masks / float32 arrays only with constant stores
 (1 into a mask, 0 into an entropy): two threads storing the same value to the same byte race
@@ -27,7 +27,7 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 
-from msmem_core.grid import GridSpec
+from msmem_core.world.grid import GridSpec
 
 GridParams = tuple[NDArray[np.float64], float, NDArray[np.int64]]
 _CHUNK = 64

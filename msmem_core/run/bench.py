@@ -18,7 +18,7 @@ import numpy as np
 from scipy import stats
 
 from msmem_core.errors import UserError
-from msmem_core.scene import SceneSpec
+from msmem_core.world.scene import SceneSpec
 
 SUITES = ("hard25", "tune10")
 """hard25: the benchmark (seeds 25000-25024); tune10: for tuning defaults (seeds 30000-30009), never hard25."""
@@ -91,7 +91,7 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
 
     from msmem_core.config import load_config
     from msmem_core.plugins import get_plugin_manager
-    from msmem_core.runner import build_episode, run_episode
+    from msmem_core.run.runner import build_episode, run_episode
 
     t0 = time.perf_counter()
     record: dict[str, Any] = {"method": task.method, "scene_index": task.scene_index}
@@ -191,7 +191,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
         lines.pop()
     lines += ["", "## Table II: object counts", "",
               "Objects at the end of the episode, summed over scenes (mean per scene in brackets); the matching",
-              "rule is `msmem_core.metrics.object_counts`. `removed`: objects no longer in the shelf (grasped out,",
+              "rule is `msmem_core.run.metrics.object_counts`. `removed`: objects no longer in the shelf (grasped out,",
               "or pushed out), left out of the other four columns.", "",
               "| method | episodes | " + " | ".join(label for _, label in COUNT_METRICS) + " |",
               "|---|---|" + "---|" * len(COUNT_METRICS)]
@@ -235,7 +235,7 @@ def plot_curves(results: list[dict[str, Any]], methods: list[str], out: Path) ->
 def run_bench(methods: list[str], scenes: list[SceneSpec], scene_indices: list[int], out: Path,
               overrides: dict[str, Any], config_file: str | None, executor: str, workers: int,
               threads: int, progress: bool = True) -> dict[str, Any]:
-    from msmem_core.executors import run_tasks
+    from msmem_core.run.executors import run_tasks
 
     (out / "episodes").mkdir(parents=True, exist_ok=True)
     tasks, done = [], []

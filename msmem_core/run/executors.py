@@ -27,7 +27,7 @@ from multiprocessing import get_context
 from typing import Any, Literal
 
 from msmem_core.errors import UserError
-from msmem_core.progress import progress_bar
+from msmem_core.util.progress import progress_bar
 
 EXECUTORS = ("local", "ray")
 ExecutorName = Literal["local", "ray"]
@@ -92,7 +92,7 @@ def _call(fn: Callable[[Any], Any], index: int, task: Any, threads: int | None) 
 
 
 def _worker_init(threads: int | None) -> None:
-    from msmem_core._malloc import keep_large_allocations
+    from msmem_core.util.malloc import keep_large_allocations
 
     keep_large_allocations()
     if threads is not None:  # before any task imports numba/torch, so the env vars take effect too

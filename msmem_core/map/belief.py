@@ -16,8 +16,8 @@ from typing import overload
 import numpy as np
 from numpy.typing import NDArray
 
-from msmem_core.grid import GridSpec
-from msmem_core.scene import NUM_CLASSES
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.scene import NUM_CLASSES
 
 
 def _xlogx(p: NDArray[np.floating]) -> NDArray[np.float64]:

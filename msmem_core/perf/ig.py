@@ -17,13 +17,13 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from msmem_core import raycast
-from msmem_core.belief import EvidentialMap
-from msmem_core.camera import CameraConfig, Observation
-from msmem_core.grid import GridSpec
-from msmem_core.ig import IGConfig, IGService, shelf_wall_mask
-from msmem_core.ig_reference import ig_views_reference
-from msmem_core.scene import NUM_CLASSES, ShelfSpec
+from msmem_core.map import raycast
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.camera import CameraConfig, Observation
+from msmem_core.world.grid import GridSpec
+from msmem_core.map.ig import IGConfig, IGService, shelf_wall_mask
+from msmem_core.map.ig_reference import ig_views_reference
+from msmem_core.world.scene import NUM_CLASSES, ShelfSpec
 
 
 def block_scene(
@@ -123,8 +123,8 @@ def candidate_beliefs(base: EvidentialMap, shelf: ShelfSpec, count: int, seed: i
 
 
 def default_viewpoints(shelf: ShelfSpec) -> NDArray[np.float64]:
-    """The 300 candidate views (``msmem_core.viewpoints``)."""
-    from msmem_core.viewpoints import ViewpointConfig, generate_viewpoints
+    """The 300 candidate views (``msmem_core.world.viewpoints``)."""
+    from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
     return generate_viewpoints(ViewpointConfig(), shelf)
 

@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from msmem_core.artifacts import atomic_save, sidecar_path
+from msmem_core.util.artifacts import atomic_save, sidecar_path
 from msmem_core.errors import UserError
-from msmem_core.progress import progress_bar
+from msmem_core.util.progress import progress_bar
 
 
 def split_scenes(n: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:

@@ -12,7 +12,7 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from msmem_core.scene import BACKGROUND
+from msmem_core.world.scene import BACKGROUND
 
 
 def _iou(pred: NDArray[np.bool_], gt: NDArray[np.bool_]) -> float:

@@ -2,7 +2,7 @@
 loading weights checked against their sidecar.
 
 Shared by every plugin that trains and ships weights (FE-vMF, CNABU), so the hash a model card
-quotes and the one a loader checks are computed one way; ``msmem_core.datagen`` writes its shards
+quotes and the one a loader checks are computed one way; ``msmem_core.learn.datagen`` writes its shards
 and manifests atomically the same way.
 """
 

@@ -14,8 +14,8 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from msmem_core.errors import UserError
-from msmem_core.geometry import look_at
-from msmem_core.scene import ShelfSpec
+from msmem_core.world.geometry import look_at
+from msmem_core.world.scene import ShelfSpec
 
 
 class ViewpointConfig(BaseModel):

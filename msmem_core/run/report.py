@@ -32,13 +32,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from msmem_core.belief import EvidentialMap
-from msmem_core.grid import GridSpec
-from msmem_core.scene import CLASS_NAMES
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.scene import CLASS_NAMES
 
 if TYPE_CHECKING:
     from msmem_core.config import RunConfig
-    from msmem_core.scene import SceneSpec
+    from msmem_core.world.scene import SceneSpec
 
 CLASS_COLORS: tuple[str, ...] = (
     "#b0b0b0", "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
@@ -111,7 +111,7 @@ def load_run(run_dir: str | Path) -> RunData:
     """Read a run folder; a missing snapshot falls back to the final belief and ground truth."""
     from msmem_core.config import RunConfig
     from msmem_core.errors import UserError
-    from msmem_core.scene import SceneSpec
+    from msmem_core.world.scene import SceneSpec
 
     d = Path(run_dir)
     for name in ("config.json", "scene.json", "steps.jsonl", "belief_final.npz"):
@@ -186,7 +186,7 @@ def gt_layer(grid: GridSpec, occ: NDArray[np.bool_], cls: NDArray[np.integer]) -
 
 def camera_path(run: RunData, upto: int) -> list[tuple[str, NDArray[np.float64]]]:
     """(label, camera-to-world pose) of the start view and every view chosen at steps <= ``upto``."""
-    from msmem_core.viewpoints import default_start_view, generate_viewpoints
+    from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
 
     cfg = run.config
     views = generate_viewpoints(cfg.viewpoints, run.scene.shelf)

@@ -2,7 +2,7 @@
 
 Run folder: ``config.json`` (resolved), ``scene.json``, ``steps.jsonl`` (one record per step),
 ``metrics.json`` (final metrics and action counts), ``belief_final.npz``, and for the run report
-(``msmem_core.report``) ``belief_step{N}.npz`` (float16 belief and ground truth after the steps of
+(``msmem_core.run.report``) ``belief_step{N}.npz`` (float16 belief and ground truth after the steps of
 ``RunConfig.snapshot_steps``) and ``gt_final.npz`` (final ground-truth occupancy and classes).
 """
 
@@ -18,13 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from msmem_core.belief import EvidentialMap
+from msmem_core.map.belief import EvidentialMap
 from msmem_core.config import RunConfig
 from msmem_core.errors import PluginError
-from msmem_core.groundtruth import observable_mask, voxelize_instances
-from msmem_core.ig import IGService, shelf_wall_mask
+from msmem_core.world.groundtruth import observable_mask, voxelize_instances
+from msmem_core.map.ig import IGService, shelf_wall_mask
 from msmem_core.interfaces import EffectModel, ObservationModel, Outcome, Simulator
-from msmem_core.metrics import (
+from msmem_core.run.metrics import (
     object_counts,
     observable_iou,
     occupancy_iou,
@@ -35,10 +35,10 @@ from msmem_core.metrics import (
 )
 from msmem_core.msas import BoundSkill, Decision, DecisionContext, Objective, run_msas
 from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager
-from msmem_core.report import save_ground_truth, save_snapshot
-from msmem_core.scene import SceneSpec
-from msmem_core.scenegen import generate_scene
-from msmem_core.viewpoints import default_start_view, generate_viewpoints
+from msmem_core.run.report import save_ground_truth, save_snapshot
+from msmem_core.world.scene import SceneSpec
+from msmem_core.world.scenegen import generate_scene
+from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
 
 
 def set_threads(n: int) -> None:

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from msmem_core.errors import UserError
-from msmem_core.geometry import pose_matrix
+from msmem_core.world.geometry import pose_matrix
 
 
 class Part(BaseModel):

@@ -25,11 +25,11 @@ import open3d as o3d
 import trimesh
 from numpy.typing import NDArray
 
-from msmem_core.camera import CameraConfig
-from msmem_core.geometry import pose_matrix
-from msmem_core.grid import GridSpec
-from msmem_core.meshes import CYLINDER_SECTIONS, object_mesh, part_mesh_local, shelf_meshes
-from msmem_core.scene import ObjectSpec, Part, ShelfSpec
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.geometry import pose_matrix
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.meshes import CYLINDER_SECTIONS, object_mesh, part_mesh_local, shelf_meshes
+from msmem_core.world.scene import ObjectSpec, Part, ShelfSpec
 
 TOUCH_TOLERANCE_M = 1e-4
 """Minimum overlap depth (metres) for a part to touch a voxel. A tenth of a millimetre: simulated objects

@@ -14,8 +14,8 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
-from msmem_core.geometry import pose_matrix
-from msmem_core.scene import ObjectSpec, Part, ShelfSpec, object_class
+from msmem_core.world.geometry import pose_matrix
+from msmem_core.world.scene import ObjectSpec, Part, ShelfSpec, object_class
 
 CYLINDER_SECTIONS = 48
 

@@ -15,7 +15,7 @@ MSAS, refinement included), and inside them the objective terms, the IG kernels 
 skill's FPP / FE-vMF / FE-UMGF steps (found by name where the plugins define them). Medians over
 the repeats are reported.
 
-References (``reference=True``): the brute-force float64 IG of ``msmem_core.ig_reference``
+References (``reference=True``): the brute-force float64 IG of ``msmem_core.map.ig_reference``
 (extrapolated from a few views) for an IG sweep; a full, non-incremental re-score of every
 predicted belief for the manipulation skills' ``ig`` term; and the whole decision with that
 reference ``ig`` term. Approximations: the ``ig`` term screens candidates at every 2nd ray and
@@ -41,15 +41,15 @@ from typing import Any
 import numba
 import numpy as np
 
-from msmem_core.belief import EvidentialMap
+from msmem_core.map.belief import EvidentialMap
 from msmem_core.config import RunConfig, load_config
-from msmem_core.ig import IGService
-from msmem_core.ig_reference import ig_views_reference
+from msmem_core.map.ig import IGService
+from msmem_core.map.ig_reference import ig_views_reference
 from msmem_core.interfaces import Action, CandidateBatch
 from msmem_core.msas import BoundSkill, Decision, DecisionContext, Objective, decide
 from msmem_core.plugins.manager import ComponentRef, get_plugin_manager
-from msmem_core.runner import Episode, build_episode, set_threads
-from msmem_core.viewpoints import default_start_view
+from msmem_core.run.runner import Episode, build_episode, set_threads
+from msmem_core.world.viewpoints import default_start_view
 
 Path_ = tuple[str, ...]
 # Plugin functions timed where they are looked up at call time (module globals); skipped when the
@@ -401,7 +401,7 @@ def _references(ep: Episode, state: StepState, timed: Decision, probe: Probe, st
 
 def _deltas(ctx: DecisionContext, batch: CandidateBatch) -> list[Any]:
     """The IG deltas of a manipulation batch (as the ``ig`` term computes them)."""
-    from msmem_core.belief import DeltaBeliefs
+    from msmem_core.map.belief import DeltaBeliefs
 
     assert batch.prediction is not None
     beliefs = batch.prediction.beliefs

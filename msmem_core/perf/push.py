@@ -8,9 +8,9 @@ without screening (exact for every candidate) and the brute-force reference, a f
 re-score of every predicted belief; the report gives their ratio and the largest difference
 between the exact incremental values and the reference.
 
-The belief: a generated hard scene (``msmem_core.scenegen``), voxelised with the shelf boards, seen
+The belief: a generated hard scene (``msmem_core.world.scenegen``), voxelised with the shelf boards, seen
 from ``views`` candidate viewpoints by a synthetic depth camera over the voxels
-(``msmem_core.perf.render_voxels``) and integrated with the analytic evidence rule: free space,
+(``msmem_core.perf.ig.render_voxels``) and integrated with the analytic evidence rule: free space,
 seen surfaces and hidden regions as mid-episode. Components come from the plugin manager (core
 code never imports plugin packages).
 """
@@ -25,18 +25,18 @@ from typing import Any
 import numba
 import numpy as np
 
-from msmem_core.belief import EvidentialMap
-from msmem_core.camera import CameraConfig
-from msmem_core.grid import GridSpec
-from msmem_core.gripper import GripperSpec
-from msmem_core.groundtruth import voxelize
-from msmem_core.ig import IGConfig, IGService, shelf_wall_mask
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.groundtruth import voxelize
+from msmem_core.map.ig import IGConfig, IGService, shelf_wall_mask
 from msmem_core.interfaces import CandidateBatch
 from msmem_core.msas import DecisionContext
-from msmem_core.perf import integrate_evidence, render_voxels
+from msmem_core.perf.ig import integrate_evidence, render_voxels
 from msmem_core.plugins.manager import ComponentRef, get_plugin_manager
-from msmem_core.scene import SceneSpec
-from msmem_core.viewpoints import ViewpointConfig, generate_viewpoints
+from msmem_core.world.scene import SceneSpec
+from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
 
 def mid_episode_scene_belief(
@@ -68,7 +68,7 @@ def perf_push(
     report: Callable[[str], None] = print, effect_model: str | None = None,
 ) -> dict[str, float]:
     """Time sampling, prediction and scoring of ``samples`` push candidates on all candidate views."""
-    from msmem_core.scenegen import generate_scene
+    from msmem_core.world.scenegen import generate_scene
 
     pm = get_plugin_manager()
     camera, ig_cfg = CameraConfig(), IGConfig()

@@ -1,6 +1,6 @@
 """Brute-force float64 IG reference, for tests and ``msmem perf ig`` only (slow: a Python loop per ray).
 
-Its traversal is independent of the DDA in :mod:`msmem_core.raycast`: Siddon's method. All
+Its traversal is independent of the DDA in :mod:`msmem_core.map.raycast`: Siddon's method. All
 crossings of the ray with every grid plane inside the clipped ray interval are computed at once,
 sorted, and each segment between consecutive crossings is assigned to the voxel holding its
 midpoint; zero-length segments (edge/corner touches) are dropped.
@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from msmem_core.grid import GridSpec
+from msmem_core.world.grid import GridSpec
 
 
 def traverse(

@@ -19,11 +19,11 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core import raycast
-from msmem_core.belief import BeliefDelta, EvidentialMap, bernoulli_entropy
-from msmem_core.camera import CameraConfig
-from msmem_core.grid import GridSpec
-from msmem_core.scene import ShelfSpec
+from msmem_core.map import raycast
+from msmem_core.map.belief import BeliefDelta, EvidentialMap, bernoulli_entropy
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.scene import ShelfSpec
 
 
 class IGConfig(BaseModel):

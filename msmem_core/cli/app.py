@@ -94,7 +94,7 @@ def run(
 ) -> None:
     """Run one mapping episode and write config.json, steps.jsonl, metrics.json and the report to the run folder."""
     from msmem_core.config import load_config
-    from msmem_core.runner import build_episode, run_episode
+    from msmem_core.run.runner import build_episode, run_episode
 
     if scene is not None and scene_seed is not None:
         raise UserError("give either --scene or --scene-seed, not both")
@@ -133,7 +133,7 @@ def run(
     typer.echo("final: " + ", ".join(f"{k} {final[k]:.3f}" for k in keys))
     typer.echo(f"actions: {final['actions']}  seconds/step: {final['seconds_per_step']:.2f}")
     if report:
-        from msmem_core.report import write_report
+        from msmem_core.run.report import write_report
 
         typer.echo(f"report: {write_report(out_dir)[0]}")
 
@@ -155,7 +155,7 @@ def bench(
     """Run methods x scenes episodes; writes episodes/*.json, table.md, results.json and curves.png."""
     import os
 
-    from msmem_core.bench import parse_range, run_bench, suite_scenes
+    from msmem_core.run.bench import parse_range, run_bench, suite_scenes
     from msmem_core.config import preset
 
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
@@ -183,7 +183,7 @@ def report_cmd(
                                       help="Also write report_metrics.png and report_belief.png.")] = True,
 ) -> None:
     """(Re)write a run folder's report: report.html (interactive 3-D belief, opens offline) and PNG snapshots."""
-    from msmem_core.report import write_report
+    from msmem_core.run.report import write_report
 
     for path in write_report(run_dir, png=png):
         typer.echo(str(path))
@@ -195,7 +195,7 @@ def scene_generate(
     out: Annotated[Path, typer.Option("--out", help="Output SceneSpec JSON.")] = Path("scene.json"),
 ) -> None:
     """Generate a hard shelf scene from a seed and write it as SceneSpec JSON."""
-    from msmem_core.scenegen import SceneGenConfig, generate_scene
+    from msmem_core.world.scenegen import SceneGenConfig, generate_scene
 
     spec = generate_scene(seed, SceneGenConfig())
     spec.to_json(out)
@@ -206,7 +206,7 @@ def scene_generate(
 @perf_app.command("ig")
 def perf_ig(repeats: Annotated[int, typer.Option("--repeats", help="Timed repeats per figure.")] = 3) -> None:
     """Time 300-view IG sweeps (1 and 16 beliefs, 1 cm and 5 mm grids) against the brute-force reference."""
-    from msmem_core.perf import perf_ig as run_perf
+    from msmem_core.perf.ig import perf_ig as run_perf
 
     run_perf(repeats=repeats)
 
@@ -221,7 +221,7 @@ def perf_push(
                                                                            "skill's, cnabu-push).")] = None,
 ) -> None:
     """Time sampling, effect prediction and scoring of push candidates on all 300 views (mid-episode belief)."""
-    from msmem_core.perf_push import perf_push as run_perf
+    from msmem_core.perf.push import perf_push as run_perf
 
     run_perf(repeats=repeats, samples=samples, scene_seed=scene_seed, reference=reference, effect_model=effect_model)
 
@@ -241,7 +241,7 @@ def perf_step(
     config: ConfigOpt = None,
 ) -> None:
     """Time one full MSAS decision (all skills, effect models, objective) on a mid-episode belief, by stage."""
-    from msmem_core.perf_step import perf_step as run_perf
+    from msmem_core.perf.step import perf_step as run_perf
 
     run_perf(repeats=repeats, scene_seed=scene_seed, views=views, view_seed=view_seed, reference=reference,
              beliefs=beliefs, method=method or "ours", config=config, scene=scene)
@@ -250,7 +250,7 @@ def perf_step(
 @docs_app.command("config")
 def docs_config() -> None:
     """Print the configuration reference (docs/config-reference.md), generated from the pydantic models."""
-    from msmem_core.docgen import config_reference
+    from msmem_core.cli.docgen import config_reference
 
     typer.echo(config_reference(), nl=False)
 
@@ -258,7 +258,7 @@ def docs_config() -> None:
 @docs_app.command("cli")
 def docs_cli() -> None:
     """Print the command-line reference (docs/cli.md), generated from the commands' help."""
-    from msmem_core.docgen import cli_reference
+    from msmem_core.cli.docgen import cli_reference
 
     typer.echo(cli_reference(), nl=False)
 
@@ -328,7 +328,7 @@ def bench_grasp(
     from msmem_grasp.bench import GraspBenchConfig
     from msmem_grasp.bench import bench_grasp as run_bench_grasp
 
-    from msmem_core.bench import parse_range
+    from msmem_core.run.bench import parse_range
 
     cfg = GraspBenchConfig(scene_seeds=parse_range(scenes, 10**6), trials=trials, views=views,
                            view_policy="random" if random_views else "nbv", require_hard=hard,
@@ -351,7 +351,7 @@ else:
 
 
 def main() -> None:
-    from msmem_core._malloc import keep_large_allocations
+    from msmem_core.util.malloc import keep_large_allocations
 
     keep_large_allocations()
     debug = "--debug" in sys.argv

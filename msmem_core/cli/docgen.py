@@ -303,7 +303,7 @@ def _command_doc(cmd: Any, path: list[str], out: list[str]) -> None:
 def cli_reference() -> str:
     import typer.main
 
-    from msmem_core.cli import app
+    from msmem_core.cli.app import app
 
     out = [CLI_HEADER]
     _command_doc(typer.main.get_command(app), ["msmem"], out)

@@ -1,0 +1,1 @@
+"""Shared machinery for plugins that learn: sharded data generation and training loops."""

@@ -1,0 +1,1 @@
+"""Speed benchmarks (`msmem perf ...`): IG sweep, push prediction, one full MSAS decision."""

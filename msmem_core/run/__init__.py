@@ -1,0 +1,1 @@
+"""Running episodes: the runner, metrics, the benchmark, executors and run-folder reports."""

@@ -1,0 +1,1 @@
+"""Engine-independent helpers for simulator backends (the floating gripper's motion)."""
