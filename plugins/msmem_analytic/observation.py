@@ -23,10 +23,10 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.interfaces import ObservationModel
 from msmem_core.map import raycast
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.camera import Observation
-from msmem_core.interfaces import ObservationModel
 
 
 class AnalyticObservationConfig(BaseModel):
@@ -95,8 +95,11 @@ class AnalyticObservationModel(ObservationModel):
 
     def update(self, belief: EvidentialMap, observation: Observation) -> EvidentialMap:
         """sigma_o: the belief after integrating ``observation`` (a new map)."""
+        return self.apply_masks(belief, *self.masks(belief, observation))
+
+    def apply_masks(self, belief: EvidentialMap, free: np.ndarray, occ: np.ndarray, seen: np.ndarray) -> EvidentialMap:
+        """The update from a view's ray masks (``masks``): a new map."""
         cfg = self.config
-        free, occ, seen = self.masks(belief, observation)
         out = belief.copy()
         if cfg.contradiction_decay < 1.0:
             g = np.float32(cfg.contradiction_decay)

@@ -40,3 +40,22 @@ class CNABUEffectConfig(BaseModel):
     faster per candidate, about 40 MB of working memory per 40 candidates)."""
     threads: int | None = Field(None, ge=1)
     """torch threads while predicting (None: leave the process's setting)."""
+
+
+class CNABUMapConfig(BaseModel):
+    """Parameters of the whole-map observation model (``cnabu-map``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    weights: Path | None = None
+    """Weights file (None: the shipped ``msmem_cnabu/weights/cnabu_map.pt``)."""
+    margin_voxels: int = Field(1, ge=1, le=10)
+    """The grid's margin around the shelf interior (``grid.margin_voxels``): the boards get no residual."""
+    pixel_stride: int = Field(2, gt=0)
+    """Ray masks from every n-th pixel (as ``analytic-observation``)."""
+    surface_offset_m: float = Field(0.001, ge=0.0)
+    """Depth returns are moved this far into the surface (as ``analytic-observation``)."""
+    far_m: float = Field(1.5, gt=0.0)
+    """Pixels without a return mark free space up to this z-depth."""
+    threads: int | None = Field(None, ge=1)
+    """torch threads while predicting (None: leave the process's setting)."""

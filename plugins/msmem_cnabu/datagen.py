@@ -50,9 +50,9 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from msmem_cnabu.network import KINDS, Kind, action_channel_counts
+from msmem_core.errors import UserError
 from msmem_core.learn import datagen
 from msmem_core.learn.datagen import DatagenSummary, ShardTask, read_manifest, read_npz, save_npz, shard_path
-from msmem_core.errors import UserError
 from msmem_core.world.grid import GridSpec
 
 SHARD_VERSION = 1
@@ -340,7 +340,7 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
                 pose = np.asarray(viewpoints[v]).round(6).tolist()
                 rec.sample(s, observe_channels(free, occ, seen), np.zeros(0, np.float32), gt,
                            json.dumps({"view": v, "camera_to_world": pose}), True, 0)
-                belief = model.update(belief, obs)
+                belief = model.apply_masks(belief, free, occ, seen)  # the masks once per view
                 visited.append(v)
         else:
             skill = _skill(cfg.kind, seed)

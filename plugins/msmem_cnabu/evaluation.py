@@ -270,8 +270,8 @@ def episode_nll(
     but the boards), pooled over the scenes, plus the episodes' own metrics."""
     import tempfile
 
-    from msmem_core.map.belief import EvidentialMap
     from msmem_core.config import load_config
+    from msmem_core.map.belief import EvidentialMap
     from msmem_core.plugins.manager import get_plugin_manager
     from msmem_core.run.runner import build_episode, run_episode
 

@@ -3,7 +3,7 @@
 from collections.abc import Iterable
 from typing import Any
 
-from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
+from msmem_cnabu.configs import CNABUEffectConfig, CNABUMapConfig, CNABUObserveConfig
 from msmem_core.plugins import BeliefModelSpec, hookimpl
 
 
@@ -11,6 +11,12 @@ def _observe(config: Any) -> Any:
     from msmem_cnabu.models import CNABUObservationModel
 
     return CNABUObservationModel(config)
+
+
+def _map(config: Any) -> Any:
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+
+    return CNABUMapObservationModel(config)
 
 
 def _push(config: Any) -> Any:
@@ -38,6 +44,16 @@ def msmem_belief_models() -> Iterable[BeliefModelSpec]:
         roles=frozenset({"observe"}),
         description="sigma_o by a learned 2.5-D U-Net (CNABU) on the view's ray masks; voxels the rays did not "
                     "reach keep the prior exactly. " + _WEIGHTS.format(k="observe"),
+    )
+    yield BeliefModelSpec(
+        name="cnabu-map",
+        factory=_map,
+        config_model=CNABUMapConfig,
+        roles=frozenset({"observe"}),
+        description="sigma_o over the whole map: a 2.5-D U-Net takes the previous belief and the view's ray masks "
+                    "and predicts every voxel (interiors, backs, behind the front row), with bounded evidence. "
+                    "Weights: msmem_cnabu/weights/cnabu_map.pt unless `weights` names a file (`msmem train "
+                    "cnabu-map` makes them)",
     )
     yield BeliefModelSpec(
         name="cnabu-push",

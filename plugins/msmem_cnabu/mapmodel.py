@@ -1,0 +1,66 @@
+"""``cnabu-map``: sigma_o by the whole-map network (``mapnet``): the previous belief over every voxel and
+the view's ray masks in, the next belief over every voxel out, with bounded evidence."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from msmem_cnabu.configs import CNABUMapConfig
+from msmem_cnabu.features import grid_interior, wall_mask
+from msmem_core.errors import UserError
+from msmem_core.interfaces import Observation, ObservationModel
+from msmem_core.map.belief import EvidentialMap
+
+SHIPPED = Path(__file__).resolve().parent / "weights" / "cnabu_map.pt"
+
+
+class CNABUMapObservationModel(ObservationModel):
+    """sigma_o over the whole map (module docstring; the network: ``msmem_cnabu.mapnet``)."""
+
+    def __init__(self, config: CNABUMapConfig | None = None) -> None:
+        from msmem_analytic.observation import AnalyticObservationConfig, AnalyticObservationModel
+
+        from msmem_cnabu.maptrain import load_map_net
+
+        self.config = cfg = config or CNABUMapConfig()
+        self.net, self.meta = load_map_net(cfg.weights if cfg.weights is not None else SHIPPED)
+        self.meta["weights"] = str(cfg.weights if cfg.weights is not None else SHIPPED)
+        self.rays = AnalyticObservationModel(AnalyticObservationConfig(
+            pixel_stride=cfg.pixel_stride, surface_offset_m=cfg.surface_offset_m, far_m=cfg.far_m))
+        self._valid: dict[Any, torch.Tensor] = {}
+
+    def valid(self, belief: EvidentialMap) -> torch.Tensor:
+        g = belief.grid
+        if g not in self._valid:
+            net_shape = tuple(self.net.config.grid_shape)
+            if tuple(g.shape) != net_shape or belief.num_classes != self.net.config.num_classes:
+                raise UserError(f"cnabu-map: the weights were trained on a {net_shape} grid with "
+                                f"{self.net.config.num_classes} classes, the belief has {tuple(g.shape)} and "
+                                f"{belief.num_classes}; train weights for this grid (`msmem train cnabu-map`)")
+            walls = wall_mask(g, grid_interior(g, self.config.margin_voxels))
+            self._valid = {g: torch.from_numpy(~walls)}
+        return self._valid[g]
+
+    def update(self, belief: EvidentialMap, observation: Observation) -> EvidentialMap:
+        return self.update_masks(belief, *self.rays.masks(belief, observation))
+
+    @torch.no_grad()
+    def update_masks(self, belief: EvidentialMap, free: NDArray[np.bool_], occ: NDArray[np.bool_],
+                     seen: NDArray[np.bool_]) -> EvidentialMap:
+        """The update from a view's ray masks (free, occ [X, Y, Z], seen [C, X, Y, Z])."""
+        valid = self.valid(belief)
+        old = torch.get_num_threads()
+        if self.config.threads is not None:
+            torch.set_num_threads(self.config.threads)
+        try:
+            t = torch.from_numpy
+            a, b, e = self.net.step(t(belief.alpha)[None], t(belief.beta)[None], t(belief.eta)[None],
+                                    t(free)[None], t(occ)[None], t(seen)[None], valid)
+        finally:
+            torch.set_num_threads(old)
+        return EvidentialMap(belief.grid, a[0].numpy(), b[0].numpy(), e[0].numpy())

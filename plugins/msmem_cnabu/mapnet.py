@@ -1,0 +1,231 @@
+"""The whole-map observation network (``cnabu-map``): previous belief + one view -> the next belief over
+every voxel (DESIGN.md, "sigma_o predicts the whole map").
+
+One step, for a belief ``B`` (alpha, beta, eta) and a view's ray masks (free, occ [X, Y, Z], seen
+[C, X, Y, Z], ``AnalyticObservationModel.masks``):
+
+1. *Evidence of the view* (no parameters): ``A`` = the analytic update of ``B`` with the masks
+   (``analytic_update``: the same rule as ``analytic-observation``). So the network starts from
+   what the rays say and only has to learn what they do not: interiors, backs, the space behind the
+   front row, and which earlier evidence the new view overturns.
+2. *Features per voxel*: logit of A's expected occupancy, log of its occupancy and class evidence
+   totals, A's expected class probabilities, the view's free / occupied / seen masks, and where the
+   voxel lies in its column: below the column's highest believed-occupied interior voxel (the
+   column-fill twin's rule, as a feature) and how far below it.
+3. *2.5-D U-Net* (height bins as channels, as the CNABU effect networks) gives every voxel a column
+   context; a per-voxel MLP on [context, features] outputs a residual on A's logits: occupancy
+   ``logit p = logit p_A + d_o`` and classes ``log q = log q_A + d_c``. The residual's last layer
+   starts at zero, so an untrained network is the analytic update.
+4. *Bounded evidence by construction* (``bounded_evidence``): the probabilities are mixed with a
+   floor, ``p in [1/s_max, 1 - 1/s_max]`` and ``q_c >= 1/t_max``, and the evidence is the least
+   committal Beta / Dirichlet with those means and every evidence >= 1: ``S = 1 / min(p, 1 - p)``,
+   ``alpha = p S``, ``beta = (1 - p) S``; ``T = 1 / min_c q_c``, ``eta = q T``. So
+   ``2 <= alpha + beta <= s_max`` and ``C <= sum(eta) <= t_max`` whatever the episode length, a
+   voxel at p = 0.5 is the prior, and a voxel's vacuity ``C / T`` says how peaked its class is.
+
+The shelf's boards (``valid`` False) get no residual: they keep A's probabilities, bounded.
+Training unrolls sequences of views, each step fed the network's own previous output
+(``msmem_cnabu.maptrain``).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+from torch import Tensor, nn
+
+from msmem_core.world.scene import NUM_CLASSES
+
+LOGIT_CLIP = 12.0
+
+
+class MapNetConfig(BaseModel):
+    """Architecture of the whole-map observation network (recorded in the weights' sidecar)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: str = "map"
+    grid_shape: tuple[int, int, int] = (78, 40, 30)
+    """Voxels along x, y, z of the grid the network was trained on (z bins are channels)."""
+    num_classes: int = Field(NUM_CLASSES, ge=2)
+    embed: int = Field(6, ge=1, le=64)
+    """Per-voxel embedding width before the height bins are flattened into channels."""
+    width: int = Field(48, ge=4, le=512)
+    """Channels of the first U-Net level (doubled per level)."""
+    levels: int = Field(3, ge=1, le=5)
+    context: int = Field(8, ge=1, le=64)
+    """Column-context features per voxel handed to the per-voxel head."""
+    hidden: int = Field(32, ge=4, le=512)
+    w_obs: float = Field(10.0, gt=0.0)
+    """Evidence per view of the analytic step inside the network (``analytic-observation``'s w_occ,
+    w_free, w_cls)."""
+    s_max: float = Field(100.0, gt=2.0)
+    """Largest occupancy evidence total alpha + beta (p is kept in [1/s_max, 1 - 1/s_max])."""
+    t_max: float = Field(300.0, gt=0.0)
+    """Largest class evidence total sum(eta) (every q_c >= 1/t_max)."""
+
+    @model_validator(mode="after")
+    def _check(self) -> MapNetConfig:
+        if self.t_max <= self.num_classes:
+            raise ValueError(f"t_max {self.t_max} must exceed num_classes {self.num_classes}")
+        px, py = self.padded_xy
+        if (px >> self.levels) * (py >> self.levels) < 2:
+            raise ValueError(f"grid_shape {self.grid_shape[:2]} is too small for levels={self.levels}")
+        return self
+
+    @property
+    def features(self) -> int:
+        return 3 + self.num_classes + 5
+
+    @property
+    def padded_xy(self) -> tuple[int, int]:
+        m = 2**self.levels
+        x, y = self.grid_shape[:2]
+        return -(-x // m) * m, -(-y // m) * m
+
+
+def analytic_update(alpha: Tensor, beta: Tensor, eta: Tensor, free: Tensor, occ: Tensor, seen: Tensor,
+                    w: float) -> tuple[Tensor, Tensor, Tensor]:
+    """``analytic-observation``'s rule (contradiction decay off) on [B, ...] tensors: occupied and
+    class evidence at hits, free and background evidence before them."""
+    f, o, s = free.to(alpha.dtype), occ.to(alpha.dtype), seen.to(alpha.dtype)
+    eta = eta + w * s
+    eta = torch.cat([eta[:, :1] + w * f[:, None], eta[:, 1:]], 1)
+    return alpha + w * o, beta + w * f, eta
+
+
+def bounded_evidence(occ_logit: Tensor, cls_logit: Tensor, s_max: float, t_max: float
+                     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """(alpha, beta, eta, p, q) from logits: floored probabilities and the least committal evidence
+    with those means (module docstring, step 4). ``occ_logit`` [B, ...], ``cls_logit`` [B, C, ...]."""
+    c = cls_logit.shape[1]
+    eps_o = 2.0 / s_max
+    p = eps_o / 2 + (1 - eps_o) * torch.sigmoid(occ_logit)
+    eps_c = c / t_max
+    q = eps_c / c + (1 - eps_c) * torch.softmax(cls_logit, 1)
+    s = 1.0 / torch.minimum(p, 1 - p)
+    t = 1.0 / q.min(1, keepdim=True).values
+    return p * s, (1 - p) * s, q * t, p, q
+
+
+def _norm(c: int) -> nn.GroupNorm:
+    return nn.GroupNorm(min(8, c), c)
+
+
+class _Block(nn.Module):
+    def __init__(self, cin: int, cout: int) -> None:
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Conv2d(cin, cout, 3, padding=1, bias=False), _norm(cout), nn.SiLU(),
+            nn.Conv2d(cout, cout, 3, padding=1, bias=False), _norm(cout), nn.SiLU(),
+        )
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.net(x)
+
+
+class MapNet(nn.Module):
+    """One observation step over the whole map (module docstring)."""
+
+    def __init__(self, config: MapNetConfig) -> None:
+        super().__init__()
+        self.config = cfg = config
+        z = cfg.grid_shape[2]
+        self.embed = nn.Linear(cfg.features, cfg.embed)
+        w = cfg.width
+        self.stem = nn.Conv2d(z * cfg.embed, w, 2, stride=2)
+        widths = [w * 2**i for i in range(cfg.levels)]
+        self.down = nn.ModuleList()
+        self.enc = nn.ModuleList()
+        cin = w
+        for i, c in enumerate(widths):
+            self.down.append(nn.Identity() if i == 0 else nn.Conv2d(cin, c, 2, stride=2))
+            self.enc.append(_Block(c if i else cin, c))
+            cin = c
+        self.up = nn.ModuleList()
+        self.dec = nn.ModuleList()
+        for c_hi, c_lo in zip(widths[::-1][:-1], widths[::-1][1:], strict=True):
+            self.up.append(nn.ConvTranspose2d(c_hi, c_lo, 2, stride=2))
+            self.dec.append(_Block(2 * c_lo, c_lo))
+        self.full = nn.ConvTranspose2d(w, w, 2, stride=2)
+        self.column = nn.Conv2d(w, z * cfg.context, 1)
+        last = nn.Linear(cfg.hidden, 1 + cfg.num_classes)
+        nn.init.zeros_(last.weight)  # an untrained network is the analytic update
+        nn.init.zeros_(last.bias)
+        self.head = nn.Sequential(nn.Linear(cfg.context + cfg.features, cfg.hidden), nn.SiLU(), last)
+
+    def features(self, alpha: Tensor, beta: Tensor, eta: Tensor, free: Tensor, occ: Tensor, seen: Tensor,
+                 valid: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(features [B, F, X, Y, Z], A's occupancy logit [B, X, Y, Z], A's log class probs [B, C, ...])
+        of a belief (evidence [B, ...]) and a view's masks; ``valid`` [X, Y, Z] marks the interior."""
+        a, b, e = analytic_update(alpha, beta, eta, free, occ, seen, self.config.w_obs)
+        s = a + b
+        t = e.sum(1)
+        logit = (torch.log(a) - torch.log(b)).clamp(-LOGIT_CLIP, LOGIT_CLIP)
+        logq = torch.log(e) - torch.log(t)[:, None]
+        dt = alpha.dtype
+        z = logit.shape[-1]
+        height = torch.arange(z, device=logit.device)
+        top = torch.where((logit > 0) & valid, height, -1).amax(-1, keepdim=True)  # [B, X, Y, 1]: -1 if none
+        below = (height < top).to(dt)  # under the column's highest believed-occupied interior voxel
+        depth = (top - height).clamp(min=0).to(dt) / z
+        feats = torch.cat([
+            (logit / 4)[:, None], (torch.log(s) / 4)[:, None], (torch.log(t) / 4)[:, None], logq.exp(),
+            free.to(dt)[:, None], occ.to(dt)[:, None], seen.any(1).to(dt)[:, None], below[:, None], depth[:, None],
+        ], 1)
+        return feats, logit, logq
+
+    def _trunk(self, feats: Tensor) -> Tensor:
+        """Per-voxel column context [B, X, Y, Z, context] from the features."""
+        cfg = self.config
+        bsz, f, x, y, z = feats.shape
+        emb = torch.matmul(self.embed.weight, feats.reshape(bsz, f, -1)) + self.embed.bias[:, None]
+        m = emb.reshape(bsz, -1, x, y, z).permute(0, 4, 1, 2, 3).reshape(bsz, z * cfg.embed, x, y)
+        px, py = cfg.padded_xy
+        h = F.silu(self.stem(F.pad(m, (0, py - y, 0, px - x))))
+        skips = []
+        for down, enc in zip(self.down, self.enc, strict=True):
+            h = enc(down(h))
+            skips.append(h)
+        for up, dec, skip in zip(self.up, self.dec, skips[::-1][1:], strict=True):
+            h = dec(torch.cat([up(h), skip], 1))
+        h = self.column(F.silu(self.full(h)))[:, :, :x, :y]
+        return h.reshape(bsz, z, cfg.context, x, y).permute(0, 3, 4, 1, 2)
+
+    def forward(self, alpha: Tensor, beta: Tensor, eta: Tensor, free: Tensor, occ: Tensor, seen: Tensor,
+                valid: Tensor) -> tuple[Tensor, Tensor]:
+        """Logits of the next belief: occupancy [B, X, Y, Z] and classes [B, C, X, Y, Z]. Inputs: the
+        previous evidence (alpha, beta [B, X, Y, Z], eta [B, C, ...]), the view's masks (free, occ
+        [B, X, Y, Z], seen [B, C, ...]) and ``valid`` [X, Y, Z] (False on the shelf's boards)."""
+        feats, logit, logq = self.features(alpha, beta, eta, free, occ, seen, valid)
+        ctx = self._trunk(feats)
+        h = torch.cat([ctx, feats.permute(0, 2, 3, 4, 1)], -1)
+        d = self.head(h).permute(0, 4, 1, 2, 3) * valid.to(h.dtype)  # [B, 1 + C, X, Y, Z]
+        return logit + d[:, 0], logq + d[:, 1:]
+
+    def step(self, alpha: Tensor, beta: Tensor, eta: Tensor, free: Tensor, occ: Tensor, seen: Tensor,
+             valid: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The next belief's bounded evidence (alpha, beta, eta)."""
+        o, c = self(alpha, beta, eta, free, occ, seen, valid)
+        a, b, e, _, _ = bounded_evidence(o, c, self.config.s_max, self.config.t_max)
+        return a, b, e
+
+
+def map_loss(occ_logit: Tensor, cls_logit: Tensor, gt_occ: Tensor, gt_cls: Tensor, valid: Tensor,
+             s_max: float, t_max: float) -> tuple[Tensor, Tensor]:
+    """(occupancy NLL, class NLL), means over the valid voxels, of the bounded expected probabilities
+    (exactly what the belief reports) against the ground truth (class 0 = free)."""
+    _, _, _, p, q = bounded_evidence(occ_logit, cls_logit, s_max, t_max)
+    m = valid.expand_as(gt_occ)
+    y = gt_occ.to(p.dtype)
+    occ_nll = -(y * torch.log(p) + (1 - y) * torch.log1p(-p))
+    qy = torch.gather(q, 1, gt_cls.long()[:, None])[:, 0]
+    cls_nll = -torch.log(qy)
+    n = m.sum().clamp(min=1)
+    return occ_nll[m].sum() / n, cls_nll[m].sum() / n
+
+
+def parameter_count(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+

@@ -1,0 +1,199 @@
+"""The whole-map observation model (``cnabu-map``) and its column-fill twin.
+
+``tests/data/map_heldout/`` holds two shards of ``msmem datagen cnabu --kind observe --seed 900000
+--scenes 2 --samples 12 --min-views 0 --max-views 0`` (held-out seeds: the shipped weights were
+trained on seeds 100000 and up, below 900000; see ``plugins/msmem_cnabu/weights/MODEL_CARD_map.md``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from msmem_analytic.columnfill import ColumnFillObservationModel
+from msmem_analytic.observation import AnalyticObservationModel
+from msmem_cnabu.datagen import load_shard
+from msmem_cnabu.mapeval import evaluate_rollouts
+from msmem_cnabu.mapnet import MapNet, MapNetConfig, analytic_update, bounded_evidence
+from msmem_cnabu.maptrain import MapTrainConfig, load_map_net, rollout_loss, sequence, start_masks, train_map
+
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.grid import GridSpec
+
+HELDOUT = Path(__file__).parent / "data" / "map_heldout"
+SHIPPED = Path(__file__).parents[1] / "plugins" / "msmem_cnabu" / "weights" / "cnabu_map.pt"
+
+
+@pytest.fixture(scope="module")
+def shard():
+    return load_shard(sorted(HELDOUT.glob("scene_*.npz"))[0])
+
+
+# ------------------------------------------------------------------------------ bounded evidence
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-40, 40), min_size=16, max_size=16), st.floats(-40, 40),
+       st.sampled_from([(100.0, 300.0), (10.0, 20.0)]))
+def test_bounded_evidence_is_at_least_one_bounded_and_has_the_predicted_means(cls, occ, bounds):
+    s_max, t_max = bounds
+    o = torch.tensor([occ], dtype=torch.float64)
+    c = torch.tensor([cls[:15]], dtype=torch.float64)
+    a, b, e, p, q = bounded_evidence(o, c, s_max, t_max)
+    assert float(a.min()) >= 1 - 1e-9 and float(b.min()) >= 1 - 1e-9 and float(e.min()) >= 1 - 1e-9
+    assert float((a + b).max()) <= s_max + 1e-6
+    assert float(e.sum(1).max()) <= t_max + 1e-6
+    assert 0 <= float(p.min()) and float(p.max()) <= 1
+    assert torch.allclose(a / (a + b), p) and torch.allclose(e / e.sum(1, keepdim=True), q)
+
+
+def test_an_even_prediction_is_the_prior():
+    a, b, e, _, _ = bounded_evidence(torch.zeros(1, 3), torch.zeros(1, 15, 3), 100.0, 300.0)
+    assert torch.allclose(a, torch.ones(1, 3)) and torch.allclose(b, torch.ones(1, 3))
+    assert torch.allclose(e, torch.ones(1, 15, 3))
+
+
+# ------------------------------------------------------------------------------ analytic step
+def test_the_networks_analytic_step_is_the_analytic_observation_update(shard):
+    f0, o0, s0 = start_masks(shard)
+    model = AnalyticObservationModel()
+    b0 = model.apply_masks(EvidentialMap.empty(shard.grid), f0, o0, s0)
+    assert np.array_equal(b0.alpha, shard.alpha[0].astype(np.float32))  # the start view recovered exactly
+    assert np.array_equal(b0.eta, shard.eta[0].astype(np.float32))
+    f, o, s = shard.masks(0)
+    want = model.apply_masks(b0, f, o, s)
+    t = torch.from_numpy
+    a, b, e = analytic_update(t(b0.alpha)[None], t(b0.beta)[None], t(b0.eta)[None], t(f)[None], t(o)[None],
+                              t(s)[None], 10.0)
+    assert np.array_equal(a[0].numpy(), want.alpha) and np.array_equal(b[0].numpy(), want.beta)
+    assert np.array_equal(e[0].numpy(), want.eta)
+
+
+def test_an_untrained_network_is_the_bounded_analytic_update(shard):
+    seq = sequence(shard)
+    net = MapNet(MapNetConfig(grid_shape=seq.gt_occ.shape)).eval()
+    b = AnalyticObservationModel().apply_masks(EvidentialMap.empty(shard.grid), seq.free[0], seq.occ[0], seq.seen[0])
+    t = torch.from_numpy
+    with torch.no_grad():
+        a, bb, e = net.step(t(b.alpha)[None], t(b.beta)[None], t(b.eta)[None], t(seq.free[1])[None],
+                            t(seq.occ[1])[None], t(seq.seen[1])[None], t(seq.valid))
+    ref = AnalyticObservationModel().apply_masks(b, seq.free[1], seq.occ[1], seq.seen[1])
+    eps = 2 / net.config.s_max  # the floor mixed into every probability
+    p_ref = eps / 2 + (1 - eps) * ref.expected_occupancy()
+    p = (a / (a + bb))[0].numpy()
+    assert np.allclose(p, p_ref, atol=2e-3)
+    assert np.array_equal(np.argmax(e[0].numpy(), 0), np.argmax(ref.eta, 0))
+
+
+# ------------------------------------------------------------------------------ shipped weights
+def test_shipped_weights_load_as_plain_tensors_and_stay_small():
+    net, meta = load_map_net(SHIPPED)
+    assert not net.training
+    assert SHIPPED.stat().st_size < 8e6
+    assert meta["data"]["seed_max"] < 900000  # the held-out shards are seeds 900000 and up
+
+
+@pytest.fixture(scope="module")
+def heldout():
+    torch.set_num_threads(1)
+    net, _ = load_map_net(SHIPPED)
+    return evaluate_rollouts(net, HELDOUT, log=lambda _: None)["final"]
+
+
+def test_shipped_weights_beat_the_analytic_update_on_heldout_scenes(heldout):
+    learned, analytic = heldout["cnabu-map"], heldout["analytic-observation"]
+    assert learned["occ_nll"] + learned["sem_nll"] < analytic["occ_nll"] + analytic["sem_nll"], (learned, analytic)
+    assert learned["occupancy_miou"] > analytic["occupancy_miou"]
+
+
+def test_a_long_rollout_keeps_evidence_at_least_one_and_bounded(shard):
+    net, _ = load_map_net(SHIPPED)
+    seq = sequence(shard)
+    cfg = net.config
+    rng = np.random.default_rng(0)
+    b = EvidentialMap.empty(shard.grid)
+    t = torch.from_numpy
+    for k in range(40):  # the recorded views, then again in a random order, as an episode revisits places
+        i = k if k < len(seq) else int(rng.integers(len(seq)))
+        with torch.no_grad():
+            a, bb, e = net.step(t(b.alpha)[None], t(b.beta)[None], t(b.eta)[None], t(seq.free[i])[None],
+                                t(seq.occ[i])[None], t(seq.seen[i])[None], t(seq.valid))
+        b = EvidentialMap(shard.grid, a[0].numpy(), bb[0].numpy(), e[0].numpy())
+        assert b.alpha.min() >= 1 - 1e-4 and b.beta.min() >= 1 - 1e-4 and b.eta.min() >= 1 - 1e-4
+        assert (b.alpha + b.beta).max() <= cfg.s_max * (1 + 1e-5)
+        assert b.eta.sum(0).max() <= cfg.t_max * (1 + 1e-5)
+        p = b.expected_occupancy()
+        assert np.isfinite(p).all() and p.min() >= 0 and p.max() <= 1
+
+
+# ------------------------------------------------------------------------------ training
+def test_rollout_training_lowers_the_loss_on_its_scene(shard, tmp_path):
+    """Real training on one recorded scene: its rollout loss falls."""
+    torch.manual_seed(0)
+    seq = sequence(shard)
+    net = MapNet(MapNetConfig(grid_shape=seq.gt_occ.shape, width=16, embed=4, context=4, hidden=16))
+    from msmem_cnabu.maptrain import _batch
+
+    batch = _batch([seq], [False])
+    valid = torch.from_numpy(seq.valid)
+    before = rollout_loss(net.eval(), batch, valid)
+    opt = torch.optim.AdamW(net.parameters(), lr=3e-3)
+    for _ in range(3):
+        rollout_loss(net.train(), batch, valid, 1.0, opt)
+    after = rollout_loss(net.eval(), batch, valid)
+    assert sum(x[0] + x[1] for x in after) < sum(x[0] + x[1] for x in before)
+
+
+def test_train_map_writes_loadable_weights_with_a_sidecar(tmp_path):
+    side = train_map(HELDOUT, tmp_path / "m.pt", MapTrainConfig(batches=1, batch=1),
+                     MapNetConfig(width=8, embed=2, context=2, hidden=8, levels=2), log=lambda _: None)
+    assert side["data"]["scenes"] == 1 and side["stopped"] == "epochs"
+    net, meta = load_map_net(tmp_path / "m.pt")
+    assert meta["sha256"] == side["sha256"] and net.config.width == 8
+
+
+# ------------------------------------------------------------------------------ column-fill
+def _grid() -> GridSpec:
+    return GridSpec(origin_m=(0.0, 0.0, 0.0), voxel_m=0.01, shape=(4, 4, 8))
+
+
+def test_column_fill_marks_unseen_voxels_under_a_seen_top_and_removes_them_when_it_goes():
+    grid = _grid()
+    model = ColumnFillObservationModel()
+    b = EvidentialMap.empty(grid)
+    free = np.zeros(grid.shape, bool)
+    occ = np.zeros(grid.shape, bool)
+    seen = np.zeros((b.num_classes, *grid.shape), bool)
+    occ[1, 1, 5] = True  # a top surface seen at z = 5 with class 3
+    seen[3, 1, 1, 5] = True
+    free[1, 1, 6:7] = True  # the ray above it
+    free[2, 1, 1:7] = True  # a free column
+    out = model.update_masks(b, free, occ, seen)
+    filled = model.filled(out)
+    want = np.zeros(grid.shape, bool)
+    want[1, 1, 1:5] = True  # the margin (z = 0) is the board: never filled
+    assert np.array_equal(filled, want)
+    assert (out.expected_occupancy()[1, 1, 1:5] > 0.5).all()
+    assert (np.argmax(out.eta[:, 1, 1, 1:5], 0) == 3).all()
+    assert not filled[2].any()  # nothing is believed occupied in the free column
+    # a second view sees the top voxel free: the fill under it goes with it
+    free2 = np.zeros(grid.shape, bool)
+    free2[1, 1, 5] = True
+    out2 = model.update_masks(out, free2, np.zeros(grid.shape, bool), np.zeros_like(seen))
+    assert not model.filled(out2).any()
+    assert (out2.alpha[1, 1, 1:5] == 1).all() and (out2.eta[:, 1, 1, 1:5] == 1).all()
+
+
+def test_column_fill_never_changes_observed_voxels(shard):
+    seq = sequence(shard)
+    analytic, fill = AnalyticObservationModel(), ColumnFillObservationModel()
+    a = f = EvidentialMap.empty(shard.grid)
+    for t in range(len(seq)):
+        a = analytic.apply_masks(a, seq.free[t], seq.occ[t], seq.seen[t])
+        f = fill.update_masks(f, seq.free[t], seq.occ[t], seq.seen[t])
+    observed = (a.alpha > 1) | (a.beta > 1)
+    assert np.array_equal(a.alpha[observed], f.alpha[observed]) and np.array_equal(a.beta[observed], f.beta[observed])
+    assert np.array_equal(a.eta[:, observed], f.eta[:, observed])
+    assert fill.filled(f).sum() > 100  # something was filled in a real scene
