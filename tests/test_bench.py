@@ -108,20 +108,28 @@ def test_paper_metrics_per_scene_and_suite_cumulative():
     assert a["cumulative"]["semantic_miou_2d"] == pytest.approx((8 / 10 + 2 / 4) / 2)
     assert a["cumulative"]["occupancy_ece"] == pytest.approx(0.5)
     assert a["cumulative"]["episodes"] == 2
-    assert b["episodes"] == 2 and b["cumulative"]["episodes"] == 1  # the old file is skipped, not a crash
+    assert b["episodes"] == 2  # the old file is skipped, not a crash
+    assert b["cumulative"]["episodes"] == 1
     assert b["occupancy_miou"][0] == pytest.approx((90 / 100 + 5 / 10) / 2)
     assert b["occupancy_iou"][0] == pytest.approx(0.2)  # the stricter metrics count both files
     pair = summary["paired"]["a - b"]
-    assert pair["occupancy_miou"]["scenes"] == 1 and pair["occupancy_iou"]["scenes"] == 2
+    assert pair["occupancy_miou"]["scenes"] == 1
+    assert pair["occupancy_iou"]["scenes"] == 2
     assert pair["semantic_miou_2d"]["mean"] == pytest.approx(1 - (1 + 0.5) / 2)
+    assert b["counted"] == dict.fromkeys(PAPER_METRIC_KEYS, 1)
+    assert a["counted"] == {}
     text = table_markdown(summary)
+    assert f"| {(90 / 100 + 5 / 10) / 2:.3f} (n=1) |" in text.splitlines()[3]  # method b
     header = text.splitlines()[0]
-    assert "occupancy mIoU (paper)" in header and "semantic mIoU 2-D (paper)" in header
-    assert "occupancy ECE" in header and "semantic ECE" in header
+    assert "occupancy mIoU (paper)" in header
+    assert "semantic mIoU 2-D (paper)" in header
+    assert "occupancy ECE" in header
+    assert "semantic ECE" in header
     cum = text[text.index("Suite-cumulative"):]
     assert f"| a | 2 | {(189 / 199 + 1 / 11) / 2:.3f} | {(8 / 10 + 2 / 4) / 2:.3f} | 0.500 | 0.500 |" in cum
     paired_header = next(line for line in text.splitlines() if line.startswith("| difference |"))
-    assert "occupancy mIoU (paper)" in paired_header and "semantic mIoU 2-D (paper)" in paired_header
+    assert "occupancy mIoU (paper)" in paired_header
+    assert "semantic mIoU 2-D (paper)" in paired_header
 
 
 def test_kill_and_resume_loses_at_most_the_inflight_episode(tmp_path):
@@ -157,9 +165,12 @@ def test_kill_and_resume_loses_at_most_the_inflight_episode(tmp_path):
             {k: ep["metrics"][k] for k in PAPER_METRIC_KEYS})
         assert len(ep["curves"]["occupancy_miou"]) == len(ep["curves"]["semantic_miou_2d"]) == FAST["steps"]
     cum = results["summary"]["table"]["view-only"]["cumulative"]
-    assert cum["episodes"] == 3 and 0.0 < cum["occupancy_miou"] <= 1.0 and 0.0 < cum["semantic_miou_2d"] <= 1.0
+    assert cum["episodes"] == 3
+    assert 0.0 < cum["occupancy_miou"] <= 1.0
+    assert 0.0 < cum["semantic_miou_2d"] <= 1.0
     table = (tmp_path / "table.md").read_text()
-    assert "occupancy mIoU (paper)" in table and f"| view-only | 3 | {cum['occupancy_miou']:.3f} |" in table
+    assert "occupancy mIoU (paper)" in table
+    assert f"| view-only | 3 | {cum['occupancy_miou']:.3f} |" in table
 
 
 def test_local_and_ray_give_identical_tables(tmp_path):

@@ -141,7 +141,7 @@ def test_semantic_miou_2d_includes_background_and_skips_absent_classes() -> None
     assert union.tolist() == [1, 2, 2, 0, 0]
     # background IoU 1, class 1 1/2, class 2 1/2; classes 3 and 4 are in neither map
     assert miou_from_counts(inter, union) == pytest.approx((1 + 0.5 + 0.5) / 3)
-    with pytest.raises(ValueError, match="outside 0..4"):
+    with pytest.raises(ValueError, match=r"outside 0\.\.4"):
         class_iou_counts(pred, np.full_like(gt, 5), 5)
 
 
@@ -174,7 +174,9 @@ def test_ece_on_a_hand_example() -> None:
     count, conf_sum, correct_sum = ece_bins(conf, correct)
     assert len(count) == 15
     assert np.flatnonzero(count).tolist() == [1, 5, 6, 14]  # 1.0 falls in the last bin
-    assert count[14] == 2 and conf_sum[14] == pytest.approx(1.95) and correct_sum[14] == 2
+    assert count[14] == 2
+    assert conf_sum[14] == pytest.approx(1.95)
+    assert correct_sum[14] == 2
     # (1/5)|0 - 0.1| + (1/5)|1 - 0.35| + (1/5)|0 - 0.41| + (2/5)|1 - 0.975|
     assert ece_from_bins(count, conf_sum, correct_sum) == pytest.approx(0.02 + 0.13 + 0.082 + 0.01)
     assert math.isnan(ece_from_bins(*ece_bins([], [])))
@@ -217,7 +219,8 @@ def test_miou_is_in_0_1_and_counts_add_over_cells(pred: list[int], gt: list[int]
     assert np.all(inter <= union)
     cut = np.random.default_rng(seed).integers(0, n + 1)
     a, b = class_iou_counts(p[:cut], g[:cut], 4), class_iou_counts(p[cut:], g[cut:], 4)
-    assert (a[0] + b[0]).tolist() == inter.tolist() and (a[1] + b[1]).tolist() == union.tolist()
+    assert (a[0] + b[0]).tolist() == inter.tolist()
+    assert (a[1] + b[1]).tolist() == union.tolist()
 
 
 @settings(max_examples=60, deadline=None)
@@ -265,8 +268,10 @@ def test_paper_counts_score_the_interior_ties_free_and_background_as_a_class() -
     assert pred_cls[2].ravel().tolist() == [1, 1]  # outside the interior: ignored below
     counts = paper_counts(p, probs, pred_cls, gt_occ, gt_cls, interior)
     assert set(counts) == set(PAPER_COUNT_KEYS)
-    assert counts["occupancy_intersection"] == [3, 0] and counts["occupancy_union"] == [4, 1]
-    assert counts["semantic_2d_intersection"] == [1, 0, 0] and counts["semantic_2d_union"] == [2, 0, 1]
+    assert counts["occupancy_intersection"] == [3, 0]
+    assert counts["occupancy_union"] == [4, 1]
+    assert counts["semantic_2d_intersection"] == [1, 0, 0]
+    assert counts["semantic_2d_union"] == [2, 0, 1]
     m = paper_metrics_from_counts(counts)
     assert m["occupancy_miou"] == pytest.approx((3 / 4 + 0) / 2)
     assert m["semantic_miou_2d"] == pytest.approx((1 / 2 + 0) / 2)  # top views [0, 0] vs [2, 0]; class 1 absent

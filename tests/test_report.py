@@ -119,13 +119,15 @@ def test_a_run_writes_the_paper_metrics_per_step_and_final_and_the_report_shows_
     steps = [json.loads(line) for line in (run_dir / "steps.jsonl").read_text().splitlines()]
     for rec in (final, final["initial"], *(s["metrics"] for s in steps)):
         assert set(PAPER_METRIC_KEYS) <= set(rec)
-        assert 0.0 < rec["occupancy_miou"] <= 1.0 and 0.0 < rec["semantic_miou_2d"] <= 1.0
+        assert 0.0 < rec["occupancy_miou"] <= 1.0
+        assert 0.0 < rec["semantic_miou_2d"] <= 1.0
     assert set(final["paper_counts"]) == set(PAPER_COUNT_KEYS)
     assert paper_metrics_from_counts(final["paper_counts"]) == pytest.approx({k: final[k] for k in PAPER_METRIC_KEYS})
     assert final["occupancy_miou"] == steps[-1]["metrics"]["occupancy_miou"]
     assert all("paper_counts" not in s["metrics"] for s in steps), "step records stay small"
     page = (run_dir / "report.html").read_text()
-    assert "occupancy_miou (paper)" in page and "semantic_ece (paper)" in page
+    assert "occupancy_miou (paper)" in page
+    assert "semantic_ece (paper)" in page
     # a run folder written before the paper metrics existed still gets a report
     old = tmp_path / "old"
     shutil.copytree(run_dir, old, ignore=shutil.ignore_patterns("report*"))

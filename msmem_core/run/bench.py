@@ -162,6 +162,8 @@ def summarise(results: list[dict[str, Any]], methods: list[str]) -> dict[str, An
         rows = [r for r in ok if r["method"] == m]
         table[m] = {k: mean_ci([r["metrics"][k] for r in rows if k in r["metrics"]]) for k, _, _ in TABLE_METRICS}
         table[m]["episodes"] = len(rows)
+        table[m]["counted"] = {k: n for k, _, _ in TABLE_METRICS  # columns some (older) episodes lack
+                               if (n := sum(k in r["metrics"] for r in rows)) < len(rows)}
         table[m]["cumulative"] = cumulative(rows)
         counted = [r for r in rows if all(k in r["metrics"] for k, _ in COUNT_METRICS)]  # older files lack them
         table[m]["counts"] = {
@@ -201,11 +203,12 @@ def table_markdown(summary: dict[str, Any]) -> str:
              "|---|---|" + "---|" * len(TABLE_METRICS)]
     for m in summary["methods"]:
         row = summary["table"][m]
-        lines.append(f"| {m} | {row['episodes']} | " + " | ".join(_fmt(tuple(row[k])) for k, _, _ in TABLE_METRICS)
-                     + " |")
+        counted = row.get("counted", {})
+        lines.append(f"| {m} | {row['episodes']} | " + " | ".join(
+            _fmt(tuple(row[k])) + (f" (n={counted[k]})" if k in counted else "") for k, _, _ in TABLE_METRICS) + " |")
     lines += ["", "Mean ± half-width of the 95% t-interval over scenes. \"(paper)\" and ECE: the paper's own metrics",
               "([MEM]'s `Cumulative_mIoU`; docs/concepts.md), per scene; episodes written before they existed are",
-              "left out of those columns.", ""]
+              "left out of those columns (n=: the episodes a column counts, where fewer than all).", ""]
     lines += ["Suite-cumulative paper metrics (intersections, unions and ECE bins summed over scenes before",
               "dividing, as [MEM]):", "",
               "| method | episodes | " + " | ".join(LABELS[k] for k in PAPER_METRIC_KEYS) + " |",
