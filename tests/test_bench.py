@@ -21,6 +21,7 @@ from msmem_core.run.bench import (
 )
 from msmem_core.errors import UserError
 from msmem_core.run.executors import run_tasks
+from msmem_core.run.metrics import PAPER_COUNT_KEYS, PAPER_METRIC_KEYS, paper_metrics_from_counts
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {"steps": 2, "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
@@ -77,6 +78,60 @@ def test_table_ii_sums_the_object_counts_over_scenes():
     assert "| b | 0 | - | - | - | - | - |" in table2
 
 
+def _counts(occ: tuple[list[int], list[int]], sem: tuple[list[int], list[int]]) -> dict:
+    """Paper counts with the given occupancy and 2-D semantic (3 classes) intersections and unions;
+    one ECE sample, right at confidence 0.5 (ECE 0.5)."""
+    ece = {"count": [0] * 7 + [1] + [0] * 7, "confidence_sum": [0.0] * 7 + [0.5] + [0.0] * 7,
+           "correct_sum": [0] * 7 + [1] + [0] * 7}
+    return {"occupancy_intersection": occ[0], "occupancy_union": occ[1], "semantic_2d_intersection": sem[0],
+            "semantic_2d_union": sem[1], **{f"{kind}_ece_{k}": v for kind in ("occupancy", "semantic")
+                                            for k, v in ece.items()}}
+
+
+def _paper_result(method: str, scene: int, counts: dict) -> dict:
+    r = _result(method, scene, (1, 0, 0, 0, 0))
+    r["metrics"].update(paper_metrics_from_counts(counts))
+    r["paper_counts"] = counts
+    return r
+
+
+def test_paper_metrics_per_scene_and_suite_cumulative():
+    a0 = _counts(([99, 1], [99, 1]), ([5, 2, 0], [5, 2, 0]))  # perfect: mIoUs 1
+    a1 = _counts(([90, 0], [100, 10]), ([3, 0, 0], [5, 2, 0]))  # occupancy 0.45, semantic (0.6 + 0) / 2
+    b0 = _counts(([90, 5], [100, 10]), ([5, 1, 0], [5, 2, 0]))
+    results = [_paper_result("a", 0, a0), _paper_result("a", 1, a1), _paper_result("b", 0, b0),
+               _result("b", 1, (1, 0, 0, 0, 0))]  # written before the paper metrics existed
+    summary = summarise(results, ["a", "b"])
+    a, b = summary["table"]["a"], summary["table"]["b"]
+    assert a["occupancy_miou"][0] == pytest.approx((1 + 0.45) / 2)  # mean over scenes
+    assert a["cumulative"]["occupancy_miou"] == pytest.approx((189 / 199 + 1 / 11) / 2)  # summed, then divided
+    assert a["cumulative"]["semantic_miou_2d"] == pytest.approx((8 / 10 + 2 / 4) / 2)
+    assert a["cumulative"]["occupancy_ece"] == pytest.approx(0.5)
+    assert a["cumulative"]["episodes"] == 2
+    assert b["episodes"] == 2  # the old file is skipped, not a crash
+    assert b["cumulative"]["episodes"] == 1
+    assert b["occupancy_miou"][0] == pytest.approx((90 / 100 + 5 / 10) / 2)
+    assert b["occupancy_iou"][0] == pytest.approx(0.2)  # the stricter metrics count both files
+    pair = summary["paired"]["a - b"]
+    assert pair["occupancy_miou"]["scenes"] == 1
+    assert pair["occupancy_iou"]["scenes"] == 2
+    assert pair["semantic_miou_2d"]["mean"] == pytest.approx(1 - (1 + 0.5) / 2)
+    assert b["counted"] == dict.fromkeys(PAPER_METRIC_KEYS, 1)
+    assert a["counted"] == {}
+    text = table_markdown(summary)
+    assert f"| {(90 / 100 + 5 / 10) / 2:.3f} (n=1) |" in text.splitlines()[3]  # method b
+    header = text.splitlines()[0]
+    assert "occupancy mIoU (paper)" in header
+    assert "semantic mIoU 2-D (paper)" in header
+    assert "occupancy ECE" in header
+    assert "semantic ECE" in header
+    cum = text[text.index("Suite-cumulative"):]
+    assert f"| a | 2 | {(189 / 199 + 1 / 11) / 2:.3f} | {(8 / 10 + 2 / 4) / 2:.3f} | 0.500 | 0.500 |" in cum
+    paired_header = next(line for line in text.splitlines() if line.startswith("| difference |"))
+    assert "occupancy mIoU (paper)" in paired_header
+    assert "semantic mIoU 2-D (paper)" in paired_header
+
+
 def test_kill_and_resume_loses_at_most_the_inflight_episode(tmp_path):
     script = (
         "import sys, json; from pathlib import Path; from msmem_core.run.bench import run_bench, suite_scenes;"
@@ -101,6 +156,21 @@ def test_kill_and_resume_loses_at_most_the_inflight_episode(tmp_path):
     assert summary["table"]["view-only"]["episodes"] == 3
     assert (tmp_path / "table.md").read_text().startswith("| method |")
     assert (tmp_path / "curves.png").stat().st_size > 1000
+    # the paper's metrics: per episode, with the counts behind them, and summed over the suite
+    results = json.loads((tmp_path / "results.json").read_text())
+    for ep in results["episodes"]:
+        assert set(PAPER_METRIC_KEYS) <= set(ep["metrics"])
+        assert set(ep["paper_counts"]) == set(PAPER_COUNT_KEYS)
+        assert paper_metrics_from_counts(ep["paper_counts"]) == pytest.approx(
+            {k: ep["metrics"][k] for k in PAPER_METRIC_KEYS})
+        assert len(ep["curves"]["occupancy_miou"]) == len(ep["curves"]["semantic_miou_2d"]) == FAST["steps"]
+    cum = results["summary"]["table"]["view-only"]["cumulative"]
+    assert cum["episodes"] == 3
+    assert 0.0 < cum["occupancy_miou"] <= 1.0
+    assert 0.0 < cum["semantic_miou_2d"] <= 1.0
+    table = (tmp_path / "table.md").read_text()
+    assert "occupancy mIoU (paper)" in table
+    assert f"| view-only | 3 | {cum['occupancy_miou']:.3f} |" in table
 
 
 def test_local_and_ray_give_identical_tables(tmp_path):

@@ -1,4 +1,5 @@
-"""Metrics: IoUs, the bird's-eye semantic map, Position Change and belief thresholding."""
+"""Metrics: IoUs, the bird's-eye semantic map, Position Change, belief thresholding, and the paper's
+own metrics (MEM's Cumulative_mIoU and calibration error) from additive counts."""
 
 from __future__ import annotations
 
@@ -6,17 +7,32 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from msmem_core.world.geometry import pose_matrix
+from msmem_core.map.ig import shelf_interior_mask, shelf_wall_mask
 from msmem_core.run.metrics import (
+    PAPER_COUNT_KEYS,
+    class_iou_counts,
+    ece_bins,
+    ece_from_bins,
+    miou_from_counts,
     observable_iou,
     occupancy_iou,
+    occupancy_iou_counts,
+    paper_counts,
+    paper_metrics_from_counts,
     position_change_m,
     prediction_from_belief,
     semantic_miou,
     semantic_miou_bev,
+    sum_paper_counts,
+    top_label,
     top_view_classes,
 )
+from msmem_core.world.geometry import pose_matrix
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.scene import ShelfSpec
 
 
 def _grid(*voxels: tuple[int, int, int], shape: tuple[int, int, int] = (4, 4, 4)) -> np.ndarray:
@@ -103,3 +119,184 @@ def test_prediction_from_belief_thresholds_and_takes_the_best_object_class() -> 
     assert pred_cls.dtype == np.int16
     with pytest.raises(ValueError, match="class_probs"):
         prediction_from_belief(occ, probs[:, :2])
+
+
+# ----------------------------------------------------------------------- the paper's own metrics
+def test_occupancy_miou_averages_free_and_occupied_and_a_tie_is_free() -> None:
+    p = np.array([0.2, 0.5, 0.7, 0.9])
+    gt = np.array([False, True, True, False])
+    inter, union = occupancy_iou_counts(p > 0.5, gt)  # predicted occupied: 0.7 and 0.9; 0.5 is free
+    assert inter.tolist() == [1, 1]  # free: voxel 0; occupied: voxel 2
+    assert union.tolist() == [3, 3]  # free: voxels 0, 1, 3; occupied: voxels 1, 2, 3
+    assert miou_from_counts(inter, union) == pytest.approx(1 / 3)
+    mask = np.array([True, True, True, False])
+    assert occupancy_iou_counts(p > 0.5, gt, mask)[1].tolist() == [2, 2]
+
+
+def test_semantic_miou_2d_includes_background_and_skips_absent_classes() -> None:
+    pred = np.array([[0, 1], [1, 2]])
+    gt = np.array([[0, 1], [2, 2]])
+    inter, union = class_iou_counts(pred, gt, 5)
+    assert inter.tolist() == [1, 1, 1, 0, 0]
+    assert union.tolist() == [1, 2, 2, 0, 0]
+    # background IoU 1, class 1 1/2, class 2 1/2; classes 3 and 4 are in neither map
+    assert miou_from_counts(inter, union) == pytest.approx((1 + 0.5 + 0.5) / 3)
+    with pytest.raises(ValueError, match=r"outside 0\.\.4"):
+        class_iou_counts(pred, np.full_like(gt, 5), 5)
+
+
+def test_miou_of_empty_unions_is_nan_and_a_class_without_union_is_skipped() -> None:
+    assert math.isnan(miou_from_counts([0, 0], [0, 0]))
+    assert math.isnan(miou_from_counts([], []))
+    assert miou_from_counts([0, 3], [0, 4]) == 0.75
+    inter, union = class_iou_counts(np.zeros((0,), int), np.zeros((0,), int), 3)
+    assert inter.tolist() == union.tolist() == [0, 0, 0]
+
+
+def test_suite_accumulation_sums_counts_before_dividing() -> None:
+    """Two scenes: a perfect one with one occupied voxel, and one whose ten occupied voxels are all missed."""
+    gt_a = np.zeros(100, bool)
+    gt_a[0] = True
+    gt_b = np.zeros(100, bool)
+    gt_b[:10] = True
+    a = occupancy_iou_counts(gt_a, gt_a)
+    b = occupancy_iou_counts(np.zeros(100, bool), gt_b)
+    per_scene = [miou_from_counts(*a), miou_from_counts(*b)]
+    assert per_scene == [1.0, pytest.approx((90 / 100 + 0) / 2)]
+    suite = miou_from_counts(a[0] + b[0], a[1] + b[1])
+    assert suite == pytest.approx((189 / 199 + 1 / 11) / 2)  # free 99 + 90 of 99 + 100; occupied 1 of 1 + 10
+    assert abs(suite - np.mean(per_scene)) > 0.2
+
+
+def test_ece_on_a_hand_example() -> None:
+    conf = [0.1, 0.35, 0.41, 0.95, 1.0]
+    correct = [False, True, False, True, True]
+    count, conf_sum, correct_sum = ece_bins(conf, correct)
+    assert len(count) == 15
+    assert np.flatnonzero(count).tolist() == [1, 5, 6, 14]  # 1.0 falls in the last bin
+    assert count[14] == 2
+    assert conf_sum[14] == pytest.approx(1.95)
+    assert correct_sum[14] == 2
+    # (1/5)|0 - 0.1| + (1/5)|1 - 0.35| + (1/5)|0 - 0.41| + (2/5)|1 - 0.975|
+    assert ece_from_bins(count, conf_sum, correct_sum) == pytest.approx(0.02 + 0.13 + 0.082 + 0.01)
+    assert math.isnan(ece_from_bins(*ece_bins([], [])))
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        ece_bins([1.2], [True])
+
+
+def _ece_reference(conf: np.ndarray, correct: np.ndarray, n_bins: int = 15) -> float:
+    """A naive loop over samples and bins, the way MEM's Calibration_calc_3D bins ([lo, hi), last bin closed)."""
+    tiers = np.arange(n_bins + 1) / n_bins
+    total = len(conf)
+    ece = 0.0
+    for i in range(n_bins):
+        members = [k for k in range(total) if tiers[i] <= conf[k] < tiers[i + 1] or (i == n_bins - 1 and conf[k] == 1)]
+        if members:
+            acc = sum(bool(correct[k]) for k in members) / len(members)
+            mean_conf = sum(float(conf[k]) for k in members) / len(members)
+            ece += len(members) / total * abs(acc - mean_conf)
+    return ece
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ece_matches_a_naive_reference_loop(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    conf = rng.uniform(0, 1, 300)
+    correct = rng.uniform(0, 1, 300) < conf**2  # overconfident
+    assert ece_from_bins(*ece_bins(conf, correct)) == pytest.approx(_ece_reference(conf, correct), abs=1e-12)
+
+
+labels = st.lists(st.integers(0, 3), min_size=1, max_size=40)
+
+
+@settings(max_examples=60, deadline=None)
+@given(labels, labels, st.integers(0, 2**31 - 1))
+def test_miou_is_in_0_1_and_counts_add_over_cells(pred: list[int], gt: list[int], seed: int) -> None:
+    n = min(len(pred), len(gt))
+    p, g = np.array(pred[:n]), np.array(gt[:n])
+    inter, union = class_iou_counts(p, g, 4)
+    assert 0.0 <= miou_from_counts(inter, union) <= 1.0
+    assert np.all(inter <= union)
+    cut = np.random.default_rng(seed).integers(0, n + 1)
+    a, b = class_iou_counts(p[:cut], g[:cut], 4), class_iou_counts(p[cut:], g[cut:], 4)
+    assert (a[0] + b[0]).tolist() == inter.tolist()
+    assert (a[1] + b[1]).tolist() == union.tolist()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 1), st.booleans()), min_size=1, max_size=60), st.integers(0, 60))
+def test_ece_is_in_0_1_and_bins_add_over_samples(samples: list[tuple[float, bool]], cut: int) -> None:
+    conf = np.array([c for c, _ in samples])
+    correct = np.array([k for _, k in samples])
+    bins = ece_bins(conf, correct)
+    assert 0.0 <= ece_from_bins(*bins) <= 1.0
+    assert int(bins[0].sum()) == len(samples)
+    a, b = ece_bins(conf[:cut], correct[:cut]), ece_bins(conf[cut:], correct[cut:])
+    for whole, x, y in zip(bins, a, b, strict=True):
+        assert np.allclose(whole, x + y)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_top_label_equals_max_and_argmax_with_ties(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    probs = rng.integers(0, 3, size=(4, 5, 3)).astype(np.float32)  # many ties
+    lab = rng.integers(0, 4, size=(5, 3))
+    conf, correct = top_label(probs, lab)
+    assert np.array_equal(conf, probs.max(axis=0))
+    assert np.array_equal(correct, probs.argmax(axis=0) == lab)
+
+
+def _tiny_world() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A 3 x 1 x 2 grid whose column x = 2 lies outside the interior; the prior belief (p = 0.5,
+    uniform classes) everywhere but on x = 2, where an occupied class-1 voxel is believed and true."""
+    interior = np.zeros((3, 1, 2), bool)
+    interior[:2] = True
+    p = np.full((3, 1, 2), 0.5)
+    p[2] = 0.9
+    probs = np.full((3, 3, 1, 2), 1 / 3)
+    gt_occ = np.zeros((3, 1, 2), bool)
+    gt_occ[0, 0, 0] = gt_occ[2, 0, 1] = True
+    gt_cls = np.zeros((3, 1, 2), np.int16)
+    gt_cls[0, 0, 0], gt_cls[2, 0, 1] = 2, 1
+    return p, probs, gt_occ, gt_cls, interior
+
+
+def test_paper_counts_score_the_interior_ties_free_and_background_as_a_class() -> None:
+    p, probs, gt_occ, gt_cls, interior = _tiny_world()
+    _, pred_cls = prediction_from_belief(p, probs)
+    assert pred_cls[2].ravel().tolist() == [1, 1]  # outside the interior: ignored below
+    counts = paper_counts(p, probs, pred_cls, gt_occ, gt_cls, interior)
+    assert set(counts) == set(PAPER_COUNT_KEYS)
+    assert counts["occupancy_intersection"] == [3, 0]
+    assert counts["occupancy_union"] == [4, 1]
+    assert counts["semantic_2d_intersection"] == [1, 0, 0]
+    assert counts["semantic_2d_union"] == [2, 0, 1]
+    m = paper_metrics_from_counts(counts)
+    assert m["occupancy_miou"] == pytest.approx((3 / 4 + 0) / 2)
+    assert m["semantic_miou_2d"] == pytest.approx((1 / 2 + 0) / 2)  # top views [0, 0] vs [2, 0]; class 1 absent
+    assert m["occupancy_ece"] == pytest.approx(abs(3 - 4 * 0.5) / 4)  # confidence 0.5, 3 of 4 right
+    assert m["semantic_ece"] == pytest.approx(abs(3 - 4 / 3) / 4)  # a tie is background: right on the 3 free
+
+
+def test_paper_counts_of_scenes_sum_to_the_suite() -> None:
+    p, probs, gt_occ, gt_cls, interior = _tiny_world()
+    _, pred_cls = prediction_from_belief(p, probs)
+    one = paper_counts(p, probs, pred_cls, gt_occ, gt_cls, interior)
+    perfect = paper_counts(gt_occ.astype(float), probs, gt_cls, gt_occ, gt_cls, interior)
+    total = sum_paper_counts([one, perfect])
+    assert total["occupancy_union"] == [7, 2]
+    assert total["occupancy_ece_count"] == [a + b for a, b in zip(one["occupancy_ece_count"],
+                                                                  perfect["occupancy_ece_count"], strict=True)]
+    assert paper_metrics_from_counts(total)["occupancy_miou"] == pytest.approx((6 / 7 + 1 / 2) / 2)
+
+
+def test_shelf_interior_is_the_closed_interior_box_between_the_walls_and_the_open_front() -> None:
+    shelf = ShelfSpec()
+    grid = GridSpec.around_box(shelf.interior_lower, shelf.interior_upper, 0.01, 2)
+    interior, walls = shelf_interior_mask(grid, shelf), shelf_wall_mask(grid, shelf)
+    assert not (interior & walls).any()
+    front = grid.centers()[..., 1] < shelf.interior_lower[1]
+    assert np.array_equal(interior | walls | front, np.ones(grid.shape, bool))
+    extent = np.ptp(np.argwhere(interior), axis=0) + 1
+    assert extent.tolist() == np.round((shelf.interior_upper - shelf.interior_lower) / 0.01).astype(int).tolist()

@@ -112,6 +112,32 @@ def test_pushes_and_grasps_are_drawn_from_any_action_with_their_fields(run_dir, 
     assert "push at step 1" in render_html(run)
 
 
+def test_a_run_writes_the_paper_metrics_per_step_and_final_and_the_report_shows_them(run_dir, tmp_path):
+    from msmem_core.run.metrics import PAPER_COUNT_KEYS, PAPER_METRIC_KEYS, paper_metrics_from_counts
+
+    final = json.loads((run_dir / "metrics.json").read_text())
+    steps = [json.loads(line) for line in (run_dir / "steps.jsonl").read_text().splitlines()]
+    for rec in (final, final["initial"], *(s["metrics"] for s in steps)):
+        assert set(PAPER_METRIC_KEYS) <= set(rec)
+        assert 0.0 < rec["occupancy_miou"] <= 1.0
+        assert 0.0 < rec["semantic_miou_2d"] <= 1.0
+    assert set(final["paper_counts"]) == set(PAPER_COUNT_KEYS)
+    assert paper_metrics_from_counts(final["paper_counts"]) == pytest.approx({k: final[k] for k in PAPER_METRIC_KEYS})
+    assert final["occupancy_miou"] == steps[-1]["metrics"]["occupancy_miou"]
+    assert all("paper_counts" not in s["metrics"] for s in steps), "step records stay small"
+    page = (run_dir / "report.html").read_text()
+    assert "occupancy_miou (paper)" in page
+    assert "semantic_ece (paper)" in page
+    # a run folder written before the paper metrics existed still gets a report
+    old = tmp_path / "old"
+    shutil.copytree(run_dir, old, ignore=shutil.ignore_patterns("report*"))
+    strip = lambda m: {k: v for k, v in m.items() if k not in (*PAPER_METRIC_KEYS, "paper_counts")}  # noqa: E731
+    (old / "steps.jsonl").write_text("".join(json.dumps({**s, "metrics": strip(s["metrics"])}) + "\n" for s in steps))
+    (old / "metrics.json").write_text(json.dumps({**strip(final), "initial": strip(final["initial"])}))
+    assert [p.name for p in write_report(old)] == list(REPORT_FILES)
+    assert "occupancy_miou (paper)" not in (old / "report.html").read_text()
+
+
 def test_report_renders_in_headless_chromium_without_console_errors(run_dir, tmp_path):
     browser = chromium()
     if browser is None:

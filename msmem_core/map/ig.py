@@ -70,6 +70,16 @@ def shelf_wall_mask(grid: GridSpec, shelf: ShelfSpec) -> NDArray[np.bool_]:
     return outside & (c[..., 1] >= lo[1])
 
 
+def shelf_interior_mask(grid: GridSpec, shelf: ShelfSpec) -> NDArray[np.bool_]:
+    """Voxels whose centre lies in the closed shelf interior box ``[interior_lower, interior_upper]``.
+
+    The complement of :func:`shelf_wall_mask` without the open front (voxels in front of the
+    shelf, y < interior_lower.y, are neither walls nor interior). The paper's metrics are scored here.
+    """
+    c = grid.centers()
+    return np.all((c >= shelf.interior_lower) & (c <= shelf.interior_upper), axis=-1)
+
+
 @dataclass
 class IGField:
     """What IG reads from a belief: flat float32 clamped occupancy ``p`` and its entropy ``H`` (nats)."""

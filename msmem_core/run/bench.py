@@ -18,6 +18,7 @@ import numpy as np
 from scipy import stats
 
 from msmem_core.errors import UserError
+from msmem_core.run.metrics import PAPER_COUNT_KEYS, PAPER_METRIC_KEYS, paper_metrics_from_counts, sum_paper_counts
 from msmem_core.world.scene import SceneSpec
 
 SUITES = ("hard25", "tune10")
@@ -28,6 +29,10 @@ TABLE_METRICS = (
     ("position_change_m", "Position Change (m)", "lower"),
     ("observable_iou", "observable IoU", "higher"),
     ("semantic_miou_bev", "semantic mIoU (BEV)", "higher"),
+    ("occupancy_miou", "occupancy mIoU (paper)", "higher"),
+    ("semantic_miou_2d", "semantic mIoU 2-D (paper)", "higher"),
+    ("occupancy_ece", "occupancy ECE", "lower"),
+    ("semantic_ece", "semantic ECE", "lower"),
     ("views", "views", None),
     ("pushes", "pushes", None),
     ("grasps", "grasps", None),
@@ -41,6 +46,12 @@ COUNT_METRICS = (
     ("removed", "removed"),
 )
 """Table II: final object counts (``metrics.object_counts``) plus objects no longer in the shelf."""
+PAIRED_METRICS = ("occupancy_iou", "semantic_miou", "position_change_m", "observable_iou", "semantic_miou_bev",
+                  "occupancy_miou", "semantic_miou_2d")
+"""The metrics whose per-scene differences between methods ``table.md`` reports."""
+CURVE_METRICS = ("occupancy_iou", "semantic_miou", "observable_iou", "position_change_m", "occupancy_miou",
+                 "semantic_miou_2d")
+"""Per-step metrics kept in each episode's result file (``curves``)."""
 
 
 def suite_scenes(suite: str) -> list[SceneSpec]:
@@ -99,19 +110,19 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
         cfg = load_config(task.method, task.config_file, task.overrides)
         ep = build_episode(cfg, get_plugin_manager(), scene=SceneSpec.model_validate_json(task.scene_json))
         final = run_episode(ep, None)
-        curves = {k: [r["metrics"][k] for r in ep.records] for k in ("occupancy_iou", "semantic_miou",
-                                                                       "observable_iou", "position_change_m")}
+        curves = {k: [r["metrics"][k] for r in ep.records] for k in CURVE_METRICS}
         kinds = [r["skill"] for r in ep.records]
         grasp_ok = [r["success"] for r in ep.records if r["skill"] == "grasp"]
         record.update({
             "scene": ep.scene.name, "status": "ok", "metrics": {
                 **{k: final[k] for k in ("occupancy_iou", "semantic_miou", "observable_iou", "semantic_miou_bev",
-                                         "position_change_m")},
+                                         "position_change_m", *PAPER_METRIC_KEYS)},
                 **{k: int(final[k]) for k, _ in COUNT_METRICS},
                 "views": kinds.count("view"), "pushes": kinds.count("push"), "grasps": kinds.count("grasp"),
                 "grasp_success": float(np.mean(grasp_ok)) if grasp_ok else float("nan"),
             },
-            "curves": curves, "skills": kinds, "seconds": time.perf_counter() - t0,
+            "paper_counts": final["paper_counts"], "curves": curves, "skills": kinds,
+            "seconds": time.perf_counter() - t0,
         })
     except Exception as e:  # isolate the crash: the table reports it, the other episodes go on
         import traceback
@@ -132,13 +143,28 @@ def mean_ci(x: list[float]) -> tuple[float, float]:
     return float(a.mean()), float(stats.t.ppf(0.975, len(a) - 1) * a.std(ddof=1) / math.sqrt(len(a)))
 
 
+def cumulative(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The paper's metrics over a suite as [MEM]'s ``Cumulative_mIoU``: intersections, unions and
+    calibration bins summed over the episodes before dividing (episodes without counts are skipped)."""
+    counted = [r["paper_counts"] for r in rows if all(k in r.get("paper_counts", {}) for k in PAPER_COUNT_KEYS)]
+    values = (paper_metrics_from_counts(sum_paper_counts(counted)) if counted
+              else dict.fromkeys(PAPER_METRIC_KEYS, float("nan")))
+    return {"episodes": len(counted), **values}
+
+
 def summarise(results: list[dict[str, Any]], methods: list[str]) -> dict[str, Any]:
+    """Per method: mean and 95% CI over scenes of every table metric (episodes lacking a metric, written
+    before it existed, are left out of its column), Table II counts, and the suite-cumulative paper metrics;
+    plus paired differences against the first method."""
     ok = [r for r in results if r.get("status") == "ok"]
     table: dict[str, dict[str, Any]] = {}
     for m in methods:
         rows = [r for r in ok if r["method"] == m]
-        table[m] = {k: mean_ci([r["metrics"][k] for r in rows]) for k, _, _ in TABLE_METRICS}
+        table[m] = {k: mean_ci([r["metrics"][k] for r in rows if k in r["metrics"]]) for k, _, _ in TABLE_METRICS}
         table[m]["episodes"] = len(rows)
+        table[m]["counted"] = {k: n for k, _, _ in TABLE_METRICS  # columns some (older) episodes lack
+                               if (n := sum(k in r["metrics"] for r in rows)) < len(rows)}
+        table[m]["cumulative"] = cumulative(rows)
         counted = [r for r in rows if all(k in r["metrics"] for k, _ in COUNT_METRICS)]  # older files lack them
         table[m]["counts"] = {
             "episodes": len(counted),
@@ -150,12 +176,13 @@ def summarise(results: list[dict[str, Any]], methods: list[str]) -> dict[str, An
     base = methods[0]
     by = {(r["method"], r["scene_index"]): r for r in ok}
     for m in methods[1:]:
-        scenes = sorted(s for (mm, s) in by if mm == base and (m, s) in by)
-        paired[f"{base} - {m}"] = {
-            k: {**dict(zip(("mean", "ci95"), mean_ci([by[(base, s)]["metrics"][k] - by[(m, s)]["metrics"][k]
-                                                       for s in scenes]), strict=True)), "scenes": len(scenes)}
-            for k, _, _ in TABLE_METRICS[:5]
-        }
+        pair: dict[str, Any] = {}
+        for k in PAIRED_METRICS:
+            scenes = sorted(s for (mm, s) in by if mm == base and (m, s) in by
+                            and k in by[(base, s)]["metrics"] and k in by[(m, s)]["metrics"])
+            diffs = [by[(base, s)]["metrics"][k] - by[(m, s)]["metrics"][k] for s in scenes]
+            pair[k] = {**dict(zip(("mean", "ci95"), mean_ci(diffs), strict=True)), "scenes": len(scenes)}
+        paired[f"{base} - {m}"] = pair
     errors = [{"method": r["method"], "scene_index": r["scene_index"], "error": r["error"]}
               for r in results if r.get("status") == "error"]
     return {"methods": methods, "table": table, "paired": paired, "errors": errors}
@@ -168,21 +195,39 @@ def _fmt(mc: tuple[float, float]) -> str:
     return f"{m:.3f}" if math.isnan(c) else f"{m:.3f} ± {c:.3f}"
 
 
+LABELS = {k: label for k, label, _ in TABLE_METRICS}
+
+
 def table_markdown(summary: dict[str, Any]) -> str:
     lines = ["| method | episodes | " + " | ".join(label for _, label, _ in TABLE_METRICS) + " |",
              "|---|---|" + "---|" * len(TABLE_METRICS)]
     for m in summary["methods"]:
         row = summary["table"][m]
-        lines.append(f"| {m} | {row['episodes']} | " + " | ".join(_fmt(tuple(row[k])) for k, _, _ in TABLE_METRICS)
-                     + " |")
-    lines += ["", "Mean ± half-width of the 95% t-interval over scenes.", ""]
+        counted = row.get("counted", {})
+        lines.append(f"| {m} | {row['episodes']} | " + " | ".join(
+            _fmt(tuple(row[k])) + (f" (n={counted[k]})" if k in counted else "") for k, _, _ in TABLE_METRICS) + " |")
+    lines += ["", "Mean ± half-width of the 95% t-interval over scenes. \"(paper)\" and ECE: the paper's own metrics",
+              "([MEM]'s `Cumulative_mIoU`; docs/concepts.md), per scene; episodes written before they existed are",
+              "left out of those columns (n=: the episodes a column counts, where fewer than all).", ""]
+    lines += ["Suite-cumulative paper metrics (intersections, unions and ECE bins summed over scenes before",
+              "dividing, as [MEM]):", "",
+              "| method | episodes | " + " | ".join(LABELS[k] for k in PAPER_METRIC_KEYS) + " |",
+              "|---|---|" + "---|" * len(PAPER_METRIC_KEYS)]
+    for m in summary["methods"]:
+        cum = summary["table"][m].get("cumulative", {"episodes": 0})
+        lines.append(f"| {m} | {cum['episodes']} | "
+                     + " | ".join(_fmt((cum.get(k, math.nan), math.nan)) for k in PAPER_METRIC_KEYS) + " |")
+    lines.append("")
     if summary["paired"]:
         lines += ["Paired differences per scene (mean ± 95% CI; an interval excluding 0 is marked *):", "",
-                  "| difference | " + " | ".join(label for _, label, _ in TABLE_METRICS[:5]) + " |",
-                  "|---|" + "---|" * 5]
+                  "| difference | " + " | ".join(LABELS[k] for k in PAIRED_METRICS) + " |",
+                  "|---|" + "---|" * len(PAIRED_METRICS)]
         for name, cols in summary["paired"].items():
             cells = []
-            for k, _, _ in TABLE_METRICS[:5]:
+            for k in PAIRED_METRICS:
+                if k not in cols:  # a summary from before this metric was paired
+                    cells.append("-")
+                    continue
                 m, c = cols[k]["mean"], cols[k]["ci95"]
                 star = "*" if not math.isnan(c) and abs(m) > c else ""
                 cells.append(_fmt((m, c)) + star)
@@ -212,11 +257,12 @@ def plot_curves(results: list[dict[str, Any]], methods: list[str], out: Path) ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    keys = ("occupancy_iou", "observable_iou", "semantic_miou", "position_change_m")
+    keys = ("occupancy_iou", "observable_iou", "semantic_miou", "occupancy_miou", "position_change_m")
     fig, axes = plt.subplots(1, len(keys), figsize=(4.2 * len(keys), 3.4))
     for ax, k in zip(axes, keys, strict=True):
         for m in methods:
-            curves = [r["curves"][k] for r in results if r.get("status") == "ok" and r["method"] == m]
+            curves = [r["curves"][k] for r in results
+                      if r.get("status") == "ok" and r["method"] == m and k in r.get("curves", {})]
             if not curves:
                 continue
             n = min(len(c) for c in curves)

@@ -3,6 +3,10 @@
 Conventions: occupancy arrays are bool ``[X, Y, Z]``; class arrays are integer ``[X, Y, Z]`` with
 0 = free / background and 1..C-1 = object classes; z is the grid's third axis (up). An IoU whose
 union is empty is 1.0 (nothing to find and nothing claimed); a mean over an empty class set is NaN.
+
+Beside these stricter metrics, the paper's own ([MEM]'s ``Cumulative_mIoU`` and calibration error:
+:func:`paper_counts`) are computed from additive counts, so a suite can sum them over scenes before
+dividing; there a class whose union is empty is skipped.
 """
 
 from __future__ import annotations
@@ -111,6 +115,192 @@ def prediction_from_belief(
     occ = p > occ_threshold
     cls = (np.argmax(probs[1:], axis=0) + 1).astype(np.int16)
     return occ, np.where(occ, cls, np.int16(BACKGROUND)).astype(np.int16)
+
+
+# ------------------------------------------------------------------- the paper's metrics ([MEM])
+ECE_BINS = 15
+"""Equal-width confidence bins of the expected calibration error over [0, 1]."""
+PAPER_METRIC_KEYS = ("occupancy_miou", "semantic_miou_2d", "occupancy_ece", "semantic_ece")
+"""The paper's own metrics (MEM's ``Cumulative_mIoU`` and calibration error), beside the stricter ones."""
+PAPER_COUNT_KEYS = (
+    "occupancy_intersection", "occupancy_union", "semantic_2d_intersection", "semantic_2d_union",
+    "occupancy_ece_count", "occupancy_ece_confidence_sum", "occupancy_ece_correct_sum",
+    "semantic_ece_count", "semantic_ece_confidence_sum", "semantic_ece_correct_sum",
+)
+"""The additive counts behind :data:`PAPER_METRIC_KEYS` (see :func:`paper_counts`)."""
+
+
+def class_iou_counts(
+    pred: NDArray[np.integer], gt: NDArray[np.integer], num_classes: int, mask: NDArray[np.bool_] | None = None
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Per class c in 0..num_classes-1: ``|pred == c & gt == c|`` and ``|pred == c | gt == c|``.
+
+    Over all cells, or the cells where ``mask`` is True. Both are additive over cells and scenes
+    (MEM's ``Cumulative_mIoU.update_counts``). Labels outside 0..num_classes-1 are an error.
+    """
+    p, g = np.asarray(pred), np.asarray(gt)
+    if p.shape != g.shape:
+        raise ValueError(f"prediction shape {p.shape} differs from ground truth {g.shape}")
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != p.shape:
+            raise ValueError(f"mask shape {m.shape} differs from prediction shape {p.shape}")
+        p, g = p[m], g[m]
+    p, g = p.ravel().astype(np.int64), g.ravel().astype(np.int64)
+    for name, a in (("prediction", p), ("ground truth", g)):
+        if a.size and (int(a.min()) < 0 or int(a.max()) >= num_classes):
+            raise ValueError(f"{name} holds labels outside 0..{num_classes - 1}")
+    inter = np.bincount(p[p == g], minlength=num_classes).astype(np.int64)
+    union = np.bincount(p, minlength=num_classes) + np.bincount(g, minlength=num_classes) - inter
+    return inter, union.astype(np.int64)
+
+
+def occupancy_iou_counts(
+    pred_occ: NDArray[np.bool_], gt_occ: NDArray[np.bool_], mask: NDArray[np.bool_] | None = None
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Intersection and union of the two occupancy classes, index 0 = free and 1 = occupied."""
+    return class_iou_counts(np.asarray(pred_occ, dtype=np.int64), np.asarray(gt_occ, dtype=np.int64), 2, mask)
+
+
+def miou_from_counts(inter: ArrayLike, union: ArrayLike) -> float:
+    """Mean of ``inter / union`` over the classes with ``union > 0``; NaN if there is none.
+
+    A class absent from both prediction and ground truth is skipped (MEM's mean would be NaN).
+    """
+    i, u = np.asarray(inter, dtype=np.float64), np.asarray(union, dtype=np.float64)
+    if i.shape != u.shape:
+        raise ValueError(f"intersection shape {i.shape} differs from union shape {u.shape}")
+    seen = u > 0
+    return float(np.mean(i[seen] / u[seen])) if seen.any() else float("nan")
+
+
+def ece_bins(
+    confidence: ArrayLike, correct: ArrayLike, n_bins: int = ECE_BINS
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]:
+    """Reliability-diagram counts: per bin the number of samples, their summed confidence and how
+    many are correct. Bin b holds confidences in ``[b / n_bins, (b + 1) / n_bins)``, the last bin
+    also 1.0 (``b = min(floor(conf * n_bins), n_bins - 1)``). Additive over samples and scenes."""
+    c = np.asarray(confidence, dtype=np.float64).ravel()
+    ok = np.asarray(correct, dtype=bool).ravel()
+    if c.shape != ok.shape:
+        raise ValueError(f"{c.size} confidences but {ok.size} correctness flags")
+    if n_bins < 1:
+        raise ValueError(f"n_bins must be >= 1, got {n_bins}")
+    if c.size and (not np.all(np.isfinite(c)) or c.min() < 0.0 or c.max() > 1.0):
+        raise ValueError("confidences must lie in [0, 1]")
+    b = np.minimum((c * n_bins).astype(np.int64), n_bins - 1)
+    count = np.bincount(b, minlength=n_bins).astype(np.int64)
+    conf_sum = np.bincount(b, weights=c, minlength=n_bins).astype(np.float64)
+    return count, conf_sum, np.bincount(b[ok], minlength=n_bins).astype(np.int64)
+
+
+def ece_from_bins(count: ArrayLike, confidence_sum: ArrayLike, correct_sum: ArrayLike) -> float:
+    """Expected calibration error ``sum_b (n_b / N) |acc_b - conf_b|`` = ``sum_b |correct_b - conf_sum_b| / N``
+    over the non-empty bins (acc_b = correct_b / n_b, conf_b = conf_sum_b / n_b); NaN if N = 0."""
+    n = np.asarray(count, dtype=np.float64)
+    total = float(n.sum())
+    if total == 0:
+        return float("nan")
+    gap = np.abs(np.asarray(correct_sum, dtype=np.float64) - np.asarray(confidence_sum, dtype=np.float64))
+    return float(gap.sum() / total)
+
+
+def top_label(
+    probs: NDArray[np.floating], labels: NDArray[np.integer]
+) -> tuple[NDArray[np.floating], NDArray[np.bool_]]:
+    """Top-label confidence ``max_c probs[c]`` and whether ``argmax_c probs[c] == labels`` (the lowest
+    index wins a tie, as ``np.argmax``), for ``probs`` ``[C, ...]`` and integer ``labels`` ``[...]``.
+
+    The same as ``probs.max(0), probs.argmax(0) == labels`` but several times faster on a grid:
+    a full argmax runs only over the voxels where the labelled class reaches the maximum.
+    """
+    pr = np.asarray(probs)
+    lab = np.asarray(labels).astype(np.intp).ravel()
+    if pr.shape[1:] != np.shape(labels):
+        raise ValueError(f"probs shape {pr.shape} does not match labels {np.shape(labels)} as [C, ...]")
+    if lab.size and (int(lab.min()) < 0 or int(lab.max()) >= pr.shape[0]):
+        raise ValueError(f"labels outside 0..{pr.shape[0] - 1}")
+    flat = pr.reshape(pr.shape[0], -1)
+    best = flat.max(axis=0)
+    correct = np.take_along_axis(flat, lab[None], axis=0)[0] == best
+    tied = np.flatnonzero(correct & (lab > 0))  # a lower class may tie with the labelled one
+    if tied.size:
+        correct[tied] = np.argmax(flat[:, tied], axis=0) == lab[tied]
+    return best.reshape(pr.shape[1:]), correct.reshape(pr.shape[1:])
+
+
+def paper_counts(
+    expected_occupancy: NDArray[np.floating],
+    class_probs: NDArray[np.floating],
+    pred_cls: NDArray[np.integer],
+    gt_occ: NDArray[np.bool_],
+    gt_cls: NDArray[np.integer],
+    interior: NDArray[np.bool_],
+    *,
+    n_bins: int = ECE_BINS,
+) -> dict[str, list[int] | list[float]]:
+    """The counts behind the paper's metrics of one belief against ground truth (keys: :data:`PAPER_COUNT_KEYS`).
+
+    ``expected_occupancy`` p ``[X, Y, Z]`` and ``class_probs`` ``[C, X, Y, Z]`` of the belief,
+    ``pred_cls`` its hard class grid (``prediction_from_belief``), the ground truth, and the
+    ``interior`` voxels scored (``map.ig.shelf_interior_mask``). Over interior voxels:
+
+    - occupancy IoU counts of the prediction ``p > 0.5`` (argmax of [1 - p, p], a tie is free)
+      against ``gt_occ``, classes (free, occupied);
+    - 2-D semantic IoU counts of the top-view class maps (``top_view_classes``) of ``pred_cls`` and
+      ``gt_cls`` with every voxel outside the interior set to background, over the interior's
+      columns (those with at least one interior voxel), classes 0..C-1 (background included);
+    - occupancy ECE bins: confidence ``max(p, 1 - p)``, correct iff ``(p > 0.5) == gt_occ``;
+    - semantic ECE bins: confidence ``max_c class_probs``, correct iff the argmax class (the lowest
+      index on a tie, so background wins it) equals ``gt_cls`` (0 on free voxels).
+
+    Every value is a list; summing the lists of several scenes gives the suite's counts
+    (:func:`paper_metrics_from_counts`).
+    """
+    p = np.asarray(expected_occupancy)
+    probs = np.asarray(class_probs)
+    inside = np.asarray(interior, dtype=bool)
+    c = probs.shape[0]
+    if probs.shape[1:] != p.shape or inside.shape != p.shape:
+        raise ValueError(f"class_probs {probs.shape}, occupancy {p.shape} and interior {inside.shape} do not match")
+    gt = np.asarray(gt_occ, dtype=bool)[inside]
+    pi = p[inside].astype(np.float64)
+    occ = pi > 0.5
+    o_inter, o_union = occupancy_iou_counts(occ, gt)
+    keep = inside.any(axis=2)  # the interior's columns
+    top_pred = top_view_classes(np.where(inside, pred_cls, BACKGROUND))[keep]
+    top_gt = top_view_classes(np.where(inside, gt_cls, BACKGROUND))[keep]
+    s_inter, s_union = class_iou_counts(top_pred, top_gt, c)
+    o_bins = ece_bins(np.maximum(pi, 1.0 - pi), occ == gt, n_bins)
+    conf, correct = top_label(probs, gt_cls)
+    s_bins = ece_bins(np.clip(conf[inside], 0.0, 1.0), correct[inside], n_bins)
+    values = (o_inter, o_union, s_inter, s_union, *o_bins, *s_bins)
+    return {k: v.tolist() for k, v in zip(PAPER_COUNT_KEYS, values, strict=True)}
+
+
+def sum_paper_counts(counts: Iterable[Mapping[str, ArrayLike]]) -> dict[str, list[float]]:
+    """Element-wise sum of several scenes' :func:`paper_counts` (a suite's counts)."""
+    total: dict[str, NDArray[np.float64]] = {}
+    for c in counts:
+        for k in PAPER_COUNT_KEYS:
+            v = np.asarray(c[k], dtype=np.float64)
+            if k in total and total[k].shape != v.shape:
+                raise ValueError(f"{k}: {v.shape} counts do not add to {total[k].shape}")
+            total[k] = total[k] + v if k in total else v
+    return {k: v.tolist() for k, v in total.items()}
+
+
+def paper_metrics_from_counts(counts: Mapping[str, ArrayLike]) -> dict[str, float]:
+    """``occupancy_miou``, ``semantic_miou_2d``, ``occupancy_ece`` and ``semantic_ece`` from
+    :func:`paper_counts` of one scene (per-scene values) or their sum over scenes (suite-cumulative)."""
+    return {
+        "occupancy_miou": miou_from_counts(counts["occupancy_intersection"], counts["occupancy_union"]),
+        "semantic_miou_2d": miou_from_counts(counts["semantic_2d_intersection"], counts["semantic_2d_union"]),
+        "occupancy_ece": ece_from_bins(counts["occupancy_ece_count"], counts["occupancy_ece_confidence_sum"],
+                                       counts["occupancy_ece_correct_sum"]),
+        "semantic_ece": ece_from_bins(counts["semantic_ece_count"], counts["semantic_ece_confidence_sum"],
+                                      counts["semantic_ece_correct_sum"]),
+    }
 
 
 OBJECT_COUNT_KEYS = ("correctly_found", "misclassified", "not_found", "hallucinated")

@@ -50,6 +50,9 @@ UNKNOWN_COLOR = "#202020"
 SKILL_SYMBOLS = ("circle", "diamond", "square", "x", "triangle-up", "cross", "star")
 REPORT_FILES = ("report.html", "report_metrics.png", "report_belief.png")
 METRIC_KEYS = ("occupancy_iou", "observable_iou", "semantic_miou", "semantic_miou_bev")
+PAPER_METRIC_KEYS = ("occupancy_miou", "semantic_miou_2d")
+"""The paper's own mIoUs (docs/concepts.md), drawn dashed beside METRIC_KEYS; runs from before them lack them."""
+PAPER_SUMMARY_KEYS = (*PAPER_METRIC_KEYS, "occupancy_ece", "semantic_ece")
 
 
 # ------------------------------------------------------------------------------------ run folder files
@@ -463,6 +466,11 @@ def figure_metrics(run: RunData) -> Any:
     for key in METRIC_KEYS:
         ys = ([initial[key]] if initial else []) + [r["metrics"].get(key) for r in run.steps]
         fig.add_trace(go.Scatter(x=x0 + steps, y=ys, mode="lines+markers", name=key, legendgroup="iou"), row=1, col=1)
+    for key in PAPER_METRIC_KEYS:
+        if any(key in r["metrics"] for r in run.steps):
+            ys = ([initial.get(key)] if initial else []) + [r["metrics"].get(key) for r in run.steps]
+            fig.add_trace(go.Scatter(x=x0 + steps, y=ys, mode="lines+markers", name=f"{key} (paper)",
+                                     line={"dash": "dash"}, legendgroup="iou"), row=1, col=1)
     ys = ([initial.get("position_change_m", 0.0)] if initial else []) + [
         r["metrics"].get("position_change_m") for r in run.steps]
     fig.add_trace(go.Scatter(x=x0 + steps, y=ys, mode="lines+markers", name="position_change_m"), row=2, col=1)
@@ -562,6 +570,7 @@ def _summary_table(run: RunData) -> str:
         ("steps", str(len(run.steps))), ("actions", json.dumps(m.get("actions", {}))),
     ]
     rows += [(k, f"{m[k]:.4g}") for k in (*METRIC_KEYS, "position_change_m", "seconds_per_step") if k in m]
+    rows += [(f"{k} (paper)", f"{m[k]:.4g}") for k in PAPER_SUMMARY_KEYS if k in m]
     return "<table class='summary'>" + "".join(
         f"<tr><th class='l'>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>"
         for k, v in rows) + "</table>"
@@ -629,6 +638,10 @@ def png_metrics(run: RunData, path: Path) -> None:
     for key in METRIC_KEYS:
         axs[0].plot(x0 + steps, ([initial[key]] if initial else []) + [r["metrics"][key] for r in run.steps],
                     marker=".", label=key)
+    for key in PAPER_METRIC_KEYS:
+        if all(key in r["metrics"] for r in run.steps):
+            ys = ([initial.get(key, np.nan)] if initial else []) + [r["metrics"][key] for r in run.steps]
+            axs[0].plot(x0 + steps, ys, marker=".", ls="--", label=f"{key} (paper)")
     axs[0].set_ylabel("IoU")
     axs[0].legend(fontsize=7, loc="best")
     axs[1].plot(x0 + steps, ([initial.get("position_change_m", 0.0)] if initial else [])
