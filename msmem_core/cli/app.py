@@ -155,8 +155,8 @@ def bench(
     """Run methods x scenes episodes; writes episodes/*.json, table.md, results.json and curves.png."""
     import os
 
-    from msmem_core.run.bench import parse_range, run_bench, suite_scenes
     from msmem_core.config import preset
+    from msmem_core.run.bench import parse_range, run_bench, suite_scenes
 
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
     for m in method_list:

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from msmem_core.util.artifacts import atomic_text, tmp_path
 from msmem_core.errors import UserError
+from msmem_core.util.artifacts import atomic_text, tmp_path
 
 SHARD_GLOB = "scene_*.npz"
 MANIFEST = "dataset.json"

@@ -50,9 +50,11 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from msmem_cnabu.network import KINDS, Kind, action_channel_counts
+from msmem_core.errors import UserError
+from msmem_core.interfaces import Workspace
 from msmem_core.learn import datagen
 from msmem_core.learn.datagen import DatagenSummary, ShardTask, read_manifest, read_npz, save_npz, shard_path
-from msmem_core.errors import UserError
+from msmem_core.msas import execute_measured
 from msmem_core.world.grid import GridSpec
 
 SHARD_VERSION = 1
@@ -100,6 +102,10 @@ class ShardError(datagen.ShardError):
 
 
 # ------------------------------------------------------------------------------------------ shards
+_WORKSPACE_KEYS = ("interior_m", "tool", "gripper")
+"""Fields push and grasp actions had before the workspace came with the context instead."""
+
+
 @dataclass
 class CNABUShard:
     """One scene's samples (see the module docstring for the fields)."""
@@ -138,9 +144,20 @@ class CNABUShard:
         return EvidentialMap(self.grid, self.alpha[s].astype(np.float32), self.beta[s].astype(np.float32),
                              self.eta[s].astype(np.float32))
 
+    @property
+    def workspace(self) -> Workspace:
+        """The ``Workspace`` the samples were made in: the shard's grid, the shelf with its interior,
+        the default gripper (the skills datagen builds use it)."""
+        from msmem_core.world.scene import ShelfSpec
+
+        x_lo, _, _, x_hi, y_hi, z_hi = (float(v) for v in self.interior)
+        return Workspace(self.grid, ShelfSpec(width_m=x_hi - x_lo, depth_m=y_hi, height_m=z_hi))
+
     def action(self, i: int) -> Any:
         """Sample ``i``'s action as the skill's pydantic model (push / grasp) or a dict (observe)."""
         data = json.loads(str(self.actions[i]))
+        for key in _WORKSPACE_KEYS:  # carried by the actions of shards made before they stopped doing so
+            data.pop(key, None)
         if self.kind == "push":
             from msmem_push.skill import PushAction
 
@@ -344,7 +361,8 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
                 visited.append(v)
         else:
             skill = _skill(cfg.kind, seed)
-            ctx = SimpleNamespace(shelf=scene.shelf)
+            ctx = SimpleNamespace(shelf=scene.shelf)  # what a skill's execute reads of a DecisionContext
+            workspace = Workspace(grid, scene.shelf)
             step = 0
             for state_i in range(cfg.states):
                 actions: list[Any] = []
@@ -361,17 +379,17 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
                     from msmem_cnabu.features import manipulation_channels
 
                     chosen = [actions[int(i)] for i in pick]
-                    vox, scalars, _ = manipulation_channels(cfg.kind, belief, chosen)
+                    vox, scalars, _ = manipulation_channels(cfg.kind, belief, chosen, workspace)
                     for a, av, sc in zip(chosen, vox, scalars, strict=True):
                         token = sim.snapshot()
                         t0 = time.perf_counter()
-                        out = skill.execute(sim, a, ctx)
+                        out = execute_measured(skill, sim, a, ctx)
                         t_sim += time.perf_counter() - t0
                         rec.sample(s, av, sc, _ground_truth(sim, scene, grid), a.model_dump_json(), bool(out.success),
                                    len(out.info.get("moved", [])))
                         sim.restore(token)
                     if state_i + 1 < cfg.states:  # the world moves on: one candidate for real
-                        skill.execute(sim, actions[int(rng.integers(len(actions)))], ctx)
+                        skill.execute(sim, actions[int(rng.integers(len(actions)))], ctx)  # the world moves on
                 if state_i + 1 < cfg.states:
                     lo_v, hi_v = cfg.views_between
                     belief = look(belief, fresh_views(int(rng.integers(lo_v, hi_v + 1))))

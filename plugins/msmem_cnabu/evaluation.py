@@ -149,8 +149,8 @@ def _predict_state(kind: str, learned: Any, twin: Any, shard: CNABUShard, sample
             "analytic": [twin.update(belief, shard.masks(i)) for i in samples],
         }
     actions = [shard.action(i) for i in samples]
-    return {"learned": list(learned.predict(belief, actions).beliefs),
-            "analytic": list(twin.predict(belief, actions).beliefs)}
+    return {"learned": list(learned.predict(belief, actions, shard.workspace).beliefs),
+            "analytic": list(twin.predict(belief, actions, shard.workspace).beliefs)}
 
 
 def evaluate(
@@ -270,8 +270,8 @@ def episode_nll(
     but the boards), pooled over the scenes, plus the episodes' own metrics."""
     import tempfile
 
-    from msmem_core.map.belief import EvidentialMap
     from msmem_core.config import load_config
+    from msmem_core.map.belief import EvidentialMap
     from msmem_core.plugins.manager import get_plugin_manager
     from msmem_core.run.runner import build_episode, run_episode
 
@@ -320,9 +320,10 @@ def time_models(kind: str, learned: Any, twin: Any, shard: CNABUShard, candidate
         return {"learned_update_s": t_l, "analytic_update_s": t_a, "speedup_vs_analytic": t_a / t_l,
                 "note": "both need the view's ray masks (the same traversal), not included"}
     actions = [shard.action(samples[j % len(samples)]) for j in range(candidates)]
-    learned.predict(belief, actions[:1])  # warm-up
-    t_l = _best_of(lambda: learned.predict(belief, actions), repeats)
-    t_a = _best_of(lambda: twin.predict(belief, actions), repeats)
+    ws = shard.workspace
+    learned.predict(belief, actions[:1], ws)  # warm-up
+    t_l = _best_of(lambda: learned.predict(belief, actions, ws), repeats)
+    t_a = _best_of(lambda: twin.predict(belief, actions, ws), repeats)
     t_sim = simulate_and_remap(kind, shard, s, [shard.action(samples[j % len(samples)]) for j in range(repeats)], log)
     per = t_l / candidates
     return {
@@ -450,9 +451,9 @@ def threshold_agreement(
     """
     from msmem_core.config import ComponentRef, load_config
     from msmem_core.msas import decide
-    from msmem_core.perf.step import _context, clone_skills, mid_episode_state
     from msmem_core.plugins.manager import get_plugin_manager
     from msmem_core.run.runner import build_episode
+    from msmem_core.run.states import clone_skills, decision_context, mid_episode_state
 
     if kind not in ("push", "grasp"):
         raise UserError(f"--threshold-check needs an effect model (push or grasp), not {kind!r}")
@@ -476,13 +477,13 @@ def threshold_agreement(
         row: dict[str, Any] = {"belief": b}
         for t in thresholds:
             model.config = base_cfg.model_copy(update={"change_threshold": t})  # type: ignore[attr-defined]
-            ctx = _context(ep, st.belief, st.visited, st.step, True, 0)
+            ctx = decision_context(ep, st.belief, st.visited, st.step)
             d = decide(ctx, clone_skills(st.skills), ep.objective)
-            batch = d.batch if d.skill == kind else None
+            batch = d.batch if d.skill.name == kind else None
             changed = None
             if batch is not None and batch.prediction is not None and len(batch.actions):
-                changed = float(batch.prediction.changed.reshape(len(batch.actions), -1).sum(1).mean())
-            row[str(t)] = {"skill": d.skill, "index": int(d.index), "action": d.action.model_dump(mode="json"),
+                changed = float(np.mean([len(c.idx) for c in batch.prediction.changes]))
+            row[str(t)] = {"skill": d.skill.name, "index": int(d.index), "action": d.action.model_dump(mode="json"),
                            "changed_voxels_per_candidate": changed,
                            "best_per_skill": {k: float(v) for k, v in d.best.items()}}
         a, c = (row[str(t)] for t in thresholds)

@@ -67,9 +67,10 @@ def run_scene(task: tuple[int, GraspBenchConfig]) -> list[dict[str, Any]]:
     from msmem_pybullet.simulator import PyBulletSimulator
 
     from msmem_core.map.belief import EvidentialMap
+    from msmem_core.map.ig import IGService
+    from msmem_core.msas import execute_measured
     from msmem_core.world.camera import CameraConfig
     from msmem_core.world.grid import GridSpec
-    from msmem_core.map.ig import IGService
     from msmem_core.world.scenegen import SceneGenConfig, generate_scene
     from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
     from msmem_grasp.skill import GraspConfig, GraspSkill
@@ -112,7 +113,7 @@ def run_scene(task: tuple[int, GraspBenchConfig]) -> list[dict[str, Any]]:
             res = TrialResult(seed, trial, len(cands), False, False, None, None, 0.0, 0.0, 0, skill.predictor, 0.0)
             if cands:
                 a = cands[0]
-                outcome = skill.execute(sim, a, SimpleNamespace(shelf=scene.shelf))
+                outcome = execute_measured(skill, sim, a, SimpleNamespace(shelf=scene.shelf))  # as MSAS does
                 held = outcome.removed[0] if outcome.removed else None
                 res.executed = True
                 res.success = outcome.success

@@ -24,9 +24,9 @@ import torch
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.errors import UserError
 from msmem_core.learn import datagen
 from msmem_core.learn.datagen import DatagenSummary, ShardTask, read_npz, save_npz, shard_path
-from msmem_core.errors import UserError
 from msmem_grasp.antipodal import AntipodalConfig, GraspSet
 from msmem_grasp.fpp import FPPConfig, SurfaceCloud, frontier_points
 from msmem_grasp.losses import GraspTargets, assign_targets

@@ -197,7 +197,7 @@ def _ray_crossings(p, occ, rot, pos, d_cam, g0, s, n, t_min, t_max, frac, thresh
             dx = (rot[v, 0, 0] * d_cam[r, 0] + rot[v, 0, 2] * d_cam[r, 2]) + rot[v, 0, 1] * d_cam[r, 1]
             dy = (rot[v, 1, 0] * d_cam[r, 0] + rot[v, 1, 2] * d_cam[r, 2]) + rot[v, 1, 1] * d_cam[r, 1]
             dz = (rot[v, 2, 0] * d_cam[r, 0] + rot[v, 2, 2] * d_cam[r, 2]) + rot[v, 2, 1] * d_cam[r, 1]
-            m = raycast._traverse(ox, oy, oz, dx, dy, dz, g0, s, n, t_min, t_max, occ, vox, tin, tout)
+            m = raycast.traverse(ox, oy, oz, dx, dy, dz, g0, s, n, t_min, t_max, occ, vox, tin, tout)
             if m == 0 or occ[vox[m - 1]] == 0:
                 continue
             t_in, t_out = tin[m - 1], tout[m - 1]

@@ -21,11 +21,11 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.learn.datagen import read_manifest
+from msmem_core.learn.training import TrainingRun, optimizer_step, split_scenes, training_record, warmup_cosine
 from msmem_core.util.artifacts import sha256_file as sha256_file  # re-exported: callers import it from here
 from msmem_core.util.artifacts import sidecar_path as sidecar_path
 from msmem_core.util.artifacts import write_sidecar
-from msmem_core.learn.datagen import read_manifest
-from msmem_core.learn.training import TrainingRun, optimizer_step, split_scenes, training_record, warmup_cosine
 from msmem_grasp.datagen import GraspShard, list_shards, load_shard
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction
 from msmem_grasp.fpp import FEATURES

@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from msmem_core.util import artifacts
 from msmem_core.errors import UserError
+from msmem_core.util import artifacts
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction, executable_grasp
 from msmem_grasp.fpp import SurfaceCloud
 from msmem_grasp.training import WEIGHTS_FORMAT
