@@ -2,7 +2,7 @@
 
 Run folder: ``config.json`` (resolved), ``scene.json``, ``steps.jsonl`` (one record per step),
 ``metrics.json`` (final metrics and action counts), ``belief_final.npz``, and for the run report
-(``msmem_core.run.report``) ``belief_step{N}.npz`` (float16 belief and ground truth after the steps of
+(``msmem_core.run.runfolder``) ``belief_step{N}.npz`` (float16 belief and ground truth after the steps of
 ``RunConfig.snapshot_steps``) and ``gt_final.npz`` (final ground-truth occupancy and classes).
 """
 
@@ -35,7 +35,7 @@ from msmem_core.run.metrics import (
 )
 from msmem_core.msas import BoundSkill, Decision, DecisionContext, Objective, run_msas
 from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager
-from msmem_core.run.report import save_ground_truth, save_snapshot
+from msmem_core.run.runfolder import save_ground_truth, save_snapshot
 from msmem_core.world.scene import SceneSpec
 from msmem_core.world.scenegen import generate_scene
 from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
