@@ -219,7 +219,7 @@ def run_msas(
     model's prediction, visited views are cleared and the manipulation's associated best view is
     executed (both count towards T_max). Manipulation stops for good once an object falls or leaves,
     and is not allowed once ``cfg.mapped_fraction`` of the BEV cells are mapped (``mapped_fraction``)."""
-    from msmem_core.world.groundtruth import interior_mask
+    from msmem_core.world.voxelize import interior_mask
 
     visited: set[int] = set()
     interior: NDArray[np.bool_] | None = None

@@ -12,7 +12,7 @@ from msmem_push.effect import AnalyticPushEffect
 from msmem_push.skill import PushConfig, PushSkill
 
 from msmem_core.map.belief import EvidentialMap
-from msmem_core.world.groundtruth import interior_mask
+from msmem_core.world.voxelize import interior_mask
 from msmem_core.interfaces import CandidateBatch, Prediction
 from msmem_core.msas import Objective, bev_confidence, mapped_fraction
 from msmem_core.plugins import get_plugin_manager

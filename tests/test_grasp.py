@@ -32,7 +32,7 @@ from msmem_core.errors import PluginError
 from msmem_core.world.geometry import yaw_quat
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.groundtruth import interior_mask, voxelize
+from msmem_core.world.voxelize import interior_mask, voxelize
 from msmem_core.map.ig import IGService
 from msmem_core.interfaces import CandidateBatch
 from msmem_core.run.metrics import occupancy_iou, position_change_m

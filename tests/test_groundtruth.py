@@ -11,18 +11,15 @@ from hypothesis import strategies as st
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import look_at, pose_matrix, yaw_quat
 from msmem_core.world.grid import GridSpec
-from msmem_core.world.groundtruth import (
+from msmem_core.world.visibility import (
     HIT_NUDGE_VOXELS,
     count_views_seeing,
     hidden_objects,
-    interior_mask,
     object_pixel_counts,
-    object_voxels,
     observable_mask,
     visible_objects,
-    voxelize,
-    voxelize_instances,
 )
+from msmem_core.world.voxelize import interior_mask, object_voxels, voxelize, voxelize_instances
 from msmem_core.world.meshes import object_mesh, shelf_meshes
 from msmem_core.world.scene import ObjectSpec, ShelfSpec, object_class
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints

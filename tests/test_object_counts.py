@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.config import load_config
-from msmem_core.world.groundtruth import voxelize, voxelize_instances
+from msmem_core.world.voxelize import voxelize, voxelize_instances
 from msmem_core.map.ig import shelf_wall_mask
 from msmem_core.run.metrics import OBJECT_COUNT_KEYS, object_counts
 from msmem_core.plugins import get_plugin_manager

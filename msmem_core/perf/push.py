@@ -29,7 +29,7 @@ from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.groundtruth import voxelize
+from msmem_core.world.voxelize import voxelize
 from msmem_core.map.ig import IGConfig, IGService, shelf_wall_mask
 from msmem_core.interfaces import CandidateBatch
 from msmem_core.msas import DecisionContext

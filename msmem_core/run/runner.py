@@ -21,7 +21,8 @@ import numpy as np
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.config import RunConfig
 from msmem_core.errors import PluginError
-from msmem_core.world.groundtruth import observable_mask, voxelize_instances
+from msmem_core.world.visibility import observable_mask
+from msmem_core.world.voxelize import voxelize_instances
 from msmem_core.map.ig import IGService, shelf_wall_mask
 from msmem_core.interfaces import EffectModel, ObservationModel, Outcome, Simulator
 from msmem_core.run.metrics import (
