@@ -19,7 +19,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -32,7 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from msmem_core.world.geometry import pose_matrix
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.meshes import class_mesh
-from msmem_core.world.scene import OBJECT_CLASSES, ObjectClass, Part, SceneSpec, object_class
+from msmem_core.world.scene import ObjectClass, Part, SceneSpec, object_class
 from msmem_grasp.fevmf import executable_grasp
 
 F64 = NDArray[np.float64]
@@ -395,19 +394,3 @@ def grasps_in_scene(
         others = Solids.concat([boards, *(s for i, s in solids.items() if i != o.id)])
         out[o.id] = grasps.subset(~grasp_collides(grasps, others, gripper, margin))
     return out
-
-
-def main() -> None:
-    """Generate (or load) the grasps of every class and print counts and times."""
-    config = AntipodalConfig()
-    print(f"cache: {cache_dir()}  config: {config.model_dump()}")
-    total = time.perf_counter()
-    for cls in OBJECT_CLASSES:
-        t = time.perf_counter()
-        g = class_grasps(cls.name, config)
-        print(f"{cls.name:18s} {len(g):7d} grasps  {time.perf_counter() - t:6.2f} s")
-    print(f"total {time.perf_counter() - total:.1f} s")
-
-
-if __name__ == "__main__":
-    main()

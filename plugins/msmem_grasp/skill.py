@@ -71,7 +71,7 @@ from msmem_core.world.gripper import GripperSpec
 from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
 from msmem_core.world.scene import ShelfSpec
 from msmem_grasp.fpp import FPPConfig, frontier_points, virtual_front_views
-from msmem_grasp.fusion import FusionConfig, FusionStats, GraspBuffer, GraspHypotheses
+from msmem_grasp.fusion import FusionConfig, GraspBuffer, GraspHypotheses
 from msmem_grasp.geometric import GeometricConfig, predict_geometric
 from msmem_grasp.planning import (
     Objects,
@@ -271,7 +271,6 @@ class GraspSkill(Skill):
     def __init__(self, config: GraspConfig | None = None) -> None:
         self.config = config or GraspConfig()
         self.buffer = GraspBuffer(self.config.fusion)
-        self.last_stats: FusionStats | None = None
         self._model: Any = None
         self._predictor: str | None = None
         self._tracked: tuple[int, EvidentialMap] | None = None
@@ -338,11 +337,10 @@ class GraspSkill(Skill):
         elif not visited:
             # no view since the manipulation: the belief is the effect model's prediction, and grasps
             # planned on predicted geometry fail (docs/results.md); wait for a real view
-            self.last_stats = None
             return
         seed = int(np.random.default_rng([self.config.seed, int(ctx.step)]).integers(2**31))
         new = self.predict(ctx.belief, ctx.shelf, views, seed)
-        self.last_stats = self.buffer.update(new, ctx.belief)
+        self.buffer.update(new, ctx.belief)
 
     # -------------------------------------------------------------------------------- proposal
     def propose(self, ctx: Any) -> list[Action]:
