@@ -23,7 +23,7 @@ from msmem_grasp.planning import (
     swept_indices,
     swept_indices_reference,
 )
-from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill, interior_of
+from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill
 from pydantic import ValidationError
 
 from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
@@ -46,7 +46,7 @@ from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, gen
 torch.set_num_threads(1)
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)
-INTERIOR = interior_of(SHELF)
+INTERIOR = SHELF.interior_box
 SUGAR, MEAT, FOAM, CRACKER = 2, 9, 13, 1  # class ids
 
 

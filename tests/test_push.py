@@ -14,7 +14,7 @@ from msmem_objectives.entropy import SemanticEntropyTerm
 from msmem_objectives.ig import IGTerm, IGTermConfig
 from msmem_push.effect import AnalyticPushEffect
 from msmem_push.geometry import leading_half_depth, swept_extent, swept_voxels, swept_voxels_reference, tool_boxes
-from msmem_push.skill import START_FRONT_MARGIN_M, PushAction, PushConfig, PushSkill, interior_of
+from msmem_push.skill import START_FRONT_MARGIN_M, PushAction, PushConfig, PushSkill
 from pydantic import ValidationError
 
 from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
@@ -67,7 +67,7 @@ def box_belief(boxes: list[tuple[tuple[float, float], tuple[float, float], float
 
 
 def push(start: tuple[float, float], u: tuple[float, float], length: float, height: float = 0.02) -> PushAction:
-    return PushAction(interior_m=interior_of(SHELF), start_m=start, direction=u, length_m=length, height_m=height,
+    return PushAction(interior_m=SHELF.interior_box, start_m=start, direction=u, length_m=length, height_m=height,
                       tool=PushSkill().tool)
 
 
@@ -323,7 +323,7 @@ def commanded_pushes(sim, skill: PushSkill, n: int = 20, seed: int = 2024) -> tu
         lead = leading_half_depth(skill.tool, height, top)
         start = pose[:2, 3] - (support_along(obj, pose, -u) + cfg.standoff_m + lead) * u
         length = float(rng.uniform(cfg.min_length_m, 0.2))
-        action = PushAction(interior_m=interior_of(SHELF), start_m=(float(start[0]), float(start[1])),
+        action = PushAction(interior_m=SHELF.interior_box, start_m=(float(start[0]), float(start[1])),
                             direction=(float(u[0]), float(u[1])), length_m=length, height_m=height,
                             palm=cfg.palm, tool=skill.tool)
         out = skill.execute(sim, action, SimpleNamespace(shelf=SHELF))

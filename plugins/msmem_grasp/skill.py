@@ -66,6 +66,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.camera import CameraConfig
+from msmem_core.world.geometry import F64
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
@@ -88,17 +89,9 @@ from msmem_grasp.planning import (
 )
 
 log = logging.getLogger("msmem.grasp")
-F64 = NDArray[np.float64]
 Vec3 = tuple[float, float, float]
 _SIN15 = math.sin(math.radians(15.0))
 _WARNED: set[str] = set()
-_DEFAULT_INTERIOR = (*ShelfSpec().interior_lower.tolist(), *ShelfSpec().interior_upper.tolist())
-
-
-def interior_of(shelf: ShelfSpec) -> tuple[float, float, float, float, float, float]:
-    """(x_lo, y_lo, z_lo, x_hi, y_hi, z_hi) of a shelf's interior."""
-    lo, hi = shelf.interior_lower, shelf.interior_upper
-    return (float(lo[0]), float(lo[1]), float(lo[2]), float(hi[0]), float(hi[1]), float(hi[2]))
 
 
 class GraspAction(Action):
@@ -128,7 +121,7 @@ class GraspAction(Action):
     predictor: str = ""
     """What predicted the grasp evidence: ``fe-vmf:<weights>`` or ``geometric``."""
     gripper: GripperSpec = GripperSpec()
-    interior_m: tuple[float, float, float, float, float, float] = _DEFAULT_INTERIOR
+    interior_m: tuple[float, float, float, float, float, float] = ShelfSpec().interior_box
     """The shelf interior the grasp was planned in: (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi)."""
 
     @field_validator("pose")
@@ -371,7 +364,7 @@ class GraspSkill(Skill):
         width = np.minimum(g.width, grip.max_opening_m)
         from msmem_grasp.fevmf import executable_grasp  # torch: imported on use
 
-        objects = Objects.of(belief, interior_of(shelf), cfg.occupied_threshold)
+        objects = Objects.of(belief, shelf.interior_box, cfg.occupied_threshold)
         return Candidates(
             grasps=g, width=width, opening=np.minimum(width + cfg.opening_margin_m, grip.max_opening_m),
             poses=executable_grasp(g.contact, a, b, width),  # type: ignore[arg-type]
@@ -395,7 +388,7 @@ class GraspSkill(Skill):
             approach_m=tuple(tuple(float(v) for v in p) for p in approach),  # type: ignore[misc]
             retreat_m=retreat, affordance=float(np.clip(c.grasps.affordance[i], 0, 1)),
             uncertainty=float(np.clip(c.grasps.uncertainty[i], 0, 1)), predictor=self.predictor, gripper=cfg.gripper,
-            interior_m=interior_of(shelf),
+            interior_m=shelf.interior_box,
         )
 
     def executable(self, belief: EvidentialMap, shelf: ShelfSpec) -> list[GraspAction]:

@@ -65,14 +65,7 @@ START_FRONT_MARGIN_M = 0.05
 """A push may start at most this far in front of the shelf opening (y >= -0.05 m)."""
 ROUNDS = 3
 """Sampling rounds per step: a round draws 2 * max_samples raw candidates over the occluders."""
-_DEFAULT_INTERIOR = (*ShelfSpec().interior_lower.tolist(), *ShelfSpec().interior_upper.tolist())
 _DEFAULT_TOOL = tool_boxes(GripperSpec())
-
-
-def interior_of(shelf: ShelfSpec) -> tuple[float, float, float, float, float, float]:
-    """(x_lo, y_lo, z_lo, x_hi, y_hi, z_hi) of a shelf's interior."""
-    lo, hi = shelf.interior_lower, shelf.interior_upper
-    return (float(lo[0]), float(lo[1]), float(lo[2]), float(hi[0]), float(hi[1]), float(hi[2]))
 
 
 class PushAction(Action):
@@ -81,7 +74,7 @@ class PushAction(Action):
 
     kind: str = "push"
     category: Literal["manipulation"] = "manipulation"
-    interior_m: tuple[float, float, float, float, float, float] = _DEFAULT_INTERIOR
+    interior_m: tuple[float, float, float, float, float, float] = ShelfSpec().interior_box
     """The shelf interior the push was planned in: (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi)."""
     start_m: tuple[float, float]
     """Tool centre (xy) at the start of the push; its leading face is half the tool depth ahead."""
@@ -266,7 +259,7 @@ class PushSkill(Skill):
         occupied = (p > cfg.occupied_threshold).ravel()
         per_target = max(2, math.ceil(2 * cfg.max_samples / len(targets)))
         groups: list[list[PushAction]] = [[] for _ in targets]
-        interior_m = interior_of(shelf)
+        interior_m = shelf.interior_box
         for _ in range(ROUNDS):  # in dense shelves most sideways pushes collide: sample again
             for g, t in zip(groups, targets, strict=True):
                 raw = (self._candidate(t, rng, grid, interior_m) for _ in range(per_target))
@@ -394,7 +387,7 @@ class PushSkill(Skill):
     def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
         cfg = self.config
         shelf: ShelfSpec = ctx.shelf
-        a = PushAction.model_validate({**action.model_dump(), "interior_m": interior_of(shelf)})
+        a = PushAction.model_validate({**action.model_dump(), "interior_m": shelf.interior_box})
         before = sim.object_poses()
         u = a.u
         approach = np.array([a.start[0], cfg.approach_y_m])

@@ -39,7 +39,7 @@ from msmem_core.sim.motion import (
     FloatingGripperSimulator,
     PathTarget,
 )
-from msmem_core.world.geometry import matrix_to_quat, pose_matrix
+from msmem_core.world.geometry import boxes_overlap, matrix_to_quat, pose_matrix
 from msmem_core.world.scene import SceneSpec, ShelfSpec
 from msmem_sapien.camera import CameraView
 from msmem_sapien.config import SapienConfig
@@ -47,21 +47,6 @@ from msmem_sapien.scene import SceneBuilder, _BodyState, _matrix, _Object, _sapi
 
 CONTACT_DISTANCE_M = 1e-3
 """Contact points farther apart than this are not reported as contacts."""
-
-def _obb_overlap(
-    ca: NDArray[np.float64], ra: NDArray[np.float64], ha: NDArray[np.float64],
-    cb: NDArray[np.float64], rb: NDArray[np.float64], hb: NDArray[np.float64],
-) -> NDArray[np.bool_]:
-    """Separating-axis test of one oriented box A (centre, rotation columns = axes, half extents)
-    against N boxes B (``cb`` (N, 3), ``rb`` (N, 3, 3), ``hb`` (N, 3)); True where they overlap."""
-    a_axes = np.broadcast_to(ra.T, (len(cb), 3, 3))
-    b_axes = rb.transpose(0, 2, 1)
-    cross = np.cross(a_axes[:, :, None, :], b_axes[:, None, :, :]).reshape(len(cb), 9, 3)
-    axes = np.concatenate([a_axes, b_axes, cross], axis=1)  # (N, 15, 3)
-    dist = np.abs(np.einsum("nkj,nj->nk", axes, cb - ca))
-    r_a = np.einsum("nkj,ji,i->nk", np.abs(axes @ ra), np.eye(3), ha)
-    r_b = np.einsum("nki,ni->nk", np.abs(axes @ rb), hb)
-    return ~np.any(dist > r_a + r_b + 1e-9, axis=1)
 
 
 # ------------------------------------------------------------------------------------ state records
@@ -323,7 +308,8 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
     def _collides(self, pose: NDArray[np.float64], clearance: float, with_objects: bool) -> bool:
         """Whether the gripper at ``pose``, grown by ``clearance``, overlaps an obstacle (bounding boxes)."""
         cb, rb, hb = self._obstacles(with_objects)
-        return any(bool(np.any(_obb_overlap(c, r, h, cb, rb, hb))) for c, r, h in self._gripper_boxes(pose, clearance))
+        return any(bool(np.any(boxes_overlap(cb, rb, hb, c, r, h, margin=1e-9)))
+                   for c, r, h in self._gripper_boxes(pose, clearance))
 
     # ------------------------------------------------------------------------------------- contacts
     def _contact_points(self) -> list[_ContactPoint]:
