@@ -28,7 +28,7 @@ from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
 
-torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.02, 1)
 NOLOG = lambda m: None  # noqa: E731

@@ -43,7 +43,7 @@ from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec
 from msmem_core.testing.conformance import gripper_pose
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 
-torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)
 INTERIOR = SHELF.interior_box

@@ -37,6 +37,7 @@ from msmem_core.run.metrics import (
 from msmem_core.msas import BoundSkill, Decision, DecisionContext, Objective, run_msas
 from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager
 from msmem_core.run.runfolder import save_ground_truth, save_snapshot
+from msmem_core.util.threads import configure_threads
 from msmem_core.world.scene import SceneSpec
 from msmem_core.world.scenegen import generate_scene
 from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
@@ -44,6 +45,7 @@ from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
 
 def set_threads(n: int) -> None:
     """Per-episode thread counts, so results do not depend on where an episode runs."""
+    configure_threads()  # before numba.set_num_threads starts numba's threading layer
     os.environ.setdefault("OMP_NUM_THREADS", str(n))
     import numba
     import torch
@@ -74,6 +76,7 @@ class Episode:
 
 
 def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | None = None) -> Episode:
+    configure_threads()  # before the plugins built here load torch
     # run-wide values a component receives for config fields the user left unset
     common = {"camera": cfg.camera, "gripper": cfg.gripper, "seed": cfg.seed}
     observe_model = pm.build("belief-model", cfg.observation_model, where="observation_model", **common)
