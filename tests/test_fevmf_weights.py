@@ -17,7 +17,8 @@ from msmem_grasp.training import sha256_file
 from msmem_grasp.weights import SHIPPED_WEIGHTS, WeightsError, load_fe_vmf, predict_cloud, read_sidecar
 
 if not SHIPPED_WEIGHTS.exists():  # training is running: the weights land with their model card
-    pytest.skip(f"FE-vMF weights not shipped yet ({SHIPPED_WEIGHTS} missing; issue 5 open)", allow_module_level=True)
+    pytest.skip(f"FE-vMF weights not shipped yet ({SHIPPED_WEIGHTS} missing; `msmem train fe-vmf` makes them)",
+                allow_module_level=True)
 
 HELDOUT_SEEDS = [200000, 200001, 200002]
 """Never used for training (train: 0-399) or for the model card's held-out set (100000-100039)."""

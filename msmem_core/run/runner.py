@@ -121,7 +121,7 @@ class MetricTracker:
 
     Besides the IoUs and Position Change, every step reports the paper's Table II object counts
     (``metrics.object_counts``: ``correctly_found``, ``misclassified``, ``not_found``,
-    ``hallucinated``; 5-15 ms on the default grid) over the objects still in the shelf, and
+    ``hallucinated``; docs/concepts.md) over the objects still in the shelf, and
     ``removed``: objects of the scene no longer in the shelf (grasped out, or pushed or fallen out so
     that none of their voxels is left in the shelf interior), which the four counts leave out.
     """

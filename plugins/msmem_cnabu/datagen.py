@@ -67,7 +67,7 @@ class CNABUDataConfig(BaseModel):
     voxel_m: float = Field(0.01, gt=0.001, le=0.05)
     margin_voxels: int = Field(1, ge=1, le=10)
     require_hard: bool = False
-    """Hard scenes take ~10x longer to generate; random 30-45 % occupancy shelves are used."""
+    """Hard scenes instead of random 30-45 % occupancy shelves (slower to generate: docs/cnabu.md)."""
     min_views: int = Field(1, ge=0)
     max_views: int = Field(6, ge=0)
     """Random views integrated (after the start view) before the first sample."""

@@ -25,8 +25,8 @@ front), from the belief alone:
   background-class evidence, the weight of two views, so they are confident): each confident voxel
   of a neighbour's class becomes confident background, which is what a CDC term counts (a reset to
   the prior would hide the damage from it: CDC counts only voxels confident afterwards). Nothing
-  else in the corridor changes. Objects merely touching the grasped one stay (measured: none moved,
-  docs/grasp.md); ``touch_shift_m`` > 0 shifts them along the retreat instead.
+  else in the corridor changes. Objects merely touching the grasped one stay (docs/grasp.md);
+  ``touch_shift_m`` > 0 shifts them along the retreat instead.
 - Not modelled: toppling, rotation, the grasp failing (the prediction is the successful grasp), and
   the unseen parts of other objects (only believed-occupied voxels move).
 
