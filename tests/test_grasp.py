@@ -26,22 +26,22 @@ from msmem_grasp.planning import (
 from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill
 from pydantic import ValidationError
 
-from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
-from msmem_core.world.camera import CameraConfig
 from msmem_core.errors import PluginError
-from msmem_core.world.geometry import yaw_quat
-from msmem_core.world.grid import GridSpec
-from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.voxelize import interior_mask, voxelize
-from msmem_core.map.ig import IGService
 from msmem_core.interfaces import CandidateBatch
-from msmem_core.run.metrics import occupancy_iou, position_change_m
+from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
+from msmem_core.map.ig import IGService
 from msmem_core.msas import DecisionContext
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.plugins.manager import ComponentRef
-from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec
+from msmem_core.run.metrics import occupancy_iou, position_change_m
 from msmem_core.testing.conformance import gripper_pose
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.geometry import yaw_quat
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+from msmem_core.world.voxelize import interior_mask, voxelize
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 SHELF = ShelfSpec()

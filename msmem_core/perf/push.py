@@ -25,18 +25,18 @@ from typing import Any
 import numba
 import numpy as np
 
-from msmem_core.map.belief import EvidentialMap
-from msmem_core.world.camera import CameraConfig
-from msmem_core.world.grid import GridSpec
-from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.voxelize import voxelize
-from msmem_core.map.ig import IGConfig, IGService, shelf_wall_mask
 from msmem_core.interfaces import CandidateBatch
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.map.ig import IGConfig, IGService, shelf_wall_mask
 from msmem_core.msas import DecisionContext
 from msmem_core.perf.ig import integrate_evidence, render_voxels
 from msmem_core.plugins.manager import ComponentRef, get_plugin_manager
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scene import SceneSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
+from msmem_core.world.voxelize import voxelize
 
 
 def mid_episode_scene_belief(

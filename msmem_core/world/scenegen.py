@@ -30,9 +30,12 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from scipy.signal import fftconvolve
 from scipy.spatial import ConvexHull
 
-from msmem_core.world.camera import CameraConfig
 from msmem_core.errors import UserError
+from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import yaw_quat
+from msmem_core.world.meshes import part_mesh_local
+from msmem_core.world.scene import OBJECT_CLASSES, ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec
+from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 from msmem_core.world.visibility import (
     MIN_VISIBLE_PIXELS,
     InsertionProbe,
@@ -40,9 +43,6 @@ from msmem_core.world.visibility import (
     hidden_objects,
     object_pixel_counts,
 )
-from msmem_core.world.meshes import part_mesh_local
-from msmem_core.world.scene import OBJECT_CLASSES, ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec
-from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
 
 class SceneGenConfig(BaseModel):
