@@ -11,8 +11,8 @@ its own result file atomically, so a killed run resumes by skipping finished tas
 
 Every worker applies ``configure_threads`` (the OpenMP settings, ``msmem_core.util.threads``) and limits
 torch / numba / OpenMP to ``threads`` threads before it runs a task, so results do not depend on where a
-task ran (DESIGN.md, "Scale and speed"). A task that raises does not stop the
-others: it comes back as a :class:`TaskFailure` (or, with ``on_error="raise"``, the first one raises).
+task ran (DESIGN.md, "Scale and speed"). A task that raises does not stop the others: it comes back as
+a :class:`TaskFailure` (or, with ``on_error="raise"``, the first one raises).
 """
 
 from __future__ import annotations
