@@ -24,7 +24,7 @@ from msmem_core.config import load_config
 from msmem_core.plugins.manager import get_plugin_manager
 from msmem_core.run.runner import Episode, build_episode, run_episode
 from msmem_core.util.trace import Span, Tracer
-from msmem_core.world.groundtruth import voxelize_instances
+from msmem_core.world.voxelize import voxelize_instances
 
 
 class GraspDiagnosis(Tracer):

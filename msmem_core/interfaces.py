@@ -46,9 +46,9 @@ class Workspace:
     gripper: GripperSpec = field(default_factory=GripperSpec)
 
     @property
-    def interior_m(self) -> tuple[float, float, float, float, float, float]:
+    def interior_box(self) -> tuple[float, float, float, float, float, float]:
         """The shelf interior as (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi)."""
-        return self.shelf.interior_m
+        return self.shelf.interior_box
 
 
 # --------------------------------------------------------------------------------------------- actions

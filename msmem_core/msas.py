@@ -320,7 +320,7 @@ def run_msas(
     an object fell over or left the shelf (tilt over ``cfg.fall_tilt_deg``). ``tracer`` sees every
     span of the episode.
     """
-    from msmem_core.world.groundtruth import interior_mask
+    from msmem_core.world.voxelize import interior_mask
 
     rng = np.random.default_rng(seed)
     with tracing(tracer):

@@ -29,7 +29,7 @@ from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
 
-torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.02, 1)
 WORKSPACE = Workspace(GRID, SHELF)
@@ -175,7 +175,7 @@ def test_effect_model_copies_the_prior_exactly_outside_the_changed_mask(tmp_path
     before = belief.copy()
     actions = push_actions() if kind == "push" else grasp_actions()
     pred = model.predict(belief, actions, WORKSPACE)
-    walls = wall_mask(GRID, SHELF.interior_m)
+    walls = wall_mask(GRID, SHELF.interior_box)
     assert pred.changed.shape == (len(actions), *GRID.shape)
     assert len(pred.beliefs) == len(actions)
     for k, b in enumerate(pred.beliefs):

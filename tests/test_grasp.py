@@ -39,14 +39,14 @@ from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import yaw_quat
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.groundtruth import interior_mask, voxelize
 from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+from msmem_core.world.voxelize import interior_mask, voxelize
 
-torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)
-INTERIOR = SHELF.interior_m
+INTERIOR = SHELF.interior_box
 WORKSPACE = Workspace(GRID, SHELF, GripperSpec())
 SUGAR, MEAT, FOAM, CRACKER = 2, 9, 13, 1  # class ids
 

@@ -30,9 +30,9 @@ from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import look_at, quat_to_matrix, yaw_quat
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.groundtruth import interior_mask, voxelize
 from msmem_core.world.scene import OBJECT_CLASSES, ObjectSpec, SceneSpec, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
+from msmem_core.world.voxelize import interior_mask, voxelize
 
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)
@@ -97,9 +97,9 @@ def test_bad_push_config_and_actions_are_rejected_naming_the_field() -> None:
     with pytest.raises(ValidationError, match="length_m"):
         push((0.0, 0.05), (0.0, 1.0), -0.1)
     with pytest.raises(ValueError, match="start_m"):  # checked against the workspace's shelf when executed
-        push((0.5, 0.1), (0.0, 1.0), 0.1).check_start(SHELF.interior_m)  # beyond the right wall
+        push((0.5, 0.1), (0.0, 1.0), 0.1).check_start(SHELF.interior_box)  # beyond the right wall
     with pytest.raises(ValueError, match="start_m"):
-        push((0.0, -START_FRONT_MARGIN_M - 0.01), (0.0, 1.0), 0.1).check_start(SHELF.interior_m)
+        push((0.0, -START_FRONT_MARGIN_M - 0.01), (0.0, 1.0), 0.1).check_start(SHELF.interior_box)
     with pytest.raises(ValueError, match="start_m"):
         PushSkill().execute(None, push((0.5, 0.1), (0.0, 1.0), 0.1), SimpleNamespace(shelf=SHELF))  # type: ignore[arg-type]
     with pytest.raises(ValidationError, match="direction"):

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msmem_core.run.report import REPORT_FILES, load_run, render_html, write_report
+from msmem_core.run.report import REPORT_FILES, render_html, write_report
+from msmem_core.run.runfolder import load_run
 
 ROOT = Path(__file__).resolve().parents[1]
 MSMEM = str(Path(sys.executable).with_name("msmem"))

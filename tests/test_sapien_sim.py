@@ -17,8 +17,9 @@ with warnings.catch_warnings():  # SAPIEN warns when it falls back to its bundle
 pytest.importorskip("pybullet", reason="the cross-backend checks compare with the PyBullet backend")
 
 from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
+from msmem_sapien.camera import native_renderer
 from msmem_sapien.config import SapienConfig
-from msmem_sapien.simulator import SapienSimulator, native_renderer
+from msmem_sapien.simulator import SapienSimulator
 
 from msmem_core.config import load_config
 from msmem_core.interfaces import Simulator

@@ -352,7 +352,9 @@ else:
 
 def main() -> None:
     from msmem_core.util.malloc import keep_large_allocations
+    from msmem_core.util.threads import configure_threads
 
+    configure_threads()  # before any command imports torch or numba
     keep_large_allocations()
     debug = "--debug" in sys.argv
     try:

@@ -33,9 +33,9 @@ from msmem_core.plugins.manager import ComponentRef, get_plugin_manager
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.groundtruth import voxelize
 from msmem_core.world.scene import SceneSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
+from msmem_core.world.voxelize import voxelize
 
 
 def mid_episode_scene_belief(

@@ -2,7 +2,7 @@
 
 Run folder: ``config.json`` (resolved), ``scene.json``, ``steps.jsonl`` (one record per step),
 ``metrics.json`` (final metrics and action counts), ``belief_final.npz``, and for the run report
-(``msmem_core.run.report``) ``belief_step{N}.npz`` (float16 belief and ground truth after the steps of
+(``msmem_core.run.runfolder``) ``belief_step{N}.npz`` (float16 belief and ground truth after the steps of
 ``RunConfig.snapshot_steps``) and ``gt_final.npz`` (final ground-truth occupancy and classes).
 """
 
@@ -36,16 +36,19 @@ from msmem_core.run.metrics import (
     semantic_miou,
     semantic_miou_bev,
 )
-from msmem_core.run.report import save_ground_truth, save_snapshot
+from msmem_core.run.runfolder import save_ground_truth, save_snapshot
+from msmem_core.util.threads import configure_threads
 from msmem_core.util.trace import Tracer
-from msmem_core.world.groundtruth import observable_mask, voxelize_instances
 from msmem_core.world.scene import SceneSpec
 from msmem_core.world.scenegen import generate_scene
 from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
+from msmem_core.world.visibility import observable_mask
+from msmem_core.world.voxelize import voxelize_instances
 
 
 def set_threads(n: int) -> None:
     """Per-episode thread counts, so results do not depend on where an episode runs."""
+    configure_threads()  # before numba.set_num_threads starts numba's threading layer
     os.environ.setdefault("OMP_NUM_THREADS", str(n))
     import numba
     import torch
@@ -87,6 +90,7 @@ class Episode:
 
 
 def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | None = None) -> Episode:
+    configure_threads()  # before the plugins built here load torch
     # run-wide values a component receives for config fields the user left unset
     common = {"camera": cfg.camera, "gripper": cfg.gripper, "seed": cfg.seed}
     observe_model = pm.build("belief-model", cfg.observation_model, where="observation_model", **common)
@@ -131,7 +135,7 @@ class MetricTracker:
 
     Besides the IoUs and Position Change, every step reports the paper's Table II object counts
     (``metrics.object_counts``: ``correctly_found``, ``misclassified``, ``not_found``,
-    ``hallucinated``; 5-15 ms on the default grid) over the objects still in the shelf, and
+    ``hallucinated``; docs/concepts.md) over the objects still in the shelf, and
     ``removed``: objects of the scene no longer in the shelf (grasped out, or pushed or fallen out so
     that none of their voxels is left in the shelf interior), which the four counts leave out.
 

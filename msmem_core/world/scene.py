@@ -156,7 +156,7 @@ class ShelfSpec(BaseModel):
         return np.array([self.width_m / 2, self.depth_m, self.height_m])
 
     @property
-    def interior_m(self) -> tuple[float, float, float, float, float, float]:
+    def interior_box(self) -> tuple[float, float, float, float, float, float]:
         """The interior as (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi)."""
         lo, hi = self.interior_lower, self.interior_upper
         return (float(lo[0]), float(lo[1]), float(lo[2]), float(hi[0]), float(hi[1]), float(hi[2]))

@@ -12,7 +12,7 @@ analytic belief (``msmem_analytic``), then by kind:
   belief (UPS sampler of ``msmem_push``; UGS of ``msmem_grasp`` with its FE-UMGF buffer, FE-vMF
   weights if installed, else its geometric fallback) and ``actions_per_state`` of them, drawn at
   random, are each executed under physics from a ``snapshot`` and the ground truth after it is
-  voxelised from the simulator's object poses (``groundtruth.voxelize``); then ``restore``.
+  voxelised from the simulator's object poses (``voxelize.voxelize``); then ``restore``.
   Between states one of the candidates is executed for real (the world changes, the belief keeps
   its now partly stale evidence as in an episode) and ``views_between`` more views are integrated.
 
@@ -69,7 +69,7 @@ class CNABUDataConfig(BaseModel):
     voxel_m: float = Field(0.01, gt=0.001, le=0.05)
     margin_voxels: int = Field(1, ge=1, le=10)
     require_hard: bool = False
-    """Hard scenes take ~10x longer to generate; random 30-45 % occupancy shelves are used."""
+    """Hard scenes instead of random 30-45 % occupancy shelves (slower to generate: docs/cnabu.md)."""
     min_views: int = Field(1, ge=0)
     max_views: int = Field(6, ge=0)
     """Random views integrated (after the start view) before the first sample."""
@@ -302,7 +302,7 @@ class _Recorder:
 
 
 def _ground_truth(sim: Any, scene: Any, grid: GridSpec) -> tuple[NDArray[np.bool_], NDArray[np.int16]]:
-    from msmem_core.world.groundtruth import voxelize
+    from msmem_core.world.voxelize import voxelize
 
     poses = sim.object_poses()
     objects = {o.id: o for o in scene.objects}

@@ -441,7 +441,7 @@ def threshold_agreement(
     threads: int = 2,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """How often ``change_threshold`` changes the chosen action (issue 8).
+    """How often ``change_threshold`` changes the chosen action (docs/cnabu.md, "The change threshold").
 
     On ``beliefs`` mid-episode beliefs (``msmem perf step``'s: generated scene ``scene_seed``, the
     start view plus ``views - 1`` seeded random views, seeds 0, 1, ...), method ``ours`` with the

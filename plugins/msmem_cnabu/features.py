@@ -112,7 +112,7 @@ def grasp_regions(belief: Any, actions: Sequence[Any], workspace: Workspace) -> 
     twin = AnalyticGraspEffect()
     if not actions:
         return []
-    objects = Objects.of(belief, workspace.interior_m, twin.config.occupied_threshold)
+    objects = Objects.of(belief, workspace.interior_box, twin.config.occupied_threshold)
     return [twin.target_region(belief, objects, a)[1] for a in actions]
 
 

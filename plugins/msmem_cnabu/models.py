@@ -184,7 +184,7 @@ class _CNABUEffect(EffectModel):
             return Prediction(belief, [], excluded=[] if self.kind == "grasp" else None)
         with _Threads(cfg.threads):
             feats = _features(belief)
-            prep = self.net.prepare(feats, None, self._inside(grid, workspace.interior_m)[None])
+            prep = self.net.prepare(feats, None, self._inside(grid, workspace.interior_box)[None])
             ind, scalars, regions = manipulation_indices(self.kind, belief, actions, workspace)
             parts = []
             for start in range(0, k_n, cfg.batch):

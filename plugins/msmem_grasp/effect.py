@@ -25,8 +25,8 @@ front), from the belief alone:
   background-class evidence, the weight of two views, so they are confident): each confident voxel
   of a neighbour's class becomes confident background, which is what a CDC term counts (a reset to
   the prior would hide the damage from it: CDC counts only voxels confident afterwards). Nothing
-  else in the corridor changes. Objects merely touching the grasped one stay (measured: none moved,
-  docs/grasp.md); ``touch_shift_m`` > 0 shifts them along the retreat instead.
+  else in the corridor changes. Objects merely touching the grasped one stay (docs/grasp.md);
+  ``touch_shift_m`` > 0 shifts them along the retreat instead.
 - Not modelled: toppling, rotation, the grasp failing (the prediction is the successful grasp), and
   the unseen parts of other objects (only believed-occupied voxels move).
 
@@ -90,7 +90,7 @@ class AnalyticGraspEffect(EffectModel):
             raise TypeError(f"grasp-analytic predicts grasp actions, got a {other.kind!r} action")
         if not grasps:
             return Prediction(belief, [], excluded=[])
-        objects = Objects.of(belief, workspace.interior_m, self.config.occupied_threshold)
+        objects = Objects.of(belief, workspace.interior_box, self.config.occupied_threshold)
         changes, excluded = [], []
         for a in grasps:
             d, region = self._predict_one(belief, objects, a, workspace.gripper)
@@ -229,6 +229,6 @@ class AnalyticGraspEffect(EffectModel):
     def displacements(self, belief: EvidentialMap, action: GraspAction, workspace: Workspace) -> dict[str, Any]:
         """What one grasp does to the believed objects: the grasped region, the bodies pushed out,
         the corridor (flat voxel indices) — for tests and inspection."""
-        objects = Objects.of(belief, workspace.interior_m, self.config.occupied_threshold)
+        objects = Objects.of(belief, workspace.interior_box, self.config.occupied_threshold)
         region, pushed, corridor, touching = self.moves(belief, objects, action, workspace.gripper)
         return {"region": region, "pushed": pushed, "corridor": corridor, "touching": touching}

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
+from msmem_core.world.geometry import F64
 from msmem_grasp.datagen import GraspShard, list_shards, load_shard
 from msmem_grasp.metrics import (
     angular_error,
@@ -41,8 +42,6 @@ from msmem_grasp.metrics import (
     precision_recall,
     vmf_nll,
 )
-
-F64 = NDArray[np.float64]
 
 
 class HeuristicConfig(BaseModel):

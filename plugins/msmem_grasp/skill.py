@@ -72,11 +72,12 @@ from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill, W
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.util.trace import span
 from msmem_core.world.camera import CameraConfig
+from msmem_core.world.geometry import F64
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scene import ShelfSpec
 from msmem_grasp.fpp import FPPConfig, frontier_points, virtual_front_views
-from msmem_grasp.fusion import FusionConfig, FusionStats, GraspBuffer, GraspHypotheses
+from msmem_grasp.fusion import FusionConfig, GraspBuffer, GraspHypotheses
 from msmem_grasp.geometric import GeometricConfig, predict_geometric
 from msmem_grasp.planning import (
     Objects,
@@ -93,7 +94,6 @@ from msmem_grasp.planning import (
 )
 
 log = logging.getLogger("msmem.grasp")
-F64 = NDArray[np.float64]
 Vec3 = tuple[float, float, float]
 _SIN15 = math.sin(math.radians(15.0))
 _WARNED: set[str] = set()
@@ -264,7 +264,6 @@ class GraspSkill(Skill):
     def __init__(self, config: GraspConfig | None = None) -> None:
         self.config = config or GraspConfig()
         self.buffer = GraspBuffer(self.config.fusion)
-        self.last_stats: FusionStats | None = None
         self._model: Any = None
         self._predictor: str | None = None
         self._tracked: tuple[int, EvidentialMap] | None = None
@@ -334,12 +333,11 @@ class GraspSkill(Skill):
         elif not visited:
             # no view since the manipulation: the belief is the effect model's prediction, and grasps
             # planned on predicted geometry fail (docs/results.md); wait for a real view
-            self.last_stats = None
             return
         seed = int(np.random.default_rng([self.config.seed, int(ctx.step)]).integers(2**31))
         new = self.predict(ctx.belief, ctx.shelf, views, seed)
         with span("FE-UMGF fusion"):
-            self.last_stats = self.buffer.update(new, ctx.belief)
+            self.buffer.update(new, ctx.belief)
 
     # -------------------------------------------------------------------------------- proposal
     def propose(self, ctx: Any) -> list[Action]:
@@ -370,7 +368,7 @@ class GraspSkill(Skill):
         width = np.minimum(g.width, grip.max_opening_m)
         from msmem_grasp.fevmf import executable_grasp  # torch: imported on use
 
-        objects = Objects.of(belief, shelf.interior_m, cfg.occupied_threshold)
+        objects = Objects.of(belief, shelf.interior_box, cfg.occupied_threshold)
         return Candidates(
             grasps=g, width=width, opening=np.minimum(width + cfg.opening_margin_m, grip.max_opening_m),
             poses=executable_grasp(g.contact, a, b, width),  # type: ignore[arg-type]

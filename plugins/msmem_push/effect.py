@@ -118,7 +118,7 @@ class AnalyticPushEffect(EffectModel):
             raise TypeError(f"push-analytic predicts push actions, got a {other.kind!r} action")
         if not pushes:
             return Prediction(belief, [])
-        interior = workspace.interior_m
+        interior = workspace.interior_box
         scene = self._scene(belief, interior)
         mark = np.zeros(belief.grid.size, dtype=bool)
         changes = [self._predict_one(belief, scene, a, interior, a.tool(workspace.gripper), mark).against(belief)
@@ -129,7 +129,7 @@ class AnalyticPushEffect(EffectModel):
     def displacements(self, belief: EvidentialMap, action: PushAction, workspace: Workspace
                       ) -> list[tuple[NDArray[np.int64], float]]:
         """The bodies a push moves: (flat voxel indices, displacement in metres along the push)."""
-        interior = workspace.interior_m
+        interior = workspace.interior_box
         scene = self._scene(belief, interior)
         return self._moves(belief.grid, scene, action, interior, action.tool(workspace.gripper))[0]
 

@@ -260,7 +260,7 @@ class PushSkill(Skill):
         occupied = (p > cfg.occupied_threshold).ravel()
         per_target = max(2, math.ceil(2 * cfg.max_samples / len(targets)))
         groups: list[list[PushAction]] = [[] for _ in targets]
-        interior_m = shelf.interior_m
+        interior_m = shelf.interior_box
         for _ in range(ROUNDS):  # in dense shelves most sideways pushes collide: sample again
             for g, t in zip(groups, targets, strict=True):
                 raw = (self._candidate(t, rng, grid, interior_m) for _ in range(per_target))
@@ -387,7 +387,7 @@ class PushSkill(Skill):
     def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
         cfg = self.config
         a = action if isinstance(action, PushAction) else PushAction.model_validate(action.model_dump())
-        a.check_start(ctx.shelf.interior_m)
+        a.check_start(ctx.shelf.interior_box)
         u = a.u
         approach = np.array([a.start[0], cfg.approach_y_m])
         h = a.height_m
