@@ -19,9 +19,9 @@ from msmem_grasp.planning import gripper_points, path_offsets, swept_indices
 from msmem_grasp.skill import GraspAction, GraspSkill
 
 from msmem_core.config import load_config
-from msmem_core.world.groundtruth import voxelize_instances
 from msmem_core.plugins.manager import get_plugin_manager
 from msmem_core.run.runner import build_episode, run_episode
+from msmem_core.world.groundtruth import voxelize_instances
 
 
 def main(method: str, scene: str, steps: int, config: str | None = None) -> None:

@@ -18,10 +18,10 @@ from typing import Any
 from msmem_push.skill import PushSkill
 from scipy import ndimage
 
-from msmem_core.map.belief import EvidentialMap
 from msmem_core.config import load_config
-from msmem_core.run.metrics import prediction_from_belief
+from msmem_core.map.belief import EvidentialMap
 from msmem_core.plugins.manager import get_plugin_manager
+from msmem_core.run.metrics import prediction_from_belief
 from msmem_core.run.runner import MetricTracker, build_episode, run_episode
 
 

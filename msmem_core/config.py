@@ -14,12 +14,12 @@ from typing import Annotated, Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from msmem_core.world.camera import CameraConfig
 from msmem_core.errors import UserError
-from msmem_core.world.grid import GridSpec
-from msmem_core.world.gripper import GripperSpec
 from msmem_core.map.ig import IGConfig
 from msmem_core.plugins.manager import ComponentRef
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scenegen import SceneGenConfig
 from msmem_core.world.viewpoints import ViewpointConfig
 

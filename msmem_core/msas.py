@@ -13,11 +13,11 @@ from numpy.typing import NDArray
 from msmem_core.interfaces import Action, CandidateBatch, EffectModel, ObservationModel, Outcome, Simulator, Skill, Term
 
 if TYPE_CHECKING:
-    from msmem_core.map.belief import EvidentialMap
     from msmem_core.config import MSASConfig
+    from msmem_core.map.belief import EvidentialMap
+    from msmem_core.map.ig import IGField, IGService
     from msmem_core.world.grid import GridSpec
     from msmem_core.world.gripper import GripperSpec
-    from msmem_core.map.ig import IGField, IGService
     from msmem_core.world.scene import ShelfSpec
 
 

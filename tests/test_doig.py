@@ -11,12 +11,12 @@ from msmem_objectives.ig import IGTerm, IGTermConfig
 from msmem_push.effect import AnalyticPushEffect
 from msmem_push.skill import PushConfig, PushSkill
 
-from msmem_core.map.belief import EvidentialMap
-from msmem_core.world.groundtruth import interior_mask
 from msmem_core.interfaces import CandidateBatch, Prediction
+from msmem_core.map.belief import EvidentialMap
 from msmem_core.msas import Objective, bev_confidence, mapped_fraction
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.plugins.manager import ComponentRef
+from msmem_core.world.groundtruth import interior_mask
 from tests.test_grasp import BYSTANDER, IN_THE_WAY, TARGET, top_grasp
 from tests.test_grasp import box_belief as grasp_box_belief
 from tests.test_push import GRID, SHELF, _ctx, _small_ig, synthetic_belief

@@ -9,11 +9,11 @@ from hypothesis import strategies as st
 
 from msmem_core.map import raycast
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.map.ig import IGConfig, IGField, IGService, shelf_wall_mask
+from msmem_core.map.ig_reference import after_view_reference, ig_rays_reference, traverse
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import look_at
 from msmem_core.world.grid import GridSpec
-from msmem_core.map.ig import IGConfig, IGField, IGService, shelf_wall_mask
-from msmem_core.map.ig_reference import after_view_reference, ig_rays_reference, traverse
 from msmem_core.world.scene import ShelfSpec
 
 SHELF = ShelfSpec(width_m=0.16, depth_m=0.12, height_m=0.08)

@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 
-from msmem_core.world.geometry import pose_matrix
 from msmem_core.run.metrics import (
     observable_iou,
     occupancy_iou,
@@ -17,6 +16,7 @@ from msmem_core.run.metrics import (
     semantic_miou_bev,
     top_view_classes,
 )
+from msmem_core.world.geometry import pose_matrix
 
 
 def _grid(*voxels: tuple[int, int, int], shape: tuple[int, int, int] = (4, 4, 4)) -> np.ndarray:

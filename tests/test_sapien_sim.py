@@ -20,15 +20,11 @@ from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
 from msmem_sapien.config import SapienConfig
 from msmem_sapien.simulator import SapienSimulator, native_renderer
 
-from msmem_core.world.camera import CameraConfig
 from msmem_core.config import load_config
-from msmem_core.world.geometry import rotation_angle_deg
 from msmem_core.interfaces import Simulator
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.plugins.manager import ComponentRef
 from msmem_core.run.runner import build_episode, run_episode
-from msmem_core.world.scene import ObjectSpec, SceneSpec
-from msmem_core.world.scenegen import SceneGenConfig, generate_scene
 from msmem_core.testing.conformance import (
     conformance_scene,
     front_view,
@@ -36,6 +32,10 @@ from msmem_core.testing.conformance import (
     simulator_conformance,
     single_object_scene,
 )
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.geometry import rotation_angle_deg
+from msmem_core.world.scene import ObjectSpec, SceneSpec
+from msmem_core.world.scenegen import SceneGenConfig, generate_scene
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 from tests.support.sim_checks import (
     check_label_noise_relabels_whole_objects_and_follows_the_seed,

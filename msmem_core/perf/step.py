@@ -41,11 +41,11 @@ from typing import Any
 import numba
 import numpy as np
 
-from msmem_core.map.belief import EvidentialMap
 from msmem_core.config import RunConfig, load_config
+from msmem_core.interfaces import Action, CandidateBatch
+from msmem_core.map.belief import EvidentialMap
 from msmem_core.map.ig import IGService
 from msmem_core.map.ig_reference import ig_views_reference
-from msmem_core.interfaces import Action, CandidateBatch
 from msmem_core.msas import BoundSkill, Decision, DecisionContext, Objective, decide
 from msmem_core.plugins.manager import ComponentRef, get_plugin_manager
 from msmem_core.run.runner import Episode, build_episode, set_threads

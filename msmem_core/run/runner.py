@@ -18,12 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from msmem_core.map.belief import EvidentialMap
 from msmem_core.config import RunConfig
 from msmem_core.errors import PluginError
-from msmem_core.world.groundtruth import observable_mask, voxelize_instances
-from msmem_core.map.ig import IGService, shelf_wall_mask
 from msmem_core.interfaces import EffectModel, ObservationModel, Outcome, Simulator
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.map.ig import IGService, shelf_wall_mask
+from msmem_core.msas import BoundSkill, Decision, DecisionContext, Objective, run_msas
+from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager
 from msmem_core.run.metrics import (
     object_counts,
     observable_iou,
@@ -33,9 +34,8 @@ from msmem_core.run.metrics import (
     semantic_miou,
     semantic_miou_bev,
 )
-from msmem_core.msas import BoundSkill, Decision, DecisionContext, Objective, run_msas
-from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager
 from msmem_core.run.report import save_ground_truth, save_snapshot
+from msmem_core.world.groundtruth import observable_mask, voxelize_instances
 from msmem_core.world.scene import SceneSpec
 from msmem_core.world.scenegen import generate_scene
 from msmem_core.world.viewpoints import default_start_view, generate_viewpoints

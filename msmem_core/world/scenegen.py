@@ -30,8 +30,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from scipy.signal import fftconvolve
 from scipy.spatial import ConvexHull
 
-from msmem_core.world.camera import CameraConfig
 from msmem_core.errors import UserError
+from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import yaw_quat
 from msmem_core.world.groundtruth import (
     MIN_VISIBLE_PIXELS,

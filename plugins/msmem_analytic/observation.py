@@ -23,10 +23,10 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.interfaces import ObservationModel
 from msmem_core.map import raycast
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.camera import Observation
-from msmem_core.interfaces import ObservationModel
 
 
 class AnalyticObservationConfig(BaseModel):

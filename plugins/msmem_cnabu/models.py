@@ -39,9 +39,9 @@ from msmem_cnabu.features import (
 )
 from msmem_cnabu.network import FlatPrediction
 from msmem_cnabu.weights import WeightsError, load_cnabu
+from msmem_core.interfaces import Action, EffectModel, ObservationModel, Prediction
 from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
 from msmem_core.world.camera import Observation
-from msmem_core.interfaces import Action, EffectModel, ObservationModel, Prediction
 
 
 class _Threads:

@@ -26,11 +26,11 @@ from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard
 from msmem_cnabu.features import belief_features, dilate, prior_evidence, wall_mask
 from msmem_cnabu.losses import CNABULossConfig, blend, cnabu_loss
 from msmem_cnabu.network import CNABUNet, CNABUNetConfig, parameter_bytes
+from msmem_core.errors import UserError
+from msmem_core.learn.datagen import read_manifest
+from msmem_core.learn.training import TrainingRun, optimizer_step, split_scenes, training_record, warmup_cosine
 from msmem_core.util.artifacts import atomic_save, write_sidecar
 from msmem_core.util.artifacts import sha256_file as sha256_file  # re-exported: callers import it from here
-from msmem_core.learn.datagen import read_manifest
-from msmem_core.errors import UserError
-from msmem_core.learn.training import TrainingRun, optimizer_step, split_scenes, training_record, warmup_cosine
 
 WEIGHTS_FORMAT = "msmem-cnabu"
 WEIGHTS_VERSION = 1

@@ -11,8 +11,8 @@ from typing import Any
 
 from msmem_cnabu.network import KINDS, CNABUNet, CNABUNetConfig
 from msmem_cnabu.training import WEIGHTS_FORMAT
-from msmem_core.util import artifacts
 from msmem_core.errors import UserError
+from msmem_core.util import artifacts
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 

@@ -19,8 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.map.belief import DeltaBeliefs
 from msmem_core.interfaces import CandidateBatch, Category, Term
+from msmem_core.map.belief import DeltaBeliefs
 
 
 class CDCConfig(BaseModel):

@@ -16,8 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
-from msmem_core.map.belief import DeltaBeliefs, categorical_entropy
 from msmem_core.interfaces import CandidateBatch, Category, Term
+from msmem_core.map.belief import DeltaBeliefs, categorical_entropy
 
 
 class SemanticEntropyConfig(BaseModel):

@@ -16,9 +16,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.interfaces import CandidateBatch, Term
 from msmem_core.map.belief import DeltaBeliefs
 from msmem_core.map.ig import IGDelta
-from msmem_core.interfaces import CandidateBatch, Term
 
 
 class IGTermConfig(BaseModel):

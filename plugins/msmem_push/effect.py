@@ -48,8 +48,8 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
 from msmem_core.interfaces import Action, EffectModel, Prediction
+from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
 from msmem_push.geometry import across, swept_voxels
 from msmem_push.skill import PushAction
 

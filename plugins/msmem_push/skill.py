@@ -47,9 +47,9 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 from scipy import ndimage
 
-from msmem_core.world.gripper import GripperSpec
-from msmem_core.map.ig import shelf_wall_mask
 from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
+from msmem_core.map.ig import shelf_wall_mask
+from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scene import ShelfSpec
 from msmem_push.geometry import (
     Box,

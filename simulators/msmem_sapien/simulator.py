@@ -48,12 +48,18 @@ with warnings.catch_warnings():  # "Failed to find system libvulkan": SAPIEN the
     warnings.simplefilter("ignore", UserWarning)
     import sapien
 
-from msmem_core.world.camera import Observation
 from msmem_core.errors import UserError
-from msmem_core.world.geometry import matrix_to_quat, pose_matrix, quat_to_matrix
 from msmem_core.interfaces import GRIPPER_ID, SHELF_ID, Capabilities, Contact
+from msmem_core.sim.motion import (
+    FINGER_SPEED_MPS,
+    PARK_POSITION_M,
+    PARK_QUAT_XYZW,
+    FloatingGripperSimulator,
+    PathTarget,
+)
+from msmem_core.world.camera import Observation
+from msmem_core.world.geometry import matrix_to_quat, pose_matrix, quat_to_matrix
 from msmem_core.world.meshes import class_mesh, part_mesh_local, shelf_meshes
-from msmem_core.sim.motion import FINGER_SPEED_MPS, PARK_POSITION_M, PARK_QUAT_XYZW, FloatingGripperSimulator, PathTarget
 from msmem_core.world.scene import ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec, object_class, parts_centroid
 from msmem_sapien.config import SapienConfig
 

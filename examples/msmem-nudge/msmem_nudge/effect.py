@@ -16,8 +16,8 @@ from collections.abc import Sequence
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
 from msmem_core.interfaces import Action, EffectModel, Prediction
+from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
 from msmem_nudge.skill import shift_x
 
 

@@ -34,8 +34,8 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from msmem_core.world.gripper import GripperSpec
 from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
+from msmem_core.world.gripper import GripperSpec
 
 Box = tuple[float, float, float, float, float, float]
 """Axis-aligned box (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi) in metres."""

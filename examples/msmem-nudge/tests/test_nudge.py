@@ -12,10 +12,10 @@ from msmem_nudge.effect import NudgeEffect
 from msmem_nudge.skill import NudgeAction, NudgeConfig, NudgeSkill
 from msmem_nudge.travel import TravelCost, TravelCostConfig
 
+from msmem_core.interfaces import CandidateBatch
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
-from msmem_core.interfaces import CandidateBatch
 from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec, object_class
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
