@@ -26,21 +26,21 @@ from msmem_grasp.planning import (
 from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill, interior_of
 from pydantic import ValidationError
 
-from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
-from msmem_core.world.camera import CameraConfig
 from msmem_core.errors import PluginError
+from msmem_core.interfaces import CandidateBatch
+from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
+from msmem_core.map.ig import IGService
+from msmem_core.msas import DecisionContext
+from msmem_core.plugins import get_plugin_manager
+from msmem_core.plugins.manager import ComponentRef
+from msmem_core.run.metrics import occupancy_iou, position_change_m
+from msmem_core.testing.conformance import gripper_pose
+from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import yaw_quat
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.groundtruth import interior_mask, voxelize
-from msmem_core.map.ig import IGService
-from msmem_core.interfaces import CandidateBatch
-from msmem_core.run.metrics import occupancy_iou, position_change_m
-from msmem_core.msas import DecisionContext
-from msmem_core.plugins import get_plugin_manager
-from msmem_core.plugins.manager import ComponentRef
 from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec
-from msmem_core.testing.conformance import gripper_pose
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 
 torch.set_num_threads(1)
@@ -311,7 +311,7 @@ def test_with_fe_vmf_weights_the_skill_fuses_the_network_outputs(tmp_path) -> No
     import json
 
     from msmem_grasp.fevmf import FEVMF
-    from msmem_grasp.training import WEIGHTS_FORMAT, default_model_config, sha256_file, sidecar_path
+    from msmem_grasp.learn.training import WEIGHTS_FORMAT, default_model_config, sha256_file, sidecar_path
     from msmem_grasp.weights import WeightsError
 
     torch.manual_seed(0)
@@ -592,7 +592,7 @@ def test_a_grasp_only_episode_executes_a_grasp(tmp_path) -> None:  # type: ignor
 @pytest.mark.slow
 def test_bench_grasp_success_rate() -> None:
     """Top-1 fused grasps over 10 generated scenes x 2 trials; run with -m slow -s to see the number."""
-    from msmem_grasp.bench import GraspBenchConfig, bench_grasp
+    from msmem_grasp.learn.bench import GraspBenchConfig, bench_grasp
 
     s = bench_grasp(GraspBenchConfig(), progress=False)["summary"]
     print(f"\nbench-grasp: {s['successes']}/{s['executed']} succeeded ({s['success_rate']:.2f}), "

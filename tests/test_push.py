@@ -17,20 +17,20 @@ from msmem_push.geometry import leading_half_depth, swept_extent, swept_voxels, 
 from msmem_push.skill import START_FRONT_MARGIN_M, PushAction, PushConfig, PushSkill, interior_of
 from pydantic import ValidationError
 
-from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
-from msmem_core.world.camera import CameraConfig
 from msmem_core.errors import PluginError
-from msmem_core.world.geometry import look_at, quat_to_matrix, yaw_quat
-from msmem_core.world.grid import GridSpec
-from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.groundtruth import interior_mask, voxelize
-from msmem_core.map.ig import IGService, shelf_wall_mask
 from msmem_core.interfaces import CandidateBatch
-from msmem_core.run.metrics import occupancy_iou
+from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
+from msmem_core.map.ig import IGService, shelf_wall_mask
 from msmem_core.msas import DecisionContext
 from msmem_core.perf.ig import block_scene, integrate_evidence, render_voxels
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.plugins.manager import ComponentRef
+from msmem_core.run.metrics import occupancy_iou
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.geometry import look_at, quat_to_matrix, yaw_quat
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.groundtruth import interior_mask, voxelize
 from msmem_core.world.scene import OBJECT_CLASSES, ObjectSpec, SceneSpec, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
@@ -418,7 +418,7 @@ def test_push_only_episode_executes_a_push_and_records_it(tmp_path: Path, monkey
 
 
 def test_perf_push_times_the_named_effect_model_and_matches_the_reference() -> None:
-    from msmem_core.perf.push import perf_push
+    from msmem_push.perf import perf_push
 
     lines: list[str] = []
     res = perf_push(repeats=1, samples=6, reference=True, report=lines.append, effect_model="push-analytic")

@@ -43,9 +43,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.interfaces import Action, EffectModel, Prediction
 from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
 from msmem_core.world.grid import GridSpec
-from msmem_core.interfaces import Action, EffectModel, Prediction
 from msmem_grasp.planning import Objects, fill_down, gripper_points, path_offsets, shift_voxels, swept_indices, way_out
 from msmem_grasp.skill import GraspAction
 

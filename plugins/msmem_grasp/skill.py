@@ -64,11 +64,11 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
 from msmem_core.world.scene import ShelfSpec
 from msmem_grasp.fpp import FPPConfig, frontier_points, virtual_front_views
 from msmem_grasp.fusion import FusionConfig, FusionStats, GraspBuffer, GraspHypotheses
