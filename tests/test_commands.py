@@ -54,6 +54,9 @@ def test_plugin_command_appears_in_help_and_runs():
     assert "belief-models" in evals
     assert "fe-vmf" in evals
     assert "hello" not in run_cli("--help").stdout  # only while the plugin is registered
+    listed = json.loads(run_cli("plugins", "--json", env=env).stdout)["commands"]
+    assert {"command": "msmem eval echo", "distribution": "MSMEM_PLUGINS", "plugin": "cmds",
+            "summary": "Print the text back (test plugin)."} in listed
 
 
 def test_raising_command_hook_is_reported_and_the_rest_of_the_cli_works():

@@ -47,11 +47,15 @@ def _pm() -> Any:
 
 
 def plugins(as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False) -> None:
-    """List every registered component: kind, name, distribution, description, config fields."""
+    """List every registered component (kind, name, distribution, description, config fields) and the
+    commands plugins add."""
     pm = _pm()
     rows = pm.listing()
+    commands = [{"command": f"msmem {r.spec.path}", "distribution": r.distribution, "plugin": r.plugin,
+                 "summary": r.spec.summary} for r in pm.commands()]
     if as_json:
-        typer.echo(json.dumps({"components": rows, "load_errors": pm.load_errors}, indent=2, default=str))
+        typer.echo(json.dumps({"components": rows, "commands": commands, "load_errors": pm.load_errors},
+                              indent=2, default=str))
         return
     from rich.console import Console
     from rich.markup import escape
@@ -62,6 +66,11 @@ def plugins(as_json: Annotated[bool, typer.Option("--json", help="Machine-readab
         table.add_row(r["kind"], r["name"], r["distribution"], escape(r["description"]),
                       ", ".join(r["config"]) or "-")
     Console().print(table)
+    if commands:
+        table = Table("command", "distribution", "summary")
+        for c in commands:
+            table.add_row(c["command"], c["distribution"], escape(c["summary"]))
+        Console().print(table)
     for name, err in pm.load_errors.items():
         typer.echo(f"warning: plugin {name!r} failed to load: {err}", err=True)
 
