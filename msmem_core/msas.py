@@ -36,6 +36,7 @@ from msmem_core.util.trace import Tracer, span, tracing
 
 if TYPE_CHECKING:
     from msmem_core.config import MSASConfig
+    from msmem_core.map.belief import EvidentialMap
     from msmem_core.map.ig import IGService
     from msmem_core.world.scene import ShelfSpec
 

@@ -343,8 +343,9 @@ def test_observe_datagen_resumes_and_regenerates_a_corrupt_shard(observe_data):
 
 
 def test_train_and_eval_end_to_end_on_tiny_push_data(push_data, tmp_path):
-    from msmem_core.cli.app import app
+    from msmem_core.cli import build_app
 
+    app = build_app()
     out = tmp_path / "cnabu_push.pt"
     runner = CliRunner()
     res = runner.invoke(app, ["train", "cnabu", "--kind", "push", "--data", str(push_data), "--out", str(out),

@@ -10,10 +10,10 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from msmem_grasp.datagen import GraspDataConfig, generate_dataset
-from msmem_grasp.evaluation import evaluate
 from msmem_grasp.fpp import SurfaceCloud
-from msmem_grasp.training import sha256_file
+from msmem_grasp.learn.datagen import GraspDataConfig, generate_dataset
+from msmem_grasp.learn.evaluation import evaluate
+from msmem_grasp.learn.training import sha256_file
 from msmem_grasp.weights import SHIPPED_WEIGHTS, WeightsError, load_fe_vmf, predict_cloud, read_sidecar
 
 if not SHIPPED_WEIGHTS.exists():  # training is running: the weights land with their model card
@@ -94,7 +94,7 @@ def test_an_empty_cloud_gives_an_empty_prediction():
 
 
 def test_held_out_clouds_get_confident_grasp_points(heldout):
-    from msmem_grasp.datagen import load_shard, shard_path
+    from msmem_grasp.learn.datagen import load_shard, shard_path
 
     s = load_shard(shard_path(heldout, HELDOUT_SEEDS[0]))
     cloud = SurfaceCloud(s.points, s.normals, s.occupancy, np.zeros(len(s), np.int64), np.zeros(len(s), np.int64))

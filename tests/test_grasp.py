@@ -311,7 +311,7 @@ def test_with_fe_vmf_weights_the_skill_fuses_the_network_outputs(tmp_path) -> No
     import json
 
     from msmem_grasp.fevmf import FEVMF
-    from msmem_grasp.training import WEIGHTS_FORMAT, default_model_config, sha256_file, sidecar_path
+    from msmem_grasp.learn.training import WEIGHTS_FORMAT, default_model_config, sha256_file, sidecar_path
     from msmem_grasp.weights import WeightsError
 
     torch.manual_seed(0)
@@ -594,7 +594,7 @@ def test_a_grasp_only_episode_executes_a_grasp(tmp_path) -> None:  # type: ignor
 @pytest.mark.slow
 def test_bench_grasp_success_rate() -> None:
     """Top-1 fused grasps over 10 generated scenes x 2 trials; run with -m slow -s to see the number."""
-    from msmem_grasp.bench import GraspBenchConfig, bench_grasp
+    from msmem_grasp.learn.bench import GraspBenchConfig, bench_grasp
 
     s = bench_grasp(GraspBenchConfig(), progress=False)["summary"]
     print(f"\nbench-grasp: {s['successes']}/{s['executed']} succeeded ({s['success_rate']:.2f}), "

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig
-from msmem_grasp.losses import (
+from msmem_grasp.learn.losses import (
     GraspTargets,
     LossConfig,
     assign_targets,

@@ -422,7 +422,7 @@ def test_push_only_episode_executes_a_push_and_records_it(tmp_path: Path, monkey
 
 
 def test_perf_push_times_the_named_effect_model_and_matches_the_reference() -> None:
-    from msmem_core.perf.push import perf_push
+    from msmem_push.perf import perf_push
 
     lines: list[str] = []
     res = perf_push(repeats=1, samples=6, reference=True, report=lines.append, effect_model="push-analytic")

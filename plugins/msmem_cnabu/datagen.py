@@ -2,8 +2,9 @@
 
 Per scene seed (every random choice from ``np.random.default_rng([seed, kind])``, the scene and the
 simulator's segmentation noise from the seed): generate a shelf scene (``msmem_core.world.scenegen``),
-reset PyBullet, observe the episode's start view and ``min_views``-``max_views`` random views into an
-analytic belief (``msmem_analytic``), then by kind:
+reset the simulator (``simulator``, ``--sim``: any backend, built by the plugin manager), observe the
+episode's start view and ``min_views``-``max_views`` random views into an analytic belief
+(``msmem_analytic``), then by kind:
 
 - ``observe``: ``observe_samples`` times: a random unvisited view is rendered; its ray masks
   (free / occupied / class seen, ``AnalyticObservationModel.masks``) are the action; the belief
@@ -55,6 +56,7 @@ from msmem_core.interfaces import Workspace
 from msmem_core.learn import datagen
 from msmem_core.learn.datagen import DatagenSummary, ShardTask, read_manifest, read_npz, save_npz, shard_path
 from msmem_core.msas import execute_measured
+from msmem_core.plugins import ComponentRef
 from msmem_core.world.grid import GridSpec
 
 SHARD_VERSION = 1
@@ -86,6 +88,9 @@ class CNABUDataConfig(BaseModel):
     """push/grasp: views integrated after the real action between two states (uniform, inclusive)."""
     label_noise: float = Field(0.05, ge=0.0, le=1.0)
     """The simulator's structured segmentation noise (its default)."""
+    simulator: ComponentRef = ComponentRef(name="pybullet")
+    """The backend the scenes are simulated in (``--sim``); its ``seed`` is the scene seed and its
+    ``label_noise`` the one above, unless ``params`` set them."""
 
     @model_validator(mode="after")
     def _views(self) -> CNABUDataConfig:
@@ -312,9 +317,9 @@ def _ground_truth(sim: Any, scene: Any, grid: GridSpec) -> tuple[NDArray[np.bool
 def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
     """Simulate one scene and record its samples (see the module docstring)."""
     from msmem_analytic.observation import AnalyticObservationModel
-    from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
 
     from msmem_core.map.belief import EvidentialMap
+    from msmem_core.sim.build import build_simulator
     from msmem_core.world.scenegen import SceneGenConfig, generate_scene
     from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 
@@ -327,7 +332,7 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
     vp_cfg = ViewpointConfig()
     viewpoints = generate_viewpoints(vp_cfg, scene.shelf)
     model = AnalyticObservationModel()
-    sim = PyBulletSimulator(PyBulletConfig(seed=seed, label_noise=cfg.label_noise))
+    sim = build_simulator(cfg.simulator, seed=seed, label_noise=cfg.label_noise)
     rec = _Recorder()
     visited: list[int] = []
     t_sim = 0.0
@@ -446,11 +451,15 @@ def generate_dataset(
     log: Callable[[str], None] = print,
 ) -> DatagenSummary:
     """Make the shards of ``seeds`` in ``out_dir`` that are missing (or corrupt), in parallel."""
+    from msmem_core.sim.build import check_simulator
+
     out = Path(out_dir)
     old = read_manifest(out)
     if old is not None and old.get("config", {}).get("kind") not in (None, config.kind):
         raise UserError(f"{out} already holds {old['config']['kind']!r} data (see {out / datagen.MANIFEST}); "
                         f"use another --out for {config.kind!r}")
+    datagen.check_same_simulator(out, old, config.simulator)
+    check_simulator(config.simulator, label_noise=config.label_noise)  # a bad --sim fails before any worker
 
     def check(path: Path) -> None:
         if load_shard(path).kind != config.kind:

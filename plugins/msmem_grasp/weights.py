@@ -17,8 +17,10 @@ from msmem_core.errors import UserError
 from msmem_core.util import artifacts
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction
 from msmem_grasp.fpp import SurfaceCloud
-from msmem_grasp.training import WEIGHTS_FORMAT
 
+WEIGHTS_FORMAT = "msmem-fe-vmf"
+"""The ``format`` of an FE-vMF weights sidecar (``msmem_grasp.learn.training`` writes it)."""
+WEIGHTS_VERSION = 1
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "fe_vmf.pt"
 
 

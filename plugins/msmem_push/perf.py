@@ -1,4 +1,4 @@
-"""``msmem perf push``: time the push skill's per-step work on a mid-episode belief.
+"""``msmem perf push`` (registered by this plugin): time the push skill's per-step work on a mid-episode belief.
 
 Stages: sampling (UPS, ``push`` skill), prediction (the push skill's default effect model, or the one
 named by ``effect_model``), and scoring
@@ -11,8 +11,8 @@ between the exact incremental values and the reference.
 The belief: a generated hard scene (``msmem_core.world.scenegen``), voxelised with the shelf boards, seen
 from ``views`` candidate viewpoints by a synthetic depth camera over the voxels
 (``msmem_core.perf.ig.render_voxels``) and integrated with the analytic evidence rule: free space,
-seen surfaces and hidden regions as mid-episode. Components come from the plugin manager (core
-code never imports plugin packages).
+seen surfaces and hidden regions as mid-episode. Components come from the plugin manager, so the
+effect model timed can be any registered one (``--effect-model``).
 """
 
 from __future__ import annotations
