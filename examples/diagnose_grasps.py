@@ -3,11 +3,13 @@
     .venv/bin/python examples/diagnose_grasps.py METHOD SCENE.json STEPS [CONFIG.yaml]
     .venv/bin/python examples/diagnose_grasps.py no-cdc msmem_core/suites/tune10/scene_00.json 11
 
-Before each grasp the episode executes, prints the planned grasp (E[q], 2/S, contact, approach a,
-closing axis b), which ground-truth object lies between the contacts, how many voxels of each
+A tracer on the episode (``msmem_core.util.trace``): before each grasp the episode executes (the
+``execute`` span of a grasp skill begins), it prints the planned grasp (E[q], 2/S, contact, approach
+a, closing axis b), which ground-truth object lies between the contacts, how many voxels of each
 object the open gripper covers at the grasp and along the approach, then replays approach, grasp
-and close from a simulator snapshot and prints which objects moved in each phase, restores the
-snapshot and lets the skill execute the grasp as usual. Ground truth is only read for printing.
+and close from a simulator snapshot, prints which objects moved in each phase and restores the
+snapshot; MSAS then executes the grasp as usual, and when the span ends the outcome is printed.
+Ground truth is only read for printing.
 """
 
 import json
@@ -19,21 +21,34 @@ from msmem_grasp.planning import gripper_points, path_offsets, swept_indices
 from msmem_grasp.skill import GraspAction, GraspSkill
 
 from msmem_core.config import load_config
-from msmem_core.world.groundtruth import voxelize_instances
 from msmem_core.plugins.manager import get_plugin_manager
-from msmem_core.run.runner import build_episode, run_episode
+from msmem_core.run.runner import Episode, build_episode, run_episode
+from msmem_core.util.trace import Span, Tracer
+from msmem_core.world.voxelize import voxelize_instances
 
 
-def main(method: str, scene: str, steps: int, config: str | None = None) -> None:
-    cfg = load_config(method=method, config_file=config, overrides={"scene": {"file": scene}, "steps": steps})
-    ep = build_episode(cfg, get_plugin_manager())
-    execute = GraspSkill.execute
+class GraspDiagnosis(Tracer):
+    def __init__(self, ep: Episode) -> None:
+        self.ep = ep
 
-    def diagnosed(self: GraspSkill, sim: Any, action: GraspAction, ctx: Any) -> Any:
-        grid = ctx.belief.grid
+    @staticmethod
+    def _grasp(span: Span) -> tuple[GraspSkill, GraspAction] | None:
+        if span.stage != "execute":
+            return None
+        decision = span.info["decision"]
+        skill, action = decision.skill.skill, decision.action
+        return (skill, action) if isinstance(skill, GraspSkill) and isinstance(action, GraspAction) else None
+
+    def begin(self, span: Span) -> None:
+        grasp = self._grasp(span)
+        if grasp is None:
+            return
+        skill, action = grasp
+        sim, ctx = span.info["sim"], span.info["ctx"]
+        grid = ctx.grid
         s = grid.voxel_m
         poses = sim.object_poses()
-        inst = voxelize_instances([o for o in ep.scene.objects if o.id in poses], grid, poses=poses).ravel()
+        inst = voxelize_instances([o for o in self.ep.scene.objects if o.id in poses], grid, poses=poses).ravel()
         m = action.matrix
         b, c = m[:3, 0], np.array(action.contact_m)
 
@@ -45,7 +60,7 @@ def main(method: str, scene: str, steps: int, config: str | None = None) -> None
             return int(inst[(i * grid.shape[1] + j) * grid.shape[2] + k])
 
         def covered(path: np.ndarray) -> dict[int, int]:
-            body = gripper_points(action.gripper, action.opening_m, s / 2)
+            body = gripper_points(ctx.gripper, action.opening_m, s / 2)
             voxels = swept_indices(grid, m[:3, :3], body, path_offsets(path, s / 2))
             ids, n = np.unique(inst[voxels], return_counts=True)
             return dict(zip(ids.tolist(), n.tolist(), strict=True))
@@ -69,20 +84,26 @@ def main(method: str, scene: str, steps: int, config: str | None = None) -> None
                   f"gripper at {sim.gripper_pose()[:3, 3].round(3).tolist()}")
 
         for k, wp in enumerate(action.approach_m):
-            sim.move_gripper([action.at(wp)], opening_m=action.opening_m, speed_mps=self.config.travel_speed_mps)
+            sim.move_gripper([action.at(wp)], opening_m=action.opening_m, speed_mps=skill.config.travel_speed_mps)
             phase(f"approach {k}")
-        sim.move_gripper([m], opening_m=action.opening_m, speed_mps=self.config.approach_speed_mps)
+        sim.move_gripper([m], opening_m=action.opening_m, speed_mps=skill.config.approach_speed_mps)
         phase("at the grasp")
         closed = sim.set_gripper(0.0)
         phase(f"closed to {closed:.4f} m")
         sim.restore(token)
-        out = execute(self, sim, action, ctx)
-        info = {k: out.info.get(k) for k in ("held", "touching_after_close", "closed_opening_m", "moved")}
-        print("  ->", "success" if out.success else "FAIL", info, flush=True)
-        return out
 
-    GraspSkill.execute = diagnosed  # type: ignore[method-assign]
-    final = run_episode(ep, None)
+    def end(self, span: Span) -> None:
+        if self._grasp(span) is None or span.result is None:
+            return
+        out: Any = span.result
+        info = {k: out.info.get(k) for k in ("held", "touching_after_close", "closed_opening_m", "moved")}
+        print("  ->", "success" if out.success else "FAIL", info, "fell or left:", out.fell_or_left, flush=True)
+
+
+def main(method: str, scene: str, steps: int, config: str | None = None) -> None:
+    cfg = load_config(method=method, config_file=config, overrides={"scene": {"file": scene}, "steps": steps})
+    ep = build_episode(cfg, get_plugin_manager())
+    final = run_episode(ep, None, tracer=GraspDiagnosis(ep))
     print({k: round(v, 3) for k, v in final.items() if isinstance(v, float)}, final["actions"])
 
 

@@ -3,26 +3,28 @@
     .venv/bin/python examples/diagnose_pushes.py METHOD SCENE.json STEPS [CONFIG.yaml]
     .venv/bin/python examples/diagnose_pushes.py push-only msmem_core/suites/tune10/scene_00.json 40
 
-After each executed push: the observable-voxel confusion (TP / FP / FN, the counts behind
-``observable_iou``) of the belief before the push and of the effect model's prediction, both
-against the ground truth *after* the push. At the end, the same for the final belief, and where its
-false positives are: how many never received free-space evidence (beta = 1: no ray of any view
-passed through them since they became occupied) and how far they lie from the nearest really
-occupied voxel. Ground truth is only read for printing; the episode runs as ``msmem run`` runs it.
+A tracer on the episode (``msmem_core.util.trace``): when the ``execute`` span of a push ends, the
+observable-voxel confusion (TP / FP / FN, the counts behind ``observable_iou``) of the belief before
+the push and of the effect model's prediction for it (the one MSAS scored), both against the ground
+truth *after* the push. At the end, the same for the final belief, and where its false positives
+are: how many never received free-space evidence (beta = 1: no ray of any view passed through them
+since they became occupied) and how far they lie from the nearest really occupied voxel. Ground
+truth is only read for printing; the episode runs as ``msmem run`` runs it.
 """
 
 import sys
 from pathlib import Path
 from typing import Any
 
-from msmem_push.skill import PushSkill
+from msmem_push.skill import PushAction
 from scipy import ndimage
 
-from msmem_core.map.belief import EvidentialMap
 from msmem_core.config import load_config
-from msmem_core.run.metrics import prediction_from_belief
+from msmem_core.map.belief import EvidentialMap
 from msmem_core.plugins.manager import get_plugin_manager
-from msmem_core.run.runner import MetricTracker, build_episode, run_episode
+from msmem_core.run.metrics import prediction_from_belief
+from msmem_core.run.runner import Episode, MetricTracker, build_episode, run_episode
+from msmem_core.util.trace import Span, Tracer
 
 
 def confusion(tracker: MetricTracker, belief: EvidentialMap) -> dict[str, Any]:
@@ -37,28 +39,30 @@ def line(label: str, c: dict[str, Any]) -> str:
     return f"  {label:<22} observable IoU {c['iou']:.3f}  TP {c['tp']:6d}  FP {c['fp']:6d}  FN {c['fn']:6d}"
 
 
+class PushDiagnosis(Tracer):
+    def __init__(self, ep: Episode) -> None:
+        self.ep = ep
+        self.tracker: MetricTracker | None = None
+
+    def end(self, span: Span) -> None:
+        if span.stage != "execute" or span.error is not None:
+            return
+        d, ctx = span.info["decision"], span.info["ctx"]
+        if not isinstance(d.action, PushAction) or d.batch.prediction is None:
+            return
+        tracker = self.tracker = self.tracker or MetricTracker(self.ep)
+        tracker(ctx.belief)  # ground truth after the push
+        predicted = d.batch.prediction.belief(d.index)
+        print(f"step {ctx.step}: push of {d.action.length_m:.3f} m", flush=True)
+        print(line("before (no change)", confusion(tracker, ctx.belief)))
+        print(line("prediction", confusion(tracker, predicted)), flush=True)
+
+
 def main(method: str, scene: str, steps: int, config: str | None = None) -> None:
     cfg = load_config(method=method, config_file=config, overrides={"scene": {"file": scene}, "steps": steps})
     ep = build_episode(cfg, get_plugin_manager())
-    bound = {b.name: b for b in ep.skills}
-    execute = PushSkill.execute
-    state: dict[str, MetricTracker] = {}
-
-    def diagnosed(self: PushSkill, sim: Any, action: Any, ctx: Any) -> Any:
-        tracker = state.setdefault("t", MetricTracker(ep))
-        out = execute(self, sim, action, ctx)
-        tracker(ctx.belief)  # ground truth after the push
-        effect = bound["push"].effect_model
-        assert effect is not None
-        predicted = effect.predict(ctx.belief, [action]).beliefs[0]
-        print(f"step {ctx.step}: push of {action.length_m:.3f} m", flush=True)
-        print(line("before (no change)", confusion(tracker, ctx.belief)))
-        print(line("prediction", confusion(tracker, predicted)), flush=True)
-        return out
-
-    PushSkill.execute = diagnosed  # type: ignore[method-assign]
     out_dir = Path("runs") / f"diagnose-pushes-{method}-{Path(scene).stem}"
-    final = run_episode(ep, out_dir)
+    final = run_episode(ep, out_dir, tracer=PushDiagnosis(ep))
     tracker = MetricTracker(ep)  # ground truth of the final scene
     belief = EvidentialMap.load(out_dir / "belief_final.npz")
     c = confusion(tracker, belief)

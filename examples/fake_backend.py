@@ -11,9 +11,9 @@ from collections.abc import Iterable
 
 from pydantic import BaseModel, ConfigDict
 
-from msmem_core.world.camera import CameraConfig
 from msmem_core.plugins import SimulatorSpec, hookimpl
 from msmem_core.testing import FakeSimulator
+from msmem_core.world.camera import CameraConfig
 
 
 class FakeConfig(BaseModel):

@@ -14,12 +14,12 @@ from typing import Annotated, Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from msmem_core.world.camera import CameraConfig
 from msmem_core.errors import UserError
-from msmem_core.world.grid import GridSpec
-from msmem_core.world.gripper import GripperSpec
 from msmem_core.map.ig import IGConfig
 from msmem_core.plugins.manager import ComponentRef
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scenegen import SceneGenConfig
 from msmem_core.world.viewpoints import ViewpointConfig
 
@@ -59,6 +59,10 @@ class SkillRef(ComponentRef):
     effect_model: ComponentRef | None = None
 
 
+FALL_TILT_DEG = 30.0
+"""An object whose up axis a manipulation tilted more than this has fallen over."""
+
+
 class MSASConfig(_Strict):
     tau_chi: float = Field(0.5, gt=0.0, le=1.0)
     """Semantic vacuity below which a voxel's class counts as known (paper: tau_chi)."""
@@ -78,6 +82,9 @@ class MSASConfig(_Strict):
     is, the paper's rule (the push-only preset sets 4, measured in docs/results.md)."""
     disturbed_margin_voxels: int = Field(2, ge=0, le=10)
     """Dilation (voxels) of the changed mask for ``disturbed_evidence_cap``."""
+    fall_tilt_deg: float = Field(FALL_TILT_DEG, gt=0.0, lt=90.0)
+    """An object whose up axis a manipulation tilted more than this has fallen over; once an object
+    fell or left the shelf, manipulation stops for the episode ([MEM])."""
 
     @model_validator(mode="after")
     def _window(self) -> MSASConfig:

@@ -1,4 +1,6 @@
-"""The interfaces plugins implement: Simulator, Skill, BeliefModel (two roles) and objective Term.
+"""The interfaces plugins implement: Simulator, Skill, BeliefModel (two roles) and objective Term,
+and what they are given: the ``Workspace`` (grid, shelf, gripper) and, at each MSAS step, the
+``DecisionContext``.
 
 Core code depends only on these; it never imports a simulator library or a plugin package.
 """
@@ -8,17 +10,21 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
 from msmem_core.world.camera import Observation
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.scene import ShelfSpec
 
 if TYPE_CHECKING:
-    from msmem_core.map.belief import EvidentialMap
-    from msmem_core.world.grid import GridSpec
+    from msmem_core.map.ig import IGField, IGService
     from msmem_core.world.scene import SceneSpec
 
 Category = Literal["perception", "manipulation"]
@@ -28,9 +34,27 @@ SHELF_ID = -2
 """Id that ``Simulator.contacts`` uses for the shelf."""
 
 
+# ------------------------------------------------------------------------------------------- workspace
+@dataclass(frozen=True)
+class Workspace:
+    """The physical setting actions are planned, predicted and executed in: the belief's voxel grid,
+    the shelf and the run's gripper. Fixed over an episode. Actions do not carry it: effect models
+    and ``Action.swept_volume`` receive it."""
+
+    grid: GridSpec
+    shelf: ShelfSpec
+    gripper: GripperSpec = field(default_factory=GripperSpec)
+
+    @property
+    def interior_box(self) -> tuple[float, float, float, float, float, float]:
+        """The shelf interior as (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi)."""
+        return self.shelf.interior_box
+
+
 # --------------------------------------------------------------------------------------------- actions
 class Action(BaseModel):
-    """A candidate action. JSON-serialisable; skills subclass it with their own parameters."""
+    """A candidate action. JSON-serialisable; skills subclass it with their own parameters (what the
+    skill decided, never the workspace: that comes with the context)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -40,24 +64,41 @@ class Action(BaseModel):
     target_object: int | None = None
     """Object the action manipulates, as believed by the skill (never read from ground truth)."""
 
-    def swept_volume(self, grid: GridSpec) -> NDArray[np.bool_]:
-        """Voxels the gripper passes through; empty for perception actions."""
-        return np.zeros(grid.shape, dtype=bool)
+    def swept_volume(self, workspace: Workspace) -> NDArray[np.bool_]:
+        """Voxels of ``workspace.grid`` the gripper passes through; empty for perception actions."""
+        return np.zeros(workspace.grid.shape, dtype=bool)
+
+
+class PerceptionAction(Action):
+    """An action that observes from one of the run's viewpoints, named by its index: MSAS scores it by
+    that view's information gain and counts the view as visited once it is executed. Every action
+    of a perception skill must be one."""
+
+    category: Literal["perception"] = "perception"
+    view: int = Field(ge=0)
+    """Index into the run's viewpoints (``DecisionContext.viewpoints``)."""
 
 
 @dataclass
 class Outcome:
-    """What executing an action did."""
+    """What executing an action did.
+
+    A skill reports ``success``, a perception action's ``observation``, the objects it took out of
+    the workspace (``removed``) and its own details (``info``). The displacement of the objects and
+    which fell or left are measured by MSAS around every manipulation (``msas.execute_measured``),
+    the same way for every skill; a skill leaves them empty.
+    """
 
     success: bool = True
     observation: Observation | None = None
     """A perception action's frame, integrated by the observation model."""
     displacement_m: dict[int, float] = field(default_factory=dict)
-    """XY displacement of every object caused by the action."""
+    """XY displacement of every object still in the workspace, caused by the action (set by MSAS)."""
     fell_or_left: list[int] = field(default_factory=list)
-    """Objects that fell over or left the shelf (manipulation stops for the episode)."""
+    """Objects that fell over, vanished or left the shelf (set by MSAS; manipulation stops for the episode)."""
     removed: list[int] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+    """The skill's own details; for a manipulation MSAS adds ``moved``: objects displaced > 5 mm."""
 
 
 # ------------------------------------------------------------------------------------------- simulator
@@ -151,15 +192,59 @@ class Simulator(ABC):
 # ---------------------------------------------------------------------------------------- belief model
 @dataclass
 class Prediction:
-    """Predicted beliefs after K candidate actions and the voxels each changes."""
+    """Predicted beliefs after K candidate actions, in one sparse form: per candidate, the voxels whose
+    evidence the action changes and their new evidence (a ``BeliefDelta``: flat indices, sorted and
+    unique, with the new alpha, beta and eta there). Every voxel a change does not list keeps the
+    evidence of ``base``, the belief the prediction was made from. Objective terms score the changes
+    (only changed voxels can differ); the loop applies the chosen one.
+    """
 
-    beliefs: Sequence[EvidentialMap]
-    """One belief per action (a list, or a lazy ``DeltaBeliefs`` of sparse changes)."""
-    changed: NDArray[np.bool_]
-    """[K, X, Y, Z] voxels whose evidence differs from the prior belief."""
-    excluded: NDArray[np.bool_] | None = None
-    """[K, X, Y, Z] voxels a disturbance term (CDC) ignores: a grasp's intended removal (the grasped
-    object's region); None: none."""
+    base: EvidentialMap
+    changes: list[BeliefDelta]
+    """One change per candidate, listing only voxels whose evidence differs from ``base``
+    (``BeliefDelta.against`` drops the others)."""
+    excluded: list[NDArray[np.int64]] | None = None
+    """Per candidate, flat voxel indices a disturbance term (CDC) ignores: a grasp's intended removal
+    (the grasped object's region); None: none."""
+
+    @classmethod
+    def from_beliefs(cls, base: EvidentialMap, beliefs: Sequence[EvidentialMap],
+                     excluded: list[NDArray[np.int64]] | None = None) -> Prediction:
+        """The sparse form of K full predicted maps (for effect models that predict whole maps)."""
+        c = base.num_classes
+        a0, b0, e0 = base.alpha.reshape(-1), base.beta.reshape(-1), base.eta.reshape(c, -1)
+        changes = []
+        for b in beliefs:
+            a, bb, e = b.alpha.reshape(-1), b.beta.reshape(-1), b.eta.reshape(c, -1)
+            idx = np.flatnonzero((a != a0) | (bb != b0) | np.any(e != e0, axis=0))
+            changes.append(BeliefDelta(idx, a[idx].copy(), bb[idx].copy(), e[:, idx].copy()))
+        return cls(base, changes, excluded)
+
+    def __len__(self) -> int:
+        return len(self.changes)
+
+    def belief(self, k: int) -> EvidentialMap:
+        """Candidate ``k``'s predicted belief as a full map."""
+        return self.changes[k].apply(self.base)
+
+    @property
+    def beliefs(self) -> DeltaBeliefs:
+        """All K predicted beliefs as full maps, each built when it is accessed."""
+        return DeltaBeliefs(self.base, self.changes)
+
+    @cached_property
+    def changed(self) -> NDArray[np.bool_]:
+        """[K, X, Y, Z] masks of the changed voxels (a dense view of ``changes``, for inspection)."""
+        out = np.zeros((len(self.changes), self.base.grid.size), dtype=bool)
+        for k, d in enumerate(self.changes):
+            out[k, d.idx] = True
+        return out.reshape(len(self.changes), *self.base.grid.shape)
+
+    def excluded_among(self, k: int) -> NDArray[np.bool_] | None:
+        """Which of candidate ``k``'s changed voxels (``changes[k].idx``) are excluded; None: none are."""
+        if self.excluded is None:
+            return None
+        return np.isin(self.changes[k].idx, self.excluded[k])
 
 
 class BeliefModel(ABC):  # noqa: B024 - a plugin implements one or both roles, so neither is abstract
@@ -183,7 +268,50 @@ class EffectModel(BeliefModel):
     roles: ClassVar[frozenset[str]] = frozenset({"effect"})
 
     @abstractmethod
-    def predict(self, belief: EvidentialMap, actions: Sequence[Action]) -> Prediction: ...
+    def predict(self, belief: EvidentialMap, actions: Sequence[Action], workspace: Workspace) -> Prediction:
+        """The belief after each action, predicted from ``belief`` (the returned ``base``) in
+        ``workspace`` (the grid, the shelf interior, the gripper the actions are executed with)."""
+
+
+# -------------------------------------------------------------------------------------- decision context
+@dataclass
+class DecisionContext:
+    """What skills, effect models and objective terms see at one MSAS step. ``field`` (the IG view of
+    the belief) is computed once, on first use."""
+
+    step: int
+    belief: EvidentialMap
+    ig: IGService
+    viewpoints: NDArray[np.float64]
+    """Camera-to-world poses of the run's viewpoints, [V, 4, 4]; a ``PerceptionAction.view`` indexes them."""
+    visited: set[int]
+    """Views taken since the last manipulation (at the first step: the start view)."""
+    workspace: Workspace
+    rng: np.random.Generator
+    """The episode's seeded generator: every random choice of a skill or term draws from it."""
+    manipulation_allowed: bool
+    tau_chi: float
+    last_manipulation: int = -1
+    """Step of the episode's last executed manipulation (-1: none yet); ``visited`` holds only the
+    views taken since then, and the belief outside them may be an effect model's prediction."""
+    cache: dict[Any, Any] = field(default_factory=dict)
+    """Per-step scratch space terms share (e.g. the IG sweep of every view)."""
+
+    @property
+    def grid(self) -> GridSpec:
+        return self.workspace.grid
+
+    @property
+    def shelf(self) -> ShelfSpec:
+        return self.workspace.shelf
+
+    @property
+    def gripper(self) -> GripperSpec:
+        return self.workspace.gripper
+
+    @cached_property
+    def field(self) -> IGField:
+        return self.ig.prepare(self.belief)
 
 
 # ----------------------------------------------------------------------------------------------- skill
@@ -193,13 +321,15 @@ class Skill(ABC):
     category: ClassVar[Category] = "perception"
 
     @abstractmethod
-    def propose(self, ctx: Any) -> list[Action]:
-        """Candidates for this step (``ctx`` is ``msmem_core.msas.DecisionContext``)."""
+    def propose(self, ctx: DecisionContext) -> list[Action]:
+        """Candidates for this step, from the belief only (a perception skill's are ``PerceptionAction``)."""
 
     @abstractmethod
-    def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome: ...
+    def execute(self, sim: Simulator, action: Action, ctx: DecisionContext) -> Outcome:
+        """Carry out one of this skill's actions with the Simulator vocabulary (see ``Outcome`` for
+        what MSAS measures itself)."""
 
-    def track(self, ctx: Any) -> None:  # noqa: B027 - optional hook
+    def track(self, ctx: DecisionContext) -> None:  # noqa: B027 - optional hook
         """Called once per step before any proposal, also when this skill may not act: skills that
         accumulate evidence over the episode (the grasp skill's FE-UMGF buffer) update it here."""
 
@@ -224,9 +354,10 @@ class Term(ABC):
     applies_to: ClassVar[frozenset[Category]] = frozenset({"perception", "manipulation"})
 
     @abstractmethod
-    def score(self, ctx: Any, batch: CandidateBatch) -> NDArray[np.float64]: ...
+    def score(self, ctx: DecisionContext, batch: CandidateBatch) -> NDArray[np.float64]: ...
 
-    def refine(self, ctx: Any, batch: CandidateBatch, indices: NDArray[np.int64]) -> NDArray[np.float64] | None:
+    def refine(self, ctx: DecisionContext, batch: CandidateBatch,
+               indices: NDArray[np.int64]) -> NDArray[np.float64] | None:
         """Exact values for ``indices`` when ``score`` approximated them (e.g. screened at a coarser
         ray density), else None. MSAS refines a skill's best candidate until its winner is exact."""
         return None

@@ -1,49 +1,47 @@
-"""Multi-Skill Action Selection (MSAS): score every skill's candidates with one objective, act, repeat."""
+"""Multi-Skill Action Selection (MSAS): score every skill's candidates with one objective, act, repeat.
+
+The episode's rules live here: the start view, which views count as visited, when manipulation is
+allowed, what the belief becomes after an action, and the outcome bookkeeping every manipulation gets
+(displacement, objects that fell over or left the shelf). Every stage of a step is a span
+(``msmem_core.util.trace``) that a tracer given to ``run_msas`` or ``decide`` observes.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, field
-from functools import cached_property
-from typing import TYPE_CHECKING, Any
+import math
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
-from msmem_core.interfaces import Action, CandidateBatch, EffectModel, ObservationModel, Outcome, Simulator, Skill, Term
+from msmem_core.config import FALL_TILT_DEG
+from msmem_core.errors import PluginError
+from msmem_core.interfaces import (
+    Action,
+    CandidateBatch,
+    DecisionContext,
+    EffectModel,
+    ObservationModel,
+    Outcome,
+    PerceptionAction,
+    Simulator,
+    Skill,
+    Term,
+    Workspace,
+)
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.util.trace import Tracer, span, tracing
 
 if TYPE_CHECKING:
-    from msmem_core.map.belief import EvidentialMap
     from msmem_core.config import MSASConfig
-    from msmem_core.world.grid import GridSpec
-    from msmem_core.world.gripper import GripperSpec
-    from msmem_core.map.ig import IGField, IGService
+    from msmem_core.map.belief import EvidentialMap
+    from msmem_core.map.ig import IGService
     from msmem_core.world.scene import ShelfSpec
 
-
-@dataclass
-class DecisionContext:
-    """What skills and terms see at one step. ``field`` (the IG view of the belief) is computed once."""
-
-    step: int
-    belief: EvidentialMap
-    ig: IGService
-    viewpoints: NDArray[np.float64]
-    visited: set[int]
-    grid: GridSpec
-    shelf: ShelfSpec
-    gripper: GripperSpec
-    rng: np.random.Generator
-    manipulation_allowed: bool
-    tau_chi: float
-    cache: dict[str, Any] = field(default_factory=dict)
-    last_manipulation: int = -1
-    """Step of the episode's last executed manipulation (-1: none yet); ``visited`` holds only the
-    views taken since then, and the belief outside them may be an effect model's prediction."""
-
-    @cached_property
-    def field(self) -> IGField:
-        return self.ig.prepare(self.belief)
+MOVED_M = 0.005
+"""An object displaced more than this by a manipulation is listed in its outcome's ``info["moved"]``."""
 
 
 @dataclass
@@ -55,12 +53,28 @@ class BoundSkill:
     effect_model: EffectModel | None = None
 
     def batch(self, ctx: DecisionContext, actions: list[Action]) -> CandidateBatch:
+        """The candidates with what terms score: view indices, or the effect model's prediction
+        (span ``predict``, info ``ctx`` and ``actions``; result: the ``Prediction``)."""
         if self.skill.category == "perception":
-            views = np.array([getattr(a, "view", -1) for a in actions], dtype=np.int64)
-            return CandidateBatch(self.name, "perception", actions, view_indices=views)
+            views = []
+            for a in actions:
+                if not isinstance(a, PerceptionAction):
+                    raise PluginError(
+                        f"perception skill {self.name!r} proposed a {type(a).__name__} ({a.kind!r}) without a view "
+                        "index: a perception skill's actions must be msmem_core.interfaces.PerceptionAction, which "
+                        "names the viewpoint it observes from (`view`)")
+                views.append(a.view)
+            return CandidateBatch(self.name, "perception", actions, view_indices=np.array(views, dtype=np.int64))
         if self.effect_model is None:
             raise RuntimeError(f"manipulation skill {self.name!r} has no effect model")
-        prediction = self.effect_model.predict(ctx.belief, actions)
+        with span("predict", self.name, ctx=ctx, actions=actions) as s:
+            prediction = self.effect_model.predict(ctx.belief, actions, ctx.workspace)
+            if s:
+                s.result = prediction
+        if prediction.base is not ctx.belief or len(prediction) != len(actions):
+            raise PluginError(f"the effect model of skill {self.name!r} ({type(self.effect_model).__name__}) must "
+                              f"return one change per action ({len(prediction)} for {len(actions)}) relative to the "
+                              "belief it was given (Prediction.base)")
         return CandidateBatch(self.name, "manipulation", actions, prediction=prediction)
 
 
@@ -72,11 +86,15 @@ class Objective:
 
     def score(self, ctx: DecisionContext,
               batch: CandidateBatch) -> tuple[NDArray[np.float64], dict[str, NDArray[np.float64]]]:
+        """Every applicable term's values (span ``term`` each, info ``term`` and ``batch``) and their weighted sum."""
         total = np.zeros(len(batch.actions))
         parts: dict[str, NDArray[np.float64]] = {}
         for name, weight, term in self.terms:
             if batch.category in term.applies_to:
-                parts[name] = np.asarray(term.score(ctx, batch), dtype=np.float64)
+                with span("term", batch.skill, term=name, batch=batch) as s:
+                    parts[name] = np.asarray(term.score(ctx, batch), dtype=np.float64)
+                    if s:
+                        s.result = parts[name]
                 total += weight * parts[name]
         return total, parts
 
@@ -84,8 +102,9 @@ class Objective:
         """Argmax of the objective over a batch with the winner scored exactly.
 
         Terms may approximate (screen) in ``score``; the current argmax is refined through
-        ``Term.refine`` until it is a candidate every term scored exactly, so the value compared
-        across skills is always exact. Returns (index, value, term values, refinements made).
+        ``Term.refine`` (span ``refine``, info ``term``, ``batch`` and ``indices``) until it is a
+        candidate every term scored exactly, so the value compared across skills is always exact.
+        Returns (index, value, term values, refinements made).
         """
         total, parts = self.score(ctx, batch)
         refined = 0
@@ -95,7 +114,10 @@ class Objective:
             for name, weight, term in self.terms:
                 if name not in parts:
                     continue
-                exact = term.refine(ctx, batch, np.array([i]))
+                with span("refine", batch.skill, term=name, batch=batch, indices=[i]) as s:
+                    exact = term.refine(ctx, batch, np.array([i]))
+                    if s:
+                        s.result = exact
                 if exact is not None:
                     total[i] += weight * (float(exact[0]) - parts[name][i])
                     parts[name][i] = float(exact[0])
@@ -107,7 +129,8 @@ class Objective:
 
 @dataclass
 class Decision:
-    skill: str
+    skill: BoundSkill
+    """The skill whose action won (``skill.name`` is its name in config)."""
     action: Action
     value: float
     terms: dict[str, float]
@@ -119,28 +142,46 @@ class Decision:
     index: int
 
 
-def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective) -> Decision:
-    """Best action over all skills by the objective (ties go to the skill listed first)."""
-    best: Decision | None = None
-    counts: dict[str, int] = {}
-    values: dict[str, float] = {}
-    for bound in skills:
-        bound.skill.track(ctx)  # every step, also when the skill may not act (e.g. FE-UMGF's grasp buffer)
-        if bound.skill.category == "manipulation" and not ctx.manipulation_allowed:
-            continue
-        actions = bound.skill.propose(ctx)
-        counts[bound.name] = len(actions)
-        if not actions:
-            continue
-        batch = bound.batch(ctx, actions)
-        i, value, terms, _ = objective.best(ctx, batch)
-        values[bound.name] = value
-        if best is None or value > best.value:
-            best = Decision(bound.name, actions[i], value, terms, counts, values, batch, i)
-    if best is None:
-        raise RuntimeError("no skill proposed an action")
-    best.candidates, best.best = counts, values
-    return best
+def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
+           tracer: Tracer | None = None) -> Decision:
+    """Best action over all skills by the objective (ties go to the skill listed first).
+
+    Spans (reported to ``tracer``, or to the active one): ``decide`` (info ``ctx``; result: the
+    ``Decision``) and inside it, per skill, ``track``, ``propose`` (result: the actions), ``predict``
+    (``BoundSkill.batch``) and ``score`` (info ``batch``; result: ``Objective.best``'s tuple) with
+    its ``term`` and ``refine`` spans.
+    """
+    with tracing(tracer), span("decide", ctx=ctx) as top:
+        best: Decision | None = None
+        counts: dict[str, int] = {}
+        values: dict[str, float] = {}
+        for bound in skills:
+            with span("track", bound.name, ctx=ctx):
+                bound.skill.track(ctx)  # every step, also when the skill may not act (e.g. FE-UMGF's buffer)
+            if bound.skill.category == "manipulation" and not ctx.manipulation_allowed:
+                continue
+            with span("propose", bound.name, ctx=ctx) as s:
+                actions = bound.skill.propose(ctx)
+                if s:
+                    s.result = actions
+            counts[bound.name] = len(actions)
+            if not actions:
+                continue
+            batch = bound.batch(ctx, actions)
+            with span("score", bound.name, ctx=ctx, batch=batch) as s:
+                scored = objective.best(ctx, batch)
+                if s:
+                    s.result = scored
+            i, value, terms, _ = scored
+            values[bound.name] = value
+            if best is None or value > best.value:
+                best = Decision(bound, actions[i], value, terms, counts, values, batch, i)
+        if best is None:
+            raise RuntimeError("no skill proposed an action")
+        best.candidates, best.best = counts, values
+        if top:
+            top.result = best
+        return best
 
 
 def bev_confidence(belief: EvidentialMap, interior: NDArray[np.bool_], power: float = 1.8) -> NDArray[np.float64]:
@@ -178,9 +219,6 @@ def mapped_fraction(belief: EvidentialMap, interior: NDArray[np.bool_], conf_cut
     return float((bev_confidence(belief, interior)[cols] > conf_cutoff).mean())
 
 
-StepCallback = Callable[[int, Decision, Outcome, "EvidentialMap"], None]
-
-
 def cap_evidence(belief: EvidentialMap, changed: NDArray[np.bool_], cap: float, margin_voxels: int) -> EvidentialMap:
     """``belief`` with the evidence of ``changed`` (dilated by ``margin_voxels``) shrunk towards the prior:
     where alpha + beta > cap, alpha - 1, beta - 1 and eta - 1 are scaled by (cap - 2) / (alpha + beta - 2).
@@ -204,52 +242,126 @@ def cap_evidence(belief: EvidentialMap, changed: NDArray[np.bool_], cap: float, 
     return out
 
 
+# ---------------------------------------------------------------------------------------- outcomes
+def displacements(before: dict[int, NDArray[np.float64]], after: dict[int, NDArray[np.float64]]) -> dict[int, float]:
+    """XY displacement (m) of every object present in both pose sets."""
+    return {i: float(np.linalg.norm(after[i][:2, 3] - before[i][:2, 3])) for i in before if i in after}
+
+
+def fallen_or_left(before: dict[int, NDArray[np.float64]], after: dict[int, NDArray[np.float64]], shelf: ShelfSpec,
+                   tilt_deg: float = FALL_TILT_DEG, removed: Iterable[int] = ()) -> list[int]:
+    """Objects (other than ``removed``) that vanished, whose up axis tilted more than ``tilt_deg``, or
+    whose origin left the shelf interior (sides, back, front; or dropped 2 cm below its floor)."""
+    lo, hi = shelf.interior_lower, shelf.interior_upper
+    gone = set(removed)
+    out = []
+    for i, t0 in before.items():
+        if i in gone:
+            continue
+        t1 = after.get(i)
+        if t1 is None:
+            out.append(i)
+            continue
+        tilt = math.degrees(math.acos(float(np.clip(t0[:3, 2] @ t1[:3, 2], -1.0, 1.0))))
+        pos = t1[:3, 3]
+        outside = not (lo[0] <= pos[0] <= hi[0] and lo[1] <= pos[1] <= hi[1]) or pos[2] < lo[2] - 0.02
+        if tilt > tilt_deg or outside:
+            out.append(i)
+    return out
+
+
+def execute_measured(skill: Skill, sim: Simulator, action: Action, ctx: DecisionContext,
+                     fall_tilt_deg: float = FALL_TILT_DEG) -> Outcome:
+    """``skill.execute`` with the bookkeeping every manipulation gets, done here once for all skills:
+    ``sim.object_poses()`` before and after give the outcome's ``displacement_m``, ``fell_or_left``
+    (``fallen_or_left``: the objects the skill removed are not counted) and ``info["moved"]``.
+    Perception actions are executed as they are. Reads ``ctx.shelf`` only."""
+    if action.category != "manipulation":
+        return skill.execute(sim, action, ctx)
+    before = sim.object_poses()
+    outcome = skill.execute(sim, action, ctx)
+    after = sim.object_poses()
+    outcome.displacement_m = displacements(before, after)
+    outcome.fell_or_left = fallen_or_left(before, after, ctx.shelf, fall_tilt_deg, outcome.removed)
+    outcome.info["moved"] = [i for i, d in outcome.displacement_m.items() if d > MOVED_M]
+    return outcome
+
+
+# -------------------------------------------------------------------------------------------- the loop
+StepCallback = Callable[[int, Decision, Outcome, EvidentialMap], None]
+
+
 def run_msas(
     sim: Simulator,
-    belief: EvidentialMap,
     observe_model: ObservationModel,
     skills: list[BoundSkill],
     objective: Objective,
-    make_ctx: Callable[[int, EvidentialMap, set[int], bool], DecisionContext],
+    ig: IGService,
+    workspace: Workspace,
     cfg: MSASConfig,
     steps: int,
+    start_view: int,
+    seed: int,
     on_step: StepCallback,
+    on_start: Callable[[EvidentialMap], None] | None = None,
+    tracer: Tracer | None = None,
 ) -> EvidentialMap:
-    """The MSAS loop of the paper: T_max actions; after a manipulation the belief becomes the effect
-    model's prediction, visited views are cleared and the manipulation's associated best view is
-    executed (both count towards T_max). Manipulation stops for good once an object falls or leaves,
-    and is not allowed once ``cfg.mapped_fraction`` of the BEV cells are mapped (``mapped_fraction``)."""
-    from msmem_core.world.groundtruth import interior_mask
+    """One episode of MSAS on a reset simulator; returns the final belief.
 
-    visited: set[int] = set()
-    interior: NDArray[np.bool_] | None = None
-    manipulation_ok, just_manipulated, last_manipulation = True, False, -1
-    lo, hi = cfg.manipulation_window
-    for step in range(steps):
-        # right after a manipulation only views compete: the argmax is its associated next-best view
-        allowed = manipulation_ok and lo <= step <= hi and not just_manipulated
-        if allowed and cfg.mapped_fraction < 1.0:
-            if interior is None:
-                probe = make_ctx(step, belief, visited, False)
-                interior = interior_mask(probe.shelf, probe.grid)
-            allowed = mapped_fraction(belief, interior, cfg.conf_cutoff) < cfg.mapped_fraction
-        ctx = make_ctx(step, belief, visited, allowed)
-        ctx.last_manipulation = last_manipulation
-        decision = decide(ctx, skills, objective)
-        skill = next(b for b in skills if b.name == decision.skill).skill
-        outcome = skill.execute(sim, decision.action, ctx)
-        just_manipulated = decision.batch.prediction is not None
-        if outcome.observation is not None:
-            belief = observe_model.update(belief, outcome.observation)
-            visited.add(int(getattr(decision.action, "view", -1)))
-        elif just_manipulated:
+    The belief starts from the prior and the observation from ``start_view`` (``on_start`` sees it);
+    the first decision counts that view as visited. Then ``steps`` (T_max) actions: every skill
+    proposes, the objective picks (``decide``, on a ``DecisionContext`` whose ``rng`` is seeded with
+    ``seed``), the action is executed (``execute_measured``, span ``execute``: info ``ctx``, ``sim``
+    and ``decision``; result: the ``Outcome``), and ``on_step`` sees the step. A view is integrated
+    by the observation model and counted as visited. After a manipulation the belief becomes the
+    effect model's prediction (capped where it changed by ``cfg.disturbed_evidence_cap``), visited
+    views are cleared, and the next step may only choose a view, the manipulation's associated best
+    view (both count towards T_max). Manipulation is allowed in ``cfg.manipulation_window``, not once
+    ``cfg.mapped_fraction`` of the BEV cells are mapped (``mapped_fraction``), and never again after
+    an object fell over or left the shelf (tilt over ``cfg.fall_tilt_deg``). ``tracer`` sees every
+    span of the episode.
+    """
+    from msmem_core.world.voxelize import interior_mask
+
+    rng = np.random.default_rng(seed)
+    with tracing(tracer):
+        belief = observe_model.update(EvidentialMap.empty(workspace.grid), sim.observe(ig.viewpoints[start_view]))
+        if on_start is not None:
+            on_start(belief)
+        visited: set[int] = set()
+        interior: NDArray[np.bool_] | None = None
+        manipulation_ok, just_manipulated, last_manipulation = True, False, -1
+        lo, hi = cfg.manipulation_window
+        for step in range(steps):
+            # right after a manipulation only views compete: the argmax is its associated next-best view
+            allowed = manipulation_ok and lo <= step <= hi and not just_manipulated
+            if allowed and cfg.mapped_fraction < 1.0:
+                if interior is None:
+                    interior = interior_mask(workspace.shelf, workspace.grid)
+                allowed = mapped_fraction(belief, interior, cfg.conf_cutoff) < cfg.mapped_fraction
+            seen = visited | {start_view} if step == 0 else set(visited)
+            ctx = DecisionContext(step, belief, ig, ig.viewpoints, seen, workspace, rng, allowed, cfg.tau_chi,
+                                  last_manipulation)
+            decision = decide(ctx, skills, objective)
+            with span("execute", decision.skill.name, ctx=ctx, sim=sim, decision=decision) as s:
+                outcome = execute_measured(decision.skill.skill, sim, decision.action, ctx, cfg.fall_tilt_deg)
+                if s:
+                    s.result = outcome
             prediction = decision.batch.prediction
-            belief = prediction.beliefs[decision.index]  # type: ignore[union-attr]
-            if cfg.disturbed_evidence_cap is not None:
-                belief = cap_evidence(belief, prediction.changed[decision.index],  # type: ignore[union-attr]
-                                      cfg.disturbed_evidence_cap, cfg.disturbed_margin_voxels)
-            visited.clear()
-            last_manipulation = step
-            manipulation_ok = manipulation_ok and not outcome.fell_or_left
-        on_step(step, decision, outcome, belief)
+            just_manipulated = prediction is not None
+            if outcome.observation is not None:
+                belief = observe_model.update(belief, outcome.observation)
+                if isinstance(decision.action, PerceptionAction):
+                    visited.add(decision.action.view)
+            elif prediction is not None:
+                belief = prediction.belief(decision.index)
+                if cfg.disturbed_evidence_cap is not None:
+                    changed = np.zeros(workspace.grid.size, dtype=bool)
+                    changed[prediction.changes[decision.index].idx] = True
+                    belief = cap_evidence(belief, changed.reshape(workspace.grid.shape), cfg.disturbed_evidence_cap,
+                                          cfg.disturbed_margin_voxels)
+                visited.clear()
+                last_manipulation = step
+                manipulation_ok = manipulation_ok and not outcome.fell_or_left
+            on_step(step, decision, outcome, belief)
     return belief

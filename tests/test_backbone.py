@@ -11,7 +11,7 @@ from msmem_grasp.fevmf import FEVMF, FEVMFConfig, executable_grasp, project_appr
 
 from msmem_core.world.gripper import GripperSpec
 
-torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 F64 = torch.float64
 
 

@@ -11,10 +11,10 @@ from msmem_analytic.observation import AnalyticObservationConfig, AnalyticObserv
 from pydantic import ValidationError
 
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.map.ig_reference import traverse
 from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.world.geometry import look_at
 from msmem_core.world.grid import GridSpec
-from msmem_core.map.ig_reference import traverse
 from msmem_core.world.scene import NUM_CLASSES
 
 GRID = GridSpec(origin_m=(-0.1, -0.01, -0.01), voxel_m=0.01, shape=(20, 16, 12))

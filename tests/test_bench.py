@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from msmem_core.errors import UserError
 from msmem_core.run.bench import (
     BenchTask,
     parse_range,
@@ -19,7 +20,6 @@ from msmem_core.run.bench import (
     summarise,
     table_markdown,
 )
-from msmem_core.errors import UserError
 from msmem_core.run.executors import run_tasks
 from msmem_core.run.metrics import PAPER_COUNT_KEYS, PAPER_METRIC_KEYS, paper_metrics_from_counts
 

@@ -24,13 +24,15 @@ from msmem_cnabu.weights import WeightsError, load_cnabu
 from pydantic import ValidationError
 from typer.testing import CliRunner
 
+from msmem_core.interfaces import Workspace
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
 
-torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.02, 1)
+WORKSPACE = Workspace(GRID, SHELF)
 NOLOG = lambda m: None  # noqa: E731
 
 
@@ -172,8 +174,8 @@ def test_effect_model_copies_the_prior_exactly_outside_the_changed_mask(tmp_path
     belief = random_belief(seed=1)
     before = belief.copy()
     actions = push_actions() if kind == "push" else grasp_actions()
-    pred = model.predict(belief, actions)
-    walls = wall_mask(GRID, actions[0].interior_m)
+    pred = model.predict(belief, actions, WORKSPACE)
+    walls = wall_mask(GRID, SHELF.interior_box)
     assert pred.changed.shape == (len(actions), *GRID.shape)
     assert len(pred.beliefs) == len(actions)
     for k, b in enumerate(pred.beliefs):
@@ -186,18 +188,18 @@ def test_effect_model_copies_the_prior_exactly_outside_the_changed_mask(tmp_path
         assert np.array_equal(b.eta[:, out], before.eta[:, out])
         diff = (b.alpha != before.alpha) | (b.beta != before.beta) | np.any(b.eta != before.eta, axis=0)
         assert np.array_equal(diff, ch)  # exactly the voxels that differ
-        assert np.array_equal(np.sort(pred.beliefs.deltas[k].idx), np.flatnonzero(ch.reshape(-1)))
+        assert np.array_equal(np.sort(pred.changes[k].idx), np.flatnonzero(ch.reshape(-1)))
         assert (b.alpha >= 1).all()
         assert (b.beta >= 1).all()
         assert (b.eta >= 1).all()
     assert np.array_equal(belief.alpha, before.alpha)  # the input is not modified
     if kind == "grasp":
         assert pred.excluded is not None
-        assert pred.excluded.shape == pred.changed.shape
+        assert len(pred.excluded) == len(actions)
     # a high threshold: nothing changes, the prediction is the prior itself
-    none = cls(CNABUEffectConfig(weights=w, change_threshold=0.999)).predict(belief, actions)
+    none = cls(CNABUEffectConfig(weights=w, change_threshold=0.999)).predict(belief, actions, WORKSPACE)
     assert not none.changed.any()
-    assert all(len(d.idx) == 0 for d in none.beliefs.deltas)
+    assert all(len(d.idx) == 0 for d in none.changes)
 
 
 def test_observation_model_changes_only_what_the_view_reached(tmp_path):
@@ -341,8 +343,9 @@ def test_observe_datagen_resumes_and_regenerates_a_corrupt_shard(observe_data):
 
 
 def test_train_and_eval_end_to_end_on_tiny_push_data(push_data, tmp_path):
-    from msmem_core.cli.app import app
+    from msmem_core.cli import build_app
 
+    app = build_app()
     out = tmp_path / "cnabu_push.pt"
     runner = CliRunner()
     res = runner.invoke(app, ["train", "cnabu", "--kind", "push", "--data", str(push_data), "--out", str(out),
@@ -448,4 +451,4 @@ def test_bad_weights_raise_clear_errors(tmp_path):
     w3 = tmp_path / "w3.pt"
     write_weights(tiny_net("push", grid_shape=(10, 10, 5)), w3)
     with pytest.raises(WeightsError, match="grid"):
-        CNABUPushEffect(CNABUEffectConfig(weights=w3)).predict(random_belief(), push_actions())
+        CNABUPushEffect(CNABUEffectConfig(weights=w3)).predict(random_belief(), push_actions(), WORKSPACE)

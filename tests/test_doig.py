@@ -11,15 +11,15 @@ from msmem_objectives.ig import IGTerm, IGTermConfig
 from msmem_push.effect import AnalyticPushEffect
 from msmem_push.skill import PushConfig, PushSkill
 
-from msmem_core.map.belief import EvidentialMap
-from msmem_core.world.groundtruth import interior_mask
 from msmem_core.interfaces import CandidateBatch, Prediction
+from msmem_core.map.belief import EvidentialMap
 from msmem_core.msas import Objective, bev_confidence, mapped_fraction
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.plugins.manager import ComponentRef
+from msmem_core.world.voxelize import interior_mask
 from tests.test_grasp import BYSTANDER, IN_THE_WAY, TARGET, top_grasp
 from tests.test_grasp import box_belief as grasp_box_belief
-from tests.test_push import GRID, SHELF, _ctx, _small_ig, synthetic_belief
+from tests.test_push import GRID, SHELF, WORKSPACE, _ctx, _small_ig, synthetic_belief
 
 C = 15
 
@@ -62,16 +62,16 @@ def test_u_diff_is_monotone_in_exclusion_and_never_exceeds_the_changed_voxels(se
     assert not part[ex].any()
 
 
-def test_cdc_term_on_push_predictions_sparse_equals_dense() -> None:
+def test_cdc_term_on_push_predictions_equals_the_whole_maps() -> None:
     belief = synthetic_belief(5)
     ctx = _ctx(belief)
     actions = PushSkill(PushConfig(max_samples=16)).propose(ctx)
-    pred = AnalyticPushEffect().predict(belief, actions)
+    pred = AnalyticPushEffect().predict(belief, actions, WORKSPACE)
     batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
     term = CDCTerm()
     assert term.applies_to == frozenset({"manipulation"})
     sparse = term.score(ctx, batch)
-    dense_pred = Prediction(list(pred.beliefs), pred.changed)
+    dense_pred = Prediction.from_beliefs(belief, list(pred.beliefs))  # as a whole-map effect model returns it
     dense = term.score(ctx, CandidateBatch("push", "manipulation", list(actions), prediction=dense_pred))
     np.testing.assert_array_equal(sparse, dense)
     brute = [-float(((belief.vacuity() < 0.5) & (b.vacuity() < 0.5)
@@ -86,7 +86,7 @@ def test_cdc_excludes_the_grasped_object_and_sees_the_neighbour_it_displaces() -
     ctx = _ctx(belief)
     clean = top_grasp(0.0, 0.225, 0.14, 0.04, lift=0.09)  # lifted over the block: only the target leaves
     sweeping = top_grasp(0.0, 0.225, 0.14, 0.04)  # the lifted box drags through the block in front
-    pred = AnalyticGraspEffect().predict(belief, [clean, sweeping])
+    pred = AnalyticGraspEffect().predict(belief, [clean, sweeping], WORKSPACE)
     batch = CandidateBatch("grasp", "manipulation", [clean, sweeping], prediction=pred)
     scores = CDCTerm().score(ctx, batch)
     assert scores[0] == 0.0  # intentional removal is not a disturbance
@@ -114,7 +114,7 @@ def test_the_winner_of_a_screened_batch_is_scored_at_full_density() -> None:
     ig = _small_ig()
     ctx = _ctx(belief, ig=ig)
     actions = PushSkill(PushConfig(max_samples=12)).propose(ctx)
-    pred = AnalyticPushEffect().predict(belief, actions)
+    pred = AnalyticPushEffect().predict(belief, actions, WORKSPACE)
     batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
     full = ig.view_ig([ig.prepare(b) for b in pred.beliefs]).max(axis=1)
     # a term that favours the candidate the screening ranks last forces a refinement

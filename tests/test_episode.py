@@ -14,8 +14,8 @@ import pytest
 from msmem_core.config import load_config
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.run.runner import build_episode, run_episode
-from msmem_core.world.scene import ObjectSpec, SceneSpec
 from msmem_core.testing import FakeSimulator
+from msmem_core.world.scene import ObjectSpec, SceneSpec
 
 ROOT = Path(__file__).resolve().parents[1]
 MSMEM = str(Path(sys.executable).with_name("msmem"))

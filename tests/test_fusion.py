@@ -11,7 +11,7 @@ from msmem_grasp.fusion import FusionConfig, GraspBuffer, GraspHypotheses, proje
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.grid import GridSpec
 
-torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 GRID = GridSpec(origin_m=(0.0, 0.0, 0.0), voxel_m=0.01, shape=(20, 20, 20))
 
 

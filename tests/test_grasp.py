@@ -23,30 +23,31 @@ from msmem_grasp.planning import (
     swept_indices,
     swept_indices_reference,
 )
-from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill, interior_of
+from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill
 from pydantic import ValidationError
 
-from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
-from msmem_core.world.camera import CameraConfig
 from msmem_core.errors import PluginError
+from msmem_core.interfaces import CandidateBatch, DecisionContext, Workspace
+from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
+from msmem_core.map.ig import IGService
+from msmem_core.msas import execute_measured
+from msmem_core.plugins import get_plugin_manager
+from msmem_core.plugins.manager import ComponentRef
+from msmem_core.run.metrics import occupancy_iou, position_change_m
+from msmem_core.testing.conformance import gripper_pose
+from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import yaw_quat
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.groundtruth import interior_mask, voxelize
-from msmem_core.map.ig import IGService
-from msmem_core.interfaces import CandidateBatch
-from msmem_core.run.metrics import occupancy_iou, position_change_m
-from msmem_core.msas import DecisionContext
-from msmem_core.plugins import get_plugin_manager
-from msmem_core.plugins.manager import ComponentRef
 from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec
-from msmem_core.testing.conformance import gripper_pose
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+from msmem_core.world.voxelize import interior_mask, voxelize
 
-torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)
-INTERIOR = interior_of(SHELF)
+INTERIOR = SHELF.interior_box
+WORKSPACE = Workspace(GRID, SHELF, GripperSpec())
 SUGAR, MEAT, FOAM, CRACKER = 2, 9, 13, 1  # class ids
 
 
@@ -66,7 +67,7 @@ def box_belief(boxes: list[tuple[tuple[float, float], tuple[float, float], float
 
 
 def ctx(belief: EvidentialMap, step: int = 5, allowed: bool = True, ig: IGService | None = None) -> DecisionContext:
-    return DecisionContext(step, belief, ig, np.zeros((0, 4, 4)), set(), GRID, SHELF, GripperSpec(),  # type: ignore[arg-type]
+    return DecisionContext(step, belief, ig, np.zeros((0, 4, 4)), set(), WORKSPACE,  # type: ignore[arg-type]
                            np.random.default_rng(0), allowed, 0.5)
 
 
@@ -83,7 +84,6 @@ def top_grasp(x: float, y: float, z: float, width: float, lift: float = 0.03, cl
         contact_m=tuple(float(v) for v in contact), target_class=cls,  # type: ignore[arg-type]
         approach_m=((x, -0.12, z + 0.05), tuple(float(v) for v in pre)),  # type: ignore[arg-type]
         retreat_m=(tuple(float(v) for v in lifted), (x, -0.3, float(lifted[2]))),  # type: ignore[arg-type]
-        interior_m=INTERIOR,
     )
 
 # target sugar-box-like block behind a lower block touching its front, and a bystander far to the side
@@ -134,7 +134,7 @@ def test_swept_indices_kernel_equals_the_numpy_reference(seed: int) -> None:
 
 def test_the_swept_volume_follows_the_approach_the_lift_and_the_retreat() -> None:
     a = top_grasp(0.0, 0.2, 0.14, 0.04)
-    vol = a.swept_volume(GRID)
+    vol = a.swept_volume(WORKSPACE)
     ijk = GRID.index_of
     c = GRID.centers()
     for p in ([0.0, 0.2, 0.205], [0.0, 0.1, 0.255], [0.0, 0.0, 0.235], [0.025, 0.0, 0.2]):  # palm, fingers
@@ -144,7 +144,7 @@ def test_the_swept_volume_follows_the_approach_the_lift_and_the_retreat() -> Non
     assert not vol[between].any()  # the object's place between the fingers is not the gripper's
     assert not vol[c[..., 0] > 0.1].any()
     # the closed gripper in the retreat is narrower than the open one in the approach
-    assert vol.sum() == len(a.swept_indices(GRID))
+    assert vol.sum() == len(a.swept_indices(WORKSPACE))
 
 
 # ------------------------------------------------------------------- reference: the per-grasp loop
@@ -298,7 +298,7 @@ def test_executable_grasps_come_from_the_belief_are_reachable_and_collision_free
         assert g.uncertainty <= 0.5
         assert g.approach_m[0][1] < 0.0  # the approach starts outside the shelf
         # the gripper on its way in touches no believed object, except the target near the end
-        pts = gripper_points(g.gripper, g.opening_m, 0.005, skill.config.tolerance_m)
+        pts = gripper_points(skill.config.gripper, g.opening_m, 0.005, skill.config.tolerance_m)
         inbound = swept_indices(GRID, m[:3, :3], pts, path_offsets(np.array(g.approach_m), 0.005))
         assert not occupied[inbound].any()
         final = swept_indices(GRID, m[:3, :3], pts, path_offsets(np.array([g.approach_m[-1], m[:3, 3]]), 0.005))
@@ -311,7 +311,7 @@ def test_with_fe_vmf_weights_the_skill_fuses_the_network_outputs(tmp_path) -> No
     import json
 
     from msmem_grasp.fevmf import FEVMF
-    from msmem_grasp.training import WEIGHTS_FORMAT, default_model_config, sha256_file, sidecar_path
+    from msmem_grasp.learn.training import WEIGHTS_FORMAT, default_model_config, sha256_file, sidecar_path
     from msmem_grasp.weights import WeightsError
 
     torch.manual_seed(0)
@@ -395,7 +395,7 @@ def test_the_effect_removes_the_target_and_pushes_out_what_is_in_its_way() -> No
     belief = box_belief([TARGET, IN_THE_WAY, BYSTANDER])
     a = top_grasp(0.0, 0.225, 0.14, 0.04)
     model = AnalyticGraspEffect()
-    pred = model.predict(belief, [a])
+    pred = model.predict(belief, [a], WORKSPACE)
     assert isinstance(pred.beliefs, DeltaBeliefs)
     after = pred.beliefs[0]
     c = GRID.centers()
@@ -410,7 +410,8 @@ def test_the_effect_removes_the_target_and_pushes_out_what_is_in_its_way() -> No
     assert np.all(after.alpha[target] == 1.0)
     assert np.all(after.beta[target] == 1.0)
     assert pred.excluded is not None
-    assert np.array_equal(pred.excluded[0], target)
+    excluded = np.isin(np.arange(GRID.size), pred.excluded[0]).reshape(GRID.shape)
+    assert np.array_equal(excluded, target)
     assert np.all(p[way] < 0.05)
     assert np.all(np.argmax(after.eta, axis=0)[way] == 0)
     assert np.all(after.vacuity()[way] < 0.5)
@@ -419,10 +420,10 @@ def test_the_effect_removes_the_target_and_pushes_out_what_is_in_its_way() -> No
     # a CDC term (confident afterwards, class changed from a known one) sees the pushed block only
     known = belief.vacuity() < 0.5
     cls0, cls1 = np.argmax(belief.eta, axis=0), np.argmax(after.eta, axis=0)
-    u_diff = known & (after.vacuity() < 0.5) & (cls0 != cls1) & ~pred.excluded[0]
+    u_diff = known & (after.vacuity() < 0.5) & (cls0 != cls1) & ~excluded
     assert np.array_equal(u_diff, way)
     # lifted high enough, the object leaves over the block: nothing else changes
-    high = model.predict(belief, [top_grasp(0.0, 0.225, 0.14, 0.04, lift=0.09)])
+    high = model.predict(belief, [top_grasp(0.0, 0.225, 0.14, 0.04, lift=0.09)], WORKSPACE)
     assert np.array_equal(high.changed[0], target)
 
 
@@ -436,7 +437,7 @@ def test_the_hidden_lower_part_of_the_grasped_object_is_carried_out_too() -> Non
     label = int(objects.labels.reshape(-1)[region[0]])
     full = fill_down(GRID, belief.expected_occupancy(), objects.labels, region, label, 0.3)
     assert set(np.flatnonzero(low.reshape(-1))) <= set(full.tolist())
-    pred = AnalyticGraspEffect().predict(belief, [top_grasp(0.0, 0.225, 0.14, 0.04)])
+    pred = AnalyticGraspEffect().predict(belief, [top_grasp(0.0, 0.225, 0.14, 0.04)], WORKSPACE)
     way = (np.abs(c[..., 0]) < 0.05) & (c[..., 1] > 0.12) & (c[..., 1] < 0.18) & (c[..., 2] > 0) & (c[..., 2] < 0.08)
     assert np.all(pred.changed[0][way])  # the block in front is still predicted pushed out
 
@@ -446,17 +447,18 @@ def test_batched_predictions_equal_one_at_a_time_and_other_actions_are_refused()
     actions = [top_grasp(0.0, 0.225, 0.14, 0.04), top_grasp(0.0, 0.225, 0.14, 0.04, lift=0.09),
                top_grasp(0.28, 0.13, 0.19, 0.06, cls=CRACKER, closing=(0.0, 1.0, 0.0))]
     model = AnalyticGraspEffect(GraspEffectConfig())
-    batch = model.predict(belief, actions)
+    batch = model.predict(belief, actions, WORKSPACE)
     assert batch.changed.shape == (3, *GRID.shape)
     for k, a in enumerate(actions):
-        one = model.predict(belief, [a])
+        one = model.predict(belief, [a], WORKSPACE)
         assert np.array_equal(batch.changed[k], one.changed[0])
         for name in ("alpha", "beta", "eta"):
             assert np.array_equal(getattr(batch.beliefs[k], name), getattr(one.beliefs[0], name))
     from msmem_push.skill import PushAction
 
+    push = PushAction(start_m=(0.0, 0.05), direction=(0.0, 1.0), length_m=0.1, height_m=0.02)
     with pytest.raises(TypeError, match="grasp"):
-        model.predict(belief, [PushAction(start_m=(0.0, 0.05), direction=(0.0, 1.0), length_m=0.1, height_m=0.02)])
+        model.predict(belief, [push], WORKSPACE)
 
 
 def test_grasp_candidates_are_scored_by_the_ig_and_entropy_terms() -> None:
@@ -470,7 +472,7 @@ def test_grasp_candidates_are_scored_by_the_ig_and_entropy_terms() -> None:
     views = generate_viewpoints(ViewpointConfig(), SHELF)[::15]
     ig = IGService(GRID, CameraConfig(width_px=160, height_px=120), views, SHELF)
     actions = [top_grasp(0.0, 0.225, 0.14, 0.04), top_grasp(0.28, 0.13, 0.19, 0.06, cls=CRACKER, closing=(0, 1, 0))]
-    pred = AnalyticGraspEffect().predict(belief, actions)
+    pred = AnalyticGraspEffect().predict(belief, actions, WORKSPACE)
     batch = CandidateBatch("grasp", "manipulation", list(actions), prediction=pred)
     d = ctx(belief, ig=ig)
     exact = IGTerm(IGTermConfig(screen_ray_step=1)).score(d, batch)
@@ -511,13 +513,13 @@ def test_a_failed_grasp_counts_in_position_change_and_a_removed_object_does_not(
         initial = sim.object_poses()
         skill = GraspSkill(GraspConfig(predictor="geometric"))
         c = SimpleNamespace(shelf=scene.shelf)
-        ok = skill.execute(sim, top_grasp(-0.15, 0.15, 0.145, 0.04), c)  # across the 4 cm box
+        ok = execute_measured(skill, sim, top_grasp(-0.15, 0.15, 0.145, 0.04), c)  # across the 4 cm box
         assert ok.success
         assert ok.removed == [0]
         assert 0 not in ok.displacement_m
         assert set(sim.object_poses()) == {1}
         # a grasp 3 cm off the can's axis: the closing fingers squeeze it out sideways
-        bad = skill.execute(sim, top_grasp(0.15, 0.15, 0.08, 0.066, closing=(0.0, 1.0, 0.0)), c)
+        bad = execute_measured(skill, sim, top_grasp(0.15, 0.15, 0.08, 0.066, closing=(0.0, 1.0, 0.0)), c)
         assert not bad.success
         assert bad.removed == []
         final = sim.object_poses()
@@ -550,18 +552,18 @@ def test_predicted_occupancy_after_a_disturbing_grasp_beats_removal_alone() -> N
         skill = GraspSkill(GraspConfig(predictor="geometric"))
         grasps = [g for g in skill.propose(ctx(belief)) if g.target_class == SUGAR]
         assert grasps
-        pred = model.predict(belief, grasps)
+        pred = model.predict(belief, grasps, WORKSPACE)
         token = sim.snapshot()
         for k, g in enumerate(grasps[:4]):
-            pushed = model.displacements(belief, g)["pushed"]
+            pushed = model.displacements(belief, g, WORKSPACE)["pushed"]
             sim.restore(token)
-            out = skill.execute(sim, g, SimpleNamespace(shelf=scene.shelf))
+            out = execute_measured(skill, sim, g, SimpleNamespace(shelf=scene.shelf))  # type: ignore[arg-type]
             if not out.success or not pushed:
                 continue
             poses = sim.object_poses()
             truth, _ = voxelize([o for o in scene.objects if o.id in poses], GRID, poses=poses)
             removed_only = belief.copy()
-            region = model.displacements(belief, g)["region"]
+            region = model.displacements(belief, g, WORKSPACE)["region"]
             for name in ("alpha", "beta"):
                 getattr(removed_only, name).reshape(-1)[region] = 1.0
             removed_only.eta.reshape(belief.num_classes, -1)[:, region] = 1.0
@@ -592,7 +594,7 @@ def test_a_grasp_only_episode_executes_a_grasp(tmp_path) -> None:  # type: ignor
 @pytest.mark.slow
 def test_bench_grasp_success_rate() -> None:
     """Top-1 fused grasps over 10 generated scenes x 2 trials; run with -m slow -s to see the number."""
-    from msmem_grasp.bench import GraspBenchConfig, bench_grasp
+    from msmem_grasp.learn.bench import GraspBenchConfig, bench_grasp
 
     s = bench_grasp(GraspBenchConfig(), progress=False)["summary"]
     print(f"\nbench-grasp: {s['successes']}/{s['executed']} succeeded ({s['success_rate']:.2f}), "

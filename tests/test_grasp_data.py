@@ -10,10 +10,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from msmem_grasp.datagen import GraspDataConfig, ShardError, generate_dataset, load_shard, shard_path
 from msmem_grasp.fevmf import FEVMFConfig
 from msmem_grasp.fpp import FPPConfig
-from msmem_grasp.training import TrainConfig, collate, train, validate
+from msmem_grasp.learn.datagen import GraspDataConfig, ShardError, generate_dataset, load_shard, shard_path
+from msmem_grasp.learn.training import TrainConfig, collate, train, validate
 
 from msmem_core.run.executors import TaskFailure, run_tasks
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig
-from msmem_grasp.losses import (
+from msmem_grasp.learn.losses import (
     GraspTargets,
     LossConfig,
     assign_targets,
@@ -21,7 +21,7 @@ from msmem_grasp.losses import (
 )
 from scipy import integrate, stats
 
-torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 F64 = torch.float64
 PARAMS = [(1.0, 1.0), (1.0, 7.5), (3.2, 1.4), (20.0, 2.0), (0.6, 0.9), (150.0, 40.0)]
 

@@ -11,21 +11,18 @@ from hypothesis import strategies as st
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import look_at, pose_matrix, yaw_quat
 from msmem_core.world.grid import GridSpec
-from msmem_core.world.groundtruth import (
-    HIT_NUDGE_VOXELS,
-    count_views_seeing,
-    hidden_objects,
-    interior_mask,
-    object_pixel_counts,
-    object_voxels,
-    observable_mask,
-    visible_objects,
-    voxelize,
-    voxelize_instances,
-)
 from msmem_core.world.meshes import object_mesh, shelf_meshes
 from msmem_core.world.scene import ObjectSpec, ShelfSpec, object_class
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+from msmem_core.world.visibility import (
+    HIT_NUDGE_VOXELS,
+    count_views_seeing,
+    hidden_objects,
+    object_pixel_counts,
+    observable_mask,
+    visible_objects,
+)
+from msmem_core.world.voxelize import interior_mask, object_voxels, voxelize, voxelize_instances
 
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)

@@ -9,11 +9,11 @@ from hypothesis import strategies as st
 
 from msmem_core.map import raycast
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.map.ig import IGConfig, IGField, IGService, shelf_wall_mask
+from msmem_core.map.ig_reference import after_view_reference, ig_rays_reference, traverse
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import look_at
 from msmem_core.world.grid import GridSpec
-from msmem_core.map.ig import IGConfig, IGField, IGService, shelf_wall_mask
-from msmem_core.map.ig_reference import after_view_reference, ig_rays_reference, traverse
 from msmem_core.world.scene import ShelfSpec
 
 SHELF = ShelfSpec(width_m=0.16, depth_m=0.12, height_m=0.08)
@@ -186,7 +186,7 @@ def test_dda_visits_the_same_voxels_as_an_independent_traversal(seed: int, kind:
     g0, s, n = raycast.grid_params(GRID)
     nb = int(n.sum())
     vox, tin, tout = np.empty(nb, np.int64), np.empty(nb), np.empty(nb)
-    m = raycast._traverse(*o, *d, g0, s, n, 0.0, 5.0, np.zeros(0, np.uint8), vox, tin, tout)
+    m = raycast.traverse(*o, *d, g0, s, n, 0.0, 5.0, np.zeros(0, np.uint8), vox, tin, tout)
     ref_vox, ref_in, ref_out = traverse(o, d, GRID, 0.0, 5.0)
     np.testing.assert_array_equal(vox[:m], ref_vox)
     np.testing.assert_allclose(tin[:m], ref_in, rtol=1e-9, atol=1e-12)

@@ -8,10 +8,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
+from msmem_core.map.ig import IGConfig, IGService
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import look_at
 from msmem_core.world.grid import GridSpec
-from msmem_core.map.ig import IGConfig, IGService
 from msmem_core.world.scene import ShelfSpec
 
 SHELF = ShelfSpec(width_m=0.16, depth_m=0.12, height_m=0.08)

@@ -42,16 +42,21 @@ def test_bounded_evidence_is_at_least_one_bounded_and_has_the_predicted_means(cl
     o = torch.tensor([occ], dtype=torch.float64)
     c = torch.tensor([cls[:15]], dtype=torch.float64)
     a, b, e, p, q = bounded_evidence(o, c, s_max, t_max)
-    assert float(a.min()) >= 1 - 1e-9 and float(b.min()) >= 1 - 1e-9 and float(e.min()) >= 1 - 1e-9
+    assert float(a.min()) >= 1 - 1e-9
+    assert float(b.min()) >= 1 - 1e-9
+    assert float(e.min()) >= 1 - 1e-9
     assert float((a + b).max()) <= s_max + 1e-6
     assert float(e.sum(1).max()) <= t_max + 1e-6
-    assert 0 <= float(p.min()) and float(p.max()) <= 1
-    assert torch.allclose(a / (a + b), p) and torch.allclose(e / e.sum(1, keepdim=True), q)
+    assert 0 <= float(p.min())
+    assert float(p.max()) <= 1
+    assert torch.allclose(a / (a + b), p)
+    assert torch.allclose(e / e.sum(1, keepdim=True), q)
 
 
 def test_an_even_prediction_is_the_prior():
     a, b, e, _, _ = bounded_evidence(torch.zeros(1, 3), torch.zeros(1, 15, 3), 100.0, 300.0)
-    assert torch.allclose(a, torch.ones(1, 3)) and torch.allclose(b, torch.ones(1, 3))
+    assert torch.allclose(a, torch.ones(1, 3))
+    assert torch.allclose(b, torch.ones(1, 3))
     assert torch.allclose(e, torch.ones(1, 15, 3))
 
 
@@ -67,7 +72,8 @@ def test_the_networks_analytic_step_is_the_analytic_observation_update(shard):
     t = torch.from_numpy
     a, b, e = analytic_update(t(b0.alpha)[None], t(b0.beta)[None], t(b0.eta)[None], t(f)[None], t(o)[None],
                               t(s)[None], 10.0)
-    assert np.array_equal(a[0].numpy(), want.alpha) and np.array_equal(b[0].numpy(), want.beta)
+    assert np.array_equal(a[0].numpy(), want.alpha)
+    assert np.array_equal(b[0].numpy(), want.beta)
     assert np.array_equal(e[0].numpy(), want.eta)
 
 
@@ -121,11 +127,15 @@ def test_a_long_rollout_keeps_evidence_at_least_one_and_bounded(shard):
             a, bb, e = net.step(t(b.alpha)[None], t(b.beta)[None], t(b.eta)[None], t(seq.free[i])[None],
                                 t(seq.occ[i])[None], t(seq.seen[i])[None], t(seq.valid))
         b = EvidentialMap(shard.grid, a[0].numpy(), bb[0].numpy(), e[0].numpy())
-        assert b.alpha.min() >= 1 - 1e-4 and b.beta.min() >= 1 - 1e-4 and b.eta.min() >= 1 - 1e-4
+        assert b.alpha.min() >= 1 - 1e-4
+        assert b.beta.min() >= 1 - 1e-4
+        assert b.eta.min() >= 1 - 1e-4
         assert (b.alpha + b.beta).max() <= cfg.s_max * (1 + 1e-5)
         assert b.eta.sum(0).max() <= cfg.t_max * (1 + 1e-5)
         p = b.expected_occupancy()
-        assert np.isfinite(p).all() and p.min() >= 0 and p.max() <= 1
+        assert np.isfinite(p).all()
+        assert p.min() >= 0
+        assert p.max() <= 1
 
 
 # ------------------------------------------------------------------------------ training
@@ -149,9 +159,11 @@ def test_rollout_training_lowers_the_loss_on_its_scene(shard, tmp_path):
 def test_train_map_writes_loadable_weights_with_a_sidecar(tmp_path):
     side = train_map(HELDOUT, tmp_path / "m.pt", MapTrainConfig(batches=1, batch=1),
                      MapNetConfig(width=8, embed=2, context=2, hidden=8, levels=2), log=lambda _: None)
-    assert side["data"]["scenes"] == 1 and side["stopped"] == "epochs"
+    assert side["data"]["scenes"] == 1
+    assert side["stopped"] == "epochs"
     net, meta = load_map_net(tmp_path / "m.pt")
-    assert meta["sha256"] == side["sha256"] and net.config.width == 8
+    assert meta["sha256"] == side["sha256"]
+    assert net.config.width == 8
 
 
 # ------------------------------------------------------------------------------ column-fill
@@ -183,7 +195,8 @@ def test_column_fill_marks_unseen_voxels_under_a_seen_top_and_removes_them_when_
     free2[1, 1, 5] = True
     out2 = model.update_masks(out, free2, np.zeros(grid.shape, bool), np.zeros_like(seen))
     assert not model.filled(out2).any()
-    assert (out2.alpha[1, 1, 1:5] == 1).all() and (out2.eta[:, 1, 1, 1:5] == 1).all()
+    assert (out2.alpha[1, 1, 1:5] == 1).all()
+    assert (out2.eta[:, 1, 1, 1:5] == 1).all()
 
 
 def test_column_fill_never_changes_observed_voxels(shard):
@@ -194,6 +207,7 @@ def test_column_fill_never_changes_observed_voxels(shard):
         a = analytic.apply_masks(a, seq.free[t], seq.occ[t], seq.seen[t])
         f = fill.update_masks(f, seq.free[t], seq.occ[t], seq.seen[t])
     observed = (a.alpha > 1) | (a.beta > 1)
-    assert np.array_equal(a.alpha[observed], f.alpha[observed]) and np.array_equal(a.beta[observed], f.beta[observed])
+    assert np.array_equal(a.alpha[observed], f.alpha[observed])
+    assert np.array_equal(a.beta[observed], f.beta[observed])
     assert np.array_equal(a.eta[:, observed], f.eta[:, observed])
     assert fill.filled(f).sum() > 100  # something was filled in a real scene

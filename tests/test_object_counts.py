@@ -9,16 +9,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from msmem_core.map.belief import EvidentialMap
 from msmem_core.config import load_config
-from msmem_core.world.groundtruth import voxelize, voxelize_instances
+from msmem_core.map.belief import EvidentialMap
 from msmem_core.map.ig import shelf_wall_mask
-from msmem_core.run.metrics import OBJECT_COUNT_KEYS, object_counts
 from msmem_core.plugins import get_plugin_manager
+from msmem_core.run.metrics import OBJECT_COUNT_KEYS, object_counts
 from msmem_core.run.runner import MetricTracker, build_episode, run_episode
+from msmem_core.testing import FakeSimulator
 from msmem_core.world.scene import ObjectSpec, SceneSpec
 from msmem_core.world.scenegen import generate_scene
-from msmem_core.testing import FakeSimulator
+from msmem_core.world.voxelize import voxelize, voxelize_instances
 
 SHAPE = (24, 12, 10)
 BOXES = {  # object id -> (slice box, class): three 3x3x3 objects on the floor, far apart

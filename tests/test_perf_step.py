@@ -49,8 +49,8 @@ def test_the_decision_is_a_valid_action(small):
     res, _ = small
     d = res["decision"]
     assert isinstance(d.action, Action)
-    assert d.skill in res["candidates"]
-    assert res["candidates"][d.skill] > 0
+    assert d.skill.name in res["candidates"]
+    assert res["candidates"][d.skill.name] > 0
     assert is_valid_action(d.action, num_views=27)
 
 

@@ -20,7 +20,8 @@ MSMEM = str(Path(sys.executable).with_name("msmem"))
 
 
 def run_cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    full_env = {**os.environ, "PYTHONPATH": str(ROOT), **(env or {})}
+    path = os.pathsep.join(str(ROOT / d) for d in ("", "plugins", "simulators"))  # this checkout's plugins too
+    full_env = {**os.environ, "PYTHONPATH": path, **(env or {})}
     return subprocess.run([MSMEM, *args], capture_output=True, text=True, env=full_env, timeout=300, check=False)
 
 

@@ -14,28 +14,29 @@ from msmem_objectives.entropy import SemanticEntropyTerm
 from msmem_objectives.ig import IGTerm, IGTermConfig
 from msmem_push.effect import AnalyticPushEffect
 from msmem_push.geometry import leading_half_depth, swept_extent, swept_voxels, swept_voxels_reference, tool_boxes
-from msmem_push.skill import START_FRONT_MARGIN_M, PushAction, PushConfig, PushSkill, interior_of
+from msmem_push.skill import START_FRONT_MARGIN_M, PushAction, PushConfig, PushSkill
 from pydantic import ValidationError
 
-from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
-from msmem_core.world.camera import CameraConfig
 from msmem_core.errors import PluginError
-from msmem_core.world.geometry import look_at, quat_to_matrix, yaw_quat
-from msmem_core.world.grid import GridSpec
-from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.groundtruth import interior_mask, voxelize
+from msmem_core.interfaces import CandidateBatch, DecisionContext, Prediction, Workspace
+from msmem_core.map.belief import DeltaBeliefs, EvidentialMap
 from msmem_core.map.ig import IGService, shelf_wall_mask
-from msmem_core.interfaces import CandidateBatch
-from msmem_core.run.metrics import occupancy_iou
-from msmem_core.msas import DecisionContext
+from msmem_core.msas import execute_measured
 from msmem_core.perf.ig import block_scene, integrate_evidence, render_voxels
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.plugins.manager import ComponentRef
+from msmem_core.run.metrics import occupancy_iou
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.geometry import look_at, quat_to_matrix, yaw_quat
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scene import OBJECT_CLASSES, ObjectSpec, SceneSpec, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
+from msmem_core.world.voxelize import interior_mask, voxelize
 
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)
+WORKSPACE = Workspace(GRID, SHELF, GripperSpec())
 SMALL_CAM = CameraConfig(width_px=160, height_px=120)
 
 
@@ -67,8 +68,7 @@ def box_belief(boxes: list[tuple[tuple[float, float], tuple[float, float], float
 
 
 def push(start: tuple[float, float], u: tuple[float, float], length: float, height: float = 0.02) -> PushAction:
-    return PushAction(interior_m=interior_of(SHELF), start_m=start, direction=u, length_m=length, height_m=height,
-                      tool=PushSkill().tool)
+    return PushAction(start_m=start, direction=u, length_m=length, height_m=height)
 
 
 def support_along(obj: ObjectSpec, pose: np.ndarray, u: np.ndarray) -> float:
@@ -96,10 +96,12 @@ def test_bad_push_config_and_actions_are_rejected_naming_the_field() -> None:
         get_plugin_manager().build("skill", ComponentRef(name="push", params={"max_length_m": -1.0}), where="skills.1")
     with pytest.raises(ValidationError, match="length_m"):
         push((0.0, 0.05), (0.0, 1.0), -0.1)
-    with pytest.raises(ValidationError, match="start_m"):
-        push((0.5, 0.1), (0.0, 1.0), 0.1)  # beyond the right wall
-    with pytest.raises(ValidationError, match="start_m"):
-        push((0.0, -START_FRONT_MARGIN_M - 0.01), (0.0, 1.0), 0.1)
+    with pytest.raises(ValueError, match="start_m"):  # checked against the workspace's shelf when executed
+        push((0.5, 0.1), (0.0, 1.0), 0.1).check_start(SHELF.interior_box)  # beyond the right wall
+    with pytest.raises(ValueError, match="start_m"):
+        push((0.0, -START_FRONT_MARGIN_M - 0.01), (0.0, 1.0), 0.1).check_start(SHELF.interior_box)
+    with pytest.raises(ValueError, match="start_m"):
+        PushSkill().execute(None, push((0.5, 0.1), (0.0, 1.0), 0.1), SimpleNamespace(shelf=SHELF))  # type: ignore[arg-type]
     with pytest.raises(ValidationError, match="direction"):
         push((0.0, 0.05), (1.0, 1.0), 0.1)
     a = push((0.0, 0.05), (0.0, 1.0), 0.1)
@@ -118,7 +120,7 @@ def test_push_and_its_effect_model_are_registered_and_bound() -> None:
 
 
 def _ctx(belief: EvidentialMap, allowed: bool = True, ig: IGService | None = None, seed: int = 0) -> DecisionContext:
-    return DecisionContext(5, belief, ig, np.zeros((0, 4, 4)), set(), GRID, SHELF, GripperSpec(),  # type: ignore[arg-type]
+    return DecisionContext(5, belief, ig, np.zeros((0, 4, 4)), set(), WORKSPACE,  # type: ignore[arg-type]
                            np.random.default_rng(seed), allowed, 0.5)
 
 
@@ -144,18 +146,18 @@ def test_push_samples_never_start_in_believed_occupancy_nor_sweep_through_a_wall
         assert isinstance(a, PushAction)
         assert cfg.min_length_m <= a.length_m <= cfg.max_length_m
         assert abs(np.hypot(*a.direction) - 1) < 1e-9
-        at_start = swept_voxels(GRID, a.start, a.u, a.height_m, a.tool)
+        at_start = swept_voxels(GRID, a.start, a.u, a.height_m, a.tool(WORKSPACE.gripper))
         assert not occupied[at_start].any(), "the tool starts inside believed-occupied space"
-        swept = a.swept_volume(GRID).ravel()
+        swept = a.swept_volume(WORKSPACE).ravel()
         assert swept.any()
         assert not (swept & walls).any(), "the push sweeps through a wall voxel"
-        lo, hi = swept_extent(a.start, a.u, a.height_m, a.tool, a.length_m * a.u)
+        lo, hi = swept_extent(a.start, a.u, a.height_m, a.tool(WORKSPACE.gripper), a.length_m * a.u)
         assert lo[0] >= lo_in[0]
         assert hi[0] <= hi_in[0]
         assert hi[1] <= hi_in[1]
         assert hi[2] <= hi_in[2]
         approach = np.array([a.start[0], cfg.approach_y_m])
-        corridor = swept_voxels(GRID, approach, a.u, a.height_m, a.tool, a.start - approach)
+        corridor = swept_voxels(GRID, approach, a.u, a.height_m, a.tool(WORKSPACE.gripper), a.start - approach)
         assert not occupied[corridor].any(), "the approach crosses believed-occupied space"
 
 
@@ -202,7 +204,7 @@ def test_effect_model_moves_a_pushed_box_and_what_is_in_its_way() -> None:
     hd = leading_half_depth(PushSkill().tool, 0.02, 0.10)
     a = push((0.0, 0.10 - 0.01 - hd), (0.0, 1.0), 0.15)  # 1 cm standoff: A moves 14 cm, B 10 cm
     model = AnalyticPushEffect()
-    pred = model.predict(b, [a])
+    pred = model.predict(b, [a], WORKSPACE)
     after = pred.beliefs[0]
     occ0, occ1 = b.expected_occupancy() > 0.5, after.expected_occupancy() > 0.5
     cls1 = np.argmax(after.eta, axis=0)
@@ -223,17 +225,17 @@ def test_effect_model_stops_objects_at_the_back_wall_and_is_batched() -> None:
     b = box_belief([((-0.04, 0.28), (0.04, 0.34), 0.10, 3), ((0.20, 0.10), (0.26, 0.16), 0.05, 7)])
     model = AnalyticPushEffect()
     a_back = push((0.0, 0.28 - 0.02), (0.0, 1.0), 0.25)  # only 4 cm of room behind the box
-    moves = model.displacements(b, a_back)
+    moves = model.displacements(b, a_back, WORKSPACE)
     assert len(moves) == 1
     assert moves[0][1] == pytest.approx(0.04, abs=0.011)
     a_miss = push((-0.3, 0.05), (0.0, 1.0), 0.1)  # touches nothing
     a_side = push((0.15, 0.13), (1.0, 0.0), 0.08)
-    batch = model.predict(b, [a_back, a_miss, a_side])
+    batch = model.predict(b, [a_back, a_miss, a_side], WORKSPACE)
     for k, a in enumerate([a_back, a_miss, a_side]):
-        single = model.predict(b, [a])
+        single = model.predict(b, [a], WORKSPACE)
         np.testing.assert_array_equal(batch.changed[k], single.changed[0])
         np.testing.assert_array_equal(batch.beliefs[k].alpha, single.beliefs[0].alpha)
-    assert model.displacements(b, a_miss) == []
+    assert model.displacements(b, a_miss, WORKSPACE) == []
     # a push that touches nothing changes only the semantic confidence along the tool's path
     assert np.array_equal(batch.beliefs[1].alpha, b.alpha)
     assert np.array_equal(batch.beliefs[1].beta, b.beta)
@@ -251,7 +253,7 @@ def test_manipulation_ig_is_the_best_view_after_the_predicted_belief_and_screeni
     ctx = _ctx(belief, ig=ig)
     actions = PushSkill(PushConfig(max_samples=12)).propose(ctx)
     assert len(actions) > 4
-    pred = AnalyticPushEffect().predict(belief, actions)
+    pred = AnalyticPushEffect().predict(belief, actions, WORKSPACE)
     batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
     full = ig.view_ig([ig.prepare(b) for b in pred.beliefs]).max(axis=1)
     exact = IGTerm(IGTermConfig(screen_ray_step=1)).score(ctx, batch)
@@ -267,7 +269,7 @@ def test_manipulation_ig_is_the_best_view_after_the_predicted_belief_and_screeni
 def test_semantic_entropy_term_is_the_clipped_entropy_difference() -> None:
     belief = synthetic_belief(4)
     actions = PushSkill(PushConfig(max_samples=10)).propose(_ctx(belief))
-    pred = AnalyticPushEffect().predict(belief, actions)
+    pred = AnalyticPushEffect().predict(belief, actions, WORKSPACE)
     ctx = _ctx(belief)
     batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
     term = SemanticEntropyTerm()
@@ -276,7 +278,9 @@ def test_semantic_entropy_term_is_the_clipped_entropy_difference() -> None:
     h0 = belief.total_semantic_entropy()
     want = np.array([min(0.0, h0 - b.total_semantic_entropy()) for b in pred.beliefs])
     np.testing.assert_allclose(sparse, want, rtol=1e-6, atol=1e-3)
-    dense = type(pred)(list(pred.beliefs), pred.changed)
+    dense = Prediction.from_beliefs(belief, list(pred.beliefs))  # an effect model predicting whole maps
+    for d, e in zip(dense.changes, pred.changes, strict=True):
+        np.testing.assert_array_equal(d.idx, e.idx)
     dense_batch = CandidateBatch("push", "manipulation", list(actions), prediction=dense)
     np.testing.assert_allclose(term.score(_ctx(belief), dense_batch), want, rtol=1e-9)
     assert np.all(sparse <= 0.0)
@@ -285,7 +289,7 @@ def test_semantic_entropy_term_is_the_clipped_entropy_difference() -> None:
     sharper = belief.copy()
     sharper.eta[0] += 5.0
     sharp_batch = CandidateBatch("push", "manipulation", list(actions[:1]),
-                                 prediction=type(pred)([sharper], np.ones((1, *GRID.shape), bool)))
+                                 prediction=Prediction.from_beliefs(belief, [sharper]))
     assert term.score(_ctx(belief), sharp_batch)[0] == 0.0
 
 
@@ -323,10 +327,10 @@ def commanded_pushes(sim, skill: PushSkill, n: int = 20, seed: int = 2024) -> tu
         lead = leading_half_depth(skill.tool, height, top)
         start = pose[:2, 3] - (support_along(obj, pose, -u) + cfg.standoff_m + lead) * u
         length = float(rng.uniform(cfg.min_length_m, 0.2))
-        action = PushAction(interior_m=interior_of(SHELF), start_m=(float(start[0]), float(start[1])),
+        action = PushAction(start_m=(float(start[0]), float(start[1])),
                             direction=(float(u[0]), float(u[1])), length_m=length, height_m=height,
-                            palm=cfg.palm, tool=skill.tool)
-        out = skill.execute(sim, action, SimpleNamespace(shelf=SHELF))
+                            palm=cfg.palm)
+        out = execute_measured(skill, sim, action, SimpleNamespace(shelf=SHELF))  # type: ignore[arg-type]
         commanded = length - cfg.standoff_m  # the tool meets the object after the standoff
         moved = out.displacement_m[3]
         ok = abs(moved - commanded) <= max(0.3 * commanded, 0.02)
@@ -376,7 +380,7 @@ def test_effect_model_predicts_the_post_push_occupancy_better_than_no_change(sim
             belief = observe.update(belief, sim.observe(views[v]))
         actions = skill.sample(belief, SHELF, rng)
         assert actions
-        predicted = model.predict(belief, actions[:1]).beliefs[0]
+        predicted = model.predict(belief, actions[:1], WORKSPACE).beliefs[0]
         skill.execute(sim, actions[0], SimpleNamespace(shelf=SHELF))
         poses = sim.object_poses()
         gt, _ = voxelize([o for o in objs if o.id in poses], GRID, poses=poses)
@@ -418,7 +422,7 @@ def test_push_only_episode_executes_a_push_and_records_it(tmp_path: Path, monkey
 
 
 def test_perf_push_times_the_named_effect_model_and_matches_the_reference() -> None:
-    from msmem_core.perf.push import perf_push
+    from msmem_push.perf import perf_push
 
     lines: list[str] = []
     res = perf_push(repeats=1, samples=6, reference=True, report=lines.append, effect_model="push-analytic")

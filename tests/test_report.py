@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msmem_core.run.report import REPORT_FILES, load_run, render_html, write_report
+from msmem_core.run.report import REPORT_FILES, render_html, write_report
+from msmem_core.run.runfolder import load_run
 
 ROOT = Path(__file__).resolve().parents[1]
 MSMEM = str(Path(sys.executable).with_name("msmem"))
@@ -167,8 +168,8 @@ def test_report_steps_choose_the_snapshots_and_an_empty_shelf_still_reports(tmp_
     from msmem_core.config import load_config
     from msmem_core.plugins import get_plugin_manager
     from msmem_core.run.runner import build_episode, run_episode
-    from msmem_core.world.scene import SceneSpec
     from msmem_core.testing import FakeSimulator
+    from msmem_core.world.scene import SceneSpec
 
     cfg = load_config("view-only", None, {**SMALL, "steps": 3, "report_steps": [1, 7]})
     ep = build_episode(cfg, get_plugin_manager(), scene=SceneSpec(name="empty"))

@@ -17,18 +17,15 @@ with warnings.catch_warnings():  # SAPIEN warns when it falls back to its bundle
 pytest.importorskip("pybullet", reason="the cross-backend checks compare with the PyBullet backend")
 
 from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
+from msmem_sapien.camera import native_renderer
 from msmem_sapien.config import SapienConfig
-from msmem_sapien.simulator import SapienSimulator, native_renderer
+from msmem_sapien.simulator import SapienSimulator
 
-from msmem_core.world.camera import CameraConfig
 from msmem_core.config import load_config
-from msmem_core.world.geometry import rotation_angle_deg
 from msmem_core.interfaces import Simulator
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.plugins.manager import ComponentRef
 from msmem_core.run.runner import build_episode, run_episode
-from msmem_core.world.scene import ObjectSpec, SceneSpec
-from msmem_core.world.scenegen import SceneGenConfig, generate_scene
 from msmem_core.testing.conformance import (
     conformance_scene,
     front_view,
@@ -36,6 +33,11 @@ from msmem_core.testing.conformance import (
     simulator_conformance,
     single_object_scene,
 )
+from msmem_core.util.trace import Span, Tracer
+from msmem_core.world.camera import CameraConfig
+from msmem_core.world.geometry import rotation_angle_deg
+from msmem_core.world.scene import ObjectSpec, SceneSpec
+from msmem_core.world.scenegen import SceneGenConfig, generate_scene
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 from tests.support.sim_checks import (
     check_label_noise_relabels_whole_objects_and_follows_the_seed,
@@ -298,7 +300,7 @@ METRIC_KEYS = {"occupancy_iou", "observable_iou", "semantic_miou", "semantic_mio
 
 
 @pytest.mark.parametrize("simulator", ["pybullet", "sapien"])
-def test_full_method_episode_runs_unchanged_on_each_backend(simulator: str, tmp_path, monkeypatch) -> None:
+def test_full_method_episode_runs_unchanged_on_each_backend(simulator: str, tmp_path) -> None:
     """``ours`` (view, push and grasp skills, their effect models, ig + semantic entropy + cdc) on the
     same scene through ``build_episode``/``run_episode``. Manipulation is allowed from step 1 on and
     the views are 9 close to straight in front of the cracker box that hides the soup can, so views
@@ -319,14 +321,14 @@ def test_full_method_episode_runs_unchanged_on_each_backend(simulator: str, tmp_
     assert [b.effect_model is not None for b in ep.skills] == [False, True, True]
     assert [type(b.effect_model).__name__ for b in ep.skills[1:]] == ["AnalyticPushEffect", "AnalyticGraspEffect"]
     outcomes: list[tuple[str, Any]] = []
-    for bound in ep.skills:
-        def execute(sim: Simulator, action: Any, ctx: Any, _name=bound.name, _run=bound.skill.execute) -> Any:
-            outcome = _run(sim, action, ctx)
-            outcomes.append((_name, outcome))
-            return outcome
-        monkeypatch.setattr(bound.skill, "execute", execute)
+
+    class Outcomes(Tracer):  # every executed action's outcome, as MSAS measured it
+        def end(self, span: Span) -> None:
+            if span.stage == "execute":
+                outcomes.append((span.skill, span.result))
+
     try:
-        final = run_episode(ep, tmp_path)
+        final = run_episode(ep, tmp_path, tracer=Outcomes())
     finally:
         ep.sim.close()
     assert final["steps"] == steps

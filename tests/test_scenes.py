@@ -10,11 +10,12 @@ from scipy.spatial import Delaunay
 
 from msmem_core.errors import UserError
 from msmem_core.world.grid import GridSpec
-from msmem_core.world.groundtruth import object_pixel_counts, object_voxels
 from msmem_core.world.meshes import object_mesh, part_meshes
 from msmem_core.world.scene import SceneSpec
 from msmem_core.world.scenegen import SceneGenConfig, footprint_fraction, generate_scene
 from msmem_core.world.viewpoints import generate_viewpoints
+from msmem_core.world.visibility import object_pixel_counts
+from msmem_core.world.voxelize import object_voxels
 
 EASY = SceneGenConfig(require_hard=False)
 HARD_SEED = 26  # a seed whose first attempts pass quickly

@@ -11,7 +11,7 @@ import torch
 from msmem_grasp import vmf
 from scipy.stats import kstest, vonmises_fisher
 
-torch.set_num_threads(1)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 KAPPAS = np.logspace(-6, 4, 41)
 F64 = torch.float64
 

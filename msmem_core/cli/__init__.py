@@ -1,5 +1,5 @@
 """The `msmem` command line."""
 
-from msmem_core.cli.app import app, main
+from msmem_core.cli.app import build_app, main
 
-__all__ = ["app", "main"]
+__all__ = ["build_app", "main"]

@@ -1,40 +1,41 @@
-"""The ``msmem`` command line. User errors print one line and exit 2; ``--debug`` shows the traceback."""
+"""The ``msmem`` command line. User errors print one line and exit 2; ``--debug`` shows the traceback.
+
+``build_app`` makes the command line: the core's commands and groups, then every plugin's commands
+(hook ``msmem_commands``, records ``CommandSpec``). This module imports no plugin package.
+"""
 
 from __future__ import annotations
 
 import json
 import sys
+import warnings
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from msmem_core.errors import UserError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="Multi-Skill Manipulation-Enhanced Mapping: map a cluttered shelf by looking, pushing "
-                       "and grasping.")
-config_app = typer.Typer(no_args_is_help=True, help="Inspect configuration.")
-perf_app = typer.Typer(no_args_is_help=True, help="Speed benchmarks.")
-scene_app = typer.Typer(no_args_is_help=True, help="Generate and inspect scenes.")
-app.add_typer(config_app, name="config")
-app.add_typer(perf_app, name="perf")
-app.add_typer(scene_app, name="scene")
-docs_app = typer.Typer(no_args_is_help=True, help="Generate reference documentation (docs/*.md).")
-app.add_typer(docs_app, name="docs")
-datagen_app = typer.Typer(no_args_is_help=True, help="Generate training data for the learned models.")
-train_app = typer.Typer(no_args_is_help=True, help="Train the learned models.")
-eval_app = typer.Typer(no_args_is_help=True, help="Evaluate the learned models on held-out data.")
-app.add_typer(datagen_app, name="datagen")
-app.add_typer(train_app, name="train")
-app.add_typer(eval_app, name="eval")
+if TYPE_CHECKING:
+    from msmem_core.plugins.manager import MsmemPluginManager
+
+HELP = "Multi-Skill Manipulation-Enhanced Mapping: map a cluttered shelf by looking, pushing and grasping."
+GROUPS: dict[str, str] = {  # the core's command groups (plugins add commands to them): name -> help
+    "config": "Inspect configuration.",
+    "perf": "Speed benchmarks.",
+    "scene": "Generate and inspect scenes.",
+    "docs": "Generate reference documentation (docs/*.md).",
+    "datagen": "Generate training data for the learned models.",
+    "train": "Train the learned models.",
+    "eval": "Evaluate the learned models on held-out data.",
+}
 
 MethodOpt = Annotated[str | None, typer.Option(
     "--method", "-m", help="Method preset: view-only, push-only, grasp-only, no-cdc, ours.")]
 ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML/JSON config file overriding the preset.")]
 
 
-@app.callback()
 def _root(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks for errors.")] = False) -> None:
     """msmem: see `msmem COMMAND --help`."""
 
@@ -45,13 +46,16 @@ def _pm() -> Any:
     return get_plugin_manager()
 
 
-@app.command()
 def plugins(as_json: Annotated[bool, typer.Option("--json", help="Machine-readable output.")] = False) -> None:
-    """List every registered component: kind, name, distribution, description, config fields."""
+    """List every registered component (kind, name, distribution, description, config fields) and the
+    commands plugins add."""
     pm = _pm()
     rows = pm.listing()
+    commands = [{"command": f"msmem {r.spec.path}", "distribution": r.distribution, "plugin": r.plugin,
+                 "summary": r.spec.summary} for r in pm.commands()]
     if as_json:
-        typer.echo(json.dumps({"components": rows, "load_errors": pm.load_errors}, indent=2, default=str))
+        typer.echo(json.dumps({"components": rows, "commands": commands, "load_errors": pm.load_errors},
+                              indent=2, default=str))
         return
     from rich.console import Console
     from rich.markup import escape
@@ -62,11 +66,15 @@ def plugins(as_json: Annotated[bool, typer.Option("--json", help="Machine-readab
         table.add_row(r["kind"], r["name"], r["distribution"], escape(r["description"]),
                       ", ".join(r["config"]) or "-")
     Console().print(table)
+    if commands:
+        table = Table("command", "distribution", "summary")
+        for c in commands:
+            table.add_row(c["command"], c["distribution"], escape(c["summary"]))
+        Console().print(table)
     for name, err in pm.load_errors.items():
         typer.echo(f"warning: plugin {name!r} failed to load: {err}", err=True)
 
 
-@config_app.command("show")
 def config_show(method: MethodOpt = None, config: ConfigOpt = None) -> None:
     """Print the resolved configuration (preset < --config file) as YAML."""
     import yaml
@@ -77,7 +85,6 @@ def config_show(method: MethodOpt = None, config: ConfigOpt = None) -> None:
     typer.echo(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
 
 
-@app.command()
 def run(
     method: MethodOpt = None,
     config: ConfigOpt = None,
@@ -138,7 +145,6 @@ def run(
         typer.echo(f"report: {write_report(out_dir)[0]}")
 
 
-@app.command()
 def bench(
     methods: Annotated[str, typer.Option("--methods", help="Comma-separated method presets.")] = "view-only,push-only",
     suite: Annotated[str, typer.Option("--suite", help="Scene suite shipped with msmem.")] = "hard25",
@@ -155,8 +161,8 @@ def bench(
     """Run methods x scenes episodes; writes episodes/*.json, table.md, results.json and curves.png."""
     import os
 
-    from msmem_core.run.bench import parse_range, run_bench, suite_scenes
     from msmem_core.config import preset
+    from msmem_core.run.bench import parse_range, run_bench, suite_scenes
 
     method_list = [m.strip() for m in methods.split(",") if m.strip()]
     for m in method_list:
@@ -176,7 +182,6 @@ def bench(
         typer.echo(f"{len(summary['errors'])} episode(s) crashed; see {out / 'results.json'}", err=True)
 
 
-@app.command("report")
 def report_cmd(
     run_dir: Annotated[Path, typer.Argument(help="Run folder written by `msmem run`.")],
     png: Annotated[bool, typer.Option("--png/--no-png",
@@ -189,7 +194,6 @@ def report_cmd(
         typer.echo(str(path))
 
 
-@scene_app.command("generate")
 def scene_generate(
     seed: Annotated[int, typer.Option("--seed", help="Scene seed.")] = 0,
     out: Annotated[Path, typer.Option("--out", help="Output SceneSpec JSON.")] = Path("scene.json"),
@@ -203,7 +207,6 @@ def scene_generate(
                f"{spec.hidden_objects} hidden from all viewpoints")
 
 
-@perf_app.command("ig")
 def perf_ig(repeats: Annotated[int, typer.Option("--repeats", help="Timed repeats per figure.")] = 3) -> None:
     """Time 300-view IG sweeps (1 and 16 beliefs, 1 cm and 5 mm grids) against the brute-force reference."""
     from msmem_core.perf.ig import perf_ig as run_perf
@@ -211,22 +214,6 @@ def perf_ig(repeats: Annotated[int, typer.Option("--repeats", help="Timed repeat
     run_perf(repeats=repeats)
 
 
-@perf_app.command("push")
-def perf_push(
-    repeats: Annotated[int, typer.Option("--repeats", help="Timed repeats per stage (best is reported).")] = 3,
-    samples: Annotated[int, typer.Option("--samples", help="Push candidates (UPS max_samples).")] = 80,
-    scene_seed: Annotated[int, typer.Option("--scene-seed", help="Generated scene of the belief.")] = 0,
-    reference: Annotated[bool, typer.Option("--reference/--no-reference", help="Also time the full re-score.")] = True,
-    effect_model: Annotated[str | None, typer.Option("--effect-model", help="Push effect model (default: the push "
-                                                                           "skill's, cnabu-push).")] = None,
-) -> None:
-    """Time sampling, effect prediction and scoring of push candidates on all 300 views (mid-episode belief)."""
-    from msmem_core.perf.push import perf_push as run_perf
-
-    run_perf(repeats=repeats, samples=samples, scene_seed=scene_seed, reference=reference, effect_model=effect_model)
-
-
-@perf_app.command("step")
 def perf_step(
     repeats: Annotated[int, typer.Option("--repeats", help="Timed decisions (the median is reported).")] = 5,
     scene_seed: Annotated[int, typer.Option("--scene-seed", help="Generated scene.")] = 1,
@@ -247,7 +234,6 @@ def perf_step(
              beliefs=beliefs, method=method or "ours", config=config, scene=scene)
 
 
-@docs_app.command("config")
 def docs_config() -> None:
     """Print the configuration reference (docs/config-reference.md), generated from the pydantic models."""
     from msmem_core.cli.docgen import config_reference
@@ -255,108 +241,121 @@ def docs_config() -> None:
     typer.echo(config_reference(), nl=False)
 
 
-@docs_app.command("cli")
 def docs_cli() -> None:
     """Print the command-line reference (docs/cli.md), generated from the commands' help."""
     from msmem_core.cli.docgen import cli_reference
 
-    typer.echo(cli_reference(), nl=False)
+    typer.echo(cli_reference(build_app(builtin_only=True)), nl=False)
 
 
-# Grasp learning (msmem_grasp). Imported inside the commands only, so the core CLI loads without it.
-@datagen_app.command("grasp")
-def datagen_grasp(
-    scenes: Annotated[int, typer.Option("--scenes", help="Number of scenes (seeds SEED .. SEED+N-1).")],
-    out: Annotated[Path, typer.Option("--out", help="Output folder: one scene_<seed>.npz per scene.")],
-    workers: Annotated[int, typer.Option("--workers", help="Parallel processes (or Ray tasks in flight).")] = 1,
-    seed: Annotated[int, typer.Option("--seed", help="First scene seed.")] = 0,
-    executor: Annotated[str, typer.Option("--executor", help="local (processes) or ray.")] = "local",
-    points: Annotated[int, typer.Option("--points", help="FPP points per scene.")] = 4096,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
-) -> None:
-    """FE-vMF training data: scene -> belief from 3-10 random views -> FPP points -> antipodal labels (resumable)."""
-    from msmem_grasp.commands import datagen_grasp as run_datagen
-
-    run_datagen(scenes=scenes, out=out, workers=workers, seed=seed, executor=executor, points=points, quiet=quiet)
+# ------------------------------------------------------------------------------------ the app
+CORE_COMMANDS: dict[str | None, dict[str, Callable[..., Any]]] = {  # group (None: top level) -> name -> command
+    None: {"plugins": plugins, "run": run, "bench": bench, "report": report_cmd},
+    "config": {"show": config_show},
+    "perf": {"ig": perf_ig, "step": perf_step},
+    "scene": {"generate": scene_generate},
+    "docs": {"config": docs_config, "cli": docs_cli},
+}
 
 
-@train_app.command("fe-vmf")
-def train_fe_vmf(
-    data: Annotated[Path, typer.Option("--data", help="Folder of shards from `msmem datagen grasp`.")],
-    out: Annotated[Path, typer.Option("--out", help="Weights file (.pt); a .json sidecar is written beside it.")],
-    epochs: Annotated[int, typer.Option("--epochs", help="Training epochs.")] = 20,
-    val_fraction: Annotated[float, typer.Option("--val-fraction", help="Fraction of scenes for validation.")] = 0.1,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the split, initialisation and batches.")] = 0,
-    lr: Annotated[float, typer.Option("--lr", help="AdamW learning rate.")] = 1e-3,
-    threads: Annotated[int, typer.Option("--threads", help="torch threads.")] = 2,
-    max_minutes: Annotated[float | None, typer.Option("--max-minutes", help="Stop after the epoch past this.")] = None,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
-) -> None:
-    """Train FE-vMF (AdamW, validation per epoch); keeps the best weights + a JSON sidecar (metrics, sha256)."""
-    from msmem_grasp.commands import train_fe_vmf as run_train
+def _warn(message: str) -> None:
+    from msmem_core.plugins.manager import PluginLoadWarning
 
-    run_train(data=data, out=out, epochs=epochs, val_fraction=val_fraction, seed=seed, lr=lr, threads=threads,
-              max_minutes=max_minutes, quiet=quiet)
+    warnings.warn(message, PluginLoadWarning, stacklevel=3)
 
 
-@eval_app.command("fe-vmf")
-def eval_fe_vmf(
-    data: Annotated[Path, typer.Option("--data", help="Folder of held-out shards.")],
-    weights: Annotated[Path | None, typer.Option("--weights", help="Weights file (default: the shipped ones).")] = None,
-    plot: Annotated[Path | None, typer.Option("--plot", help="Write the kappa calibration plot (PNG) here.")] = None,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Write the metrics as JSON here.")] = None,
-    threads: Annotated[int, typer.Option("--threads", help="torch threads.")] = 2,
-) -> None:
-    """Held-out metrics of FE-vMF and of the geometric antipodal heuristic: AUROC, ECE, NLL, angular errors, P/R."""
-    from msmem_grasp.commands import eval_fe_vmf as run_eval
+def build_app(pm: MsmemPluginManager | None = None, builtin_only: bool = False) -> typer.Typer:
+    """The ``msmem`` command line: the core's groups and commands, then every plugin's commands.
 
-    run_eval(data=data, weights=weights, plot=plot, json_out=json_out, threads=threads)
-
-
-@app.command("bench-grasp")
-def bench_grasp(
-    scenes: Annotated[str, typer.Option("--scenes", help="Generated scene seeds, e.g. 0-9.")] = "0-9",
-    trials: Annotated[int, typer.Option("--trials", help="Trials per scene (different views).")] = 2,
-    views: Annotated[int, typer.Option("--views", help="Observations (one FE-UMGF step each) first.")] = 8,
-    random_views: Annotated[bool, typer.Option("--random-views/--nbv", help="Random views, not next-best.")] = False,
-    predictor: Annotated[str, typer.Option("--predictor", help="auto, fe-vmf or geometric.")] = "auto",
-    hard: Annotated[bool, typer.Option("--hard/--any", help="Hard scenes (as episodes) or random ones.")] = False,
-    workers: Annotated[int, typer.Option("--workers", help="Scenes in parallel.")] = 1,
-    out: Annotated[Path, typer.Option("--out", help="Results folder.")] = Path("runs/bench-grasp"),
-) -> None:
-    """Top-1 fused grasp executed in PyBullet per scene and trial: success rate (grasps from the belief only)."""
-    from msmem_grasp.bench import GraspBenchConfig
-    from msmem_grasp.bench import bench_grasp as run_bench_grasp
-
-    from msmem_core.run.bench import parse_range
-
-    cfg = GraspBenchConfig(scene_seeds=parse_range(scenes, 10**6), trials=trials, views=views,
-                           view_policy="random" if random_views else "nbv", require_hard=hard,
-                           skill={"predictor": predictor})
-    s = run_bench_grasp(cfg, out, workers=workers)["summary"]
-    typer.echo(f"predictor {s['predictor']}: {s['successes']}/{s['executed']} grasps succeeded "
-               f"({100 * s['success_rate']:.0f} %), {s['no_candidate']} of {s['trials']} trials had no executable "
-               f"grasp; held object of the believed class {s['held_believed_class']}/{s['successes']}; "
-               f"mean displacement of the other objects {s['mean_displaced_m']:.3f} m; "
-               f"{s['fell_or_left']} trial(s) with an object fallen or out -> {out}")
+    ``pm``: the plugin manager to take the commands from (default: a fresh one with every installed
+    plugin). ``builtin_only``: only commands of msmem's own distribution (the documented ones).
+    A plugin command that cannot join (its hook raised, an unknown group, a name the core uses, a
+    signature typer cannot turn into a command) is left out with a warning naming the plugin.
+    """
+    app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help=HELP)
+    app.callback()(_root)
+    for name, fn in CORE_COMMANDS[None].items():
+        app.command(name)(fn)
+    groups = {name: typer.Typer(no_args_is_help=True, help=text) for name, text in GROUPS.items()}
+    for name, group in groups.items():
+        for cmd, fn in CORE_COMMANDS.get(name, {}).items():
+            group.command(cmd)(fn)
+        app.add_typer(group, name=name)
+    if pm is None:
+        try:
+            pm = _pm()
+        except UserError as e:  # e.g. a plugin with a misspelt hook: the core's commands still work
+            _warn(f"plugins' commands are left out: {e}")
+            return app
+    add_plugin_commands(app, groups, pm, builtin_only)
+    return app
 
 
-# Learned CNABU (msmem_cnabu) adds `datagen cnabu`, `train cnabu` and `eval belief-models` (bodies imported on use).
-try:
-    from msmem_cnabu.commands import register as _register_cnabu
-except ImportError:  # the plugin package is not installed
-    pass
-else:
-    _register_cnabu(datagen_app, train_app, eval_app)
+def add_plugin_commands(app: typer.Typer, groups: dict[str, typer.Typer], pm: MsmemPluginManager,
+                        builtin_only: bool = False) -> None:
+    """Add the commands of ``pm.commands()`` to ``app`` (top level) and the core ``groups``, sorted by
+    group and name so that the order does not depend on the order plugins load in."""
+    import typer.main
+
+    from msmem_core.plugins.manager import BUILTIN_DISTRIBUTION
+
+    taken = {group: set(names) for group, names in CORE_COMMANDS.items()}
+    taken[None] |= set(groups)
+    for reg in sorted(pm.commands(), key=lambda r: (r.spec.group or "", r.spec.name)):
+        spec = reg.spec
+        if builtin_only and reg.distribution != BUILTIN_DISTRIBUTION:
+            continue
+        who = f"msmem plugin {reg.plugin!r} (from {reg.distribution})"
+        if spec.group is not None and spec.group not in groups:
+            _warn(f"{who}: command {spec.name!r} names the group {spec.group!r}, which does not exist "
+                  f"(groups: {', '.join(groups)}); it is left out")
+            continue
+        if spec.name in taken.setdefault(spec.group, set()):
+            _warn(f"{who}: command 'msmem {spec.path}' clashes with one of msmem's own; it is left out")
+            continue
+        if isinstance(spec.action, typer.Typer):
+            sub = spec.action
+        else:
+            sub = typer.Typer()
+            sub.command(spec.name, short_help=spec.summary)(spec.action)
+        try:
+            typer.main.get_command(sub)  # typer checks the parameters here: fail now, not when msmem starts
+        except Exception as e:
+            _warn(f"{who}: command 'msmem {spec.path}' is not a valid typer command, it is left out: "
+                  f"{type(e).__name__}: {e}")
+            continue
+        target = app if spec.group is None else groups[spec.group]
+        if isinstance(spec.action, typer.Typer):
+            target.add_typer(spec.action, name=spec.name, short_help=spec.summary)
+        else:
+            target.command(spec.name, short_help=spec.summary)(spec.action)
+        taken[spec.group].add(spec.name)
+
+
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  file: Any = None, line: str | None = None) -> None:
+    """Plugin warnings as one ``msmem: warning: ...`` line; the others as Python prints them."""
+    from msmem_core.plugins.manager import PluginLoadWarning
+
+    if issubclass(category, PluginLoadWarning):
+        typer.echo(f"msmem: warning: {message}", err=True)
+    else:
+        _default_show_warning(message, category, filename, lineno, file, line)
+
+
+_default_show_warning = warnings.showwarning
 
 
 def main() -> None:
     from msmem_core.util.malloc import keep_large_allocations
+    from msmem_core.util.threads import configure_threads
 
+    configure_threads()  # before any command imports torch or numba
     keep_large_allocations()
     debug = "--debug" in sys.argv
+    warnings.showwarning = _show_warning
     try:
-        app()
+        build_app()()
     except UserError as e:
         if debug:
             raise

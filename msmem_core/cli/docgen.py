@@ -246,7 +246,8 @@ CLI_HEADER = """# Command-line reference
      Regenerate with `make docs` (a test checks this file equals the generated output). -->
 
 User errors print one line (`msmem: error: ...`) and exit with status 2; `msmem --debug COMMAND`
-shows the traceback instead.
+shows the traceback instead. Plugins add commands (see [plugins.md](plugins.md#add-a-command)): this page
+lists msmem's own; `msmem --help` and `msmem GROUP --help` list what is installed.
 """
 
 
@@ -300,11 +301,13 @@ def _command_doc(cmd: Any, path: list[str], out: list[str]) -> None:
                 _command_doc(sub, [*path, name], out)
 
 
-def cli_reference() -> str:
+def cli_reference(app: Any) -> str:
+    """Markdown reference of every command of ``app`` (a ``typer.Typer`` or a click command), e.g.
+    ``cli_reference(msmem_core.cli.build_app(builtin_only=True))``."""
+    import typer
     import typer.main
 
-    from msmem_core.cli.app import app
-
+    command = typer.main.get_command(app) if isinstance(app, typer.Typer) else app
     out = [CLI_HEADER]
-    _command_doc(typer.main.get_command(app), ["msmem"], out)
+    _command_doc(command, ["msmem"], out)
     return "\n".join(out).rstrip() + "\n"

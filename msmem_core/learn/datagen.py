@@ -21,8 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from msmem_core.util.artifacts import atomic_text, tmp_path
 from msmem_core.errors import UserError
+from msmem_core.plugins.manager import ComponentRef
+from msmem_core.util.artifacts import atomic_text, tmp_path
 
 SHARD_GLOB = "scene_*.npz"
 MANIFEST = "dataset.json"
@@ -120,6 +121,23 @@ def read_manifest(data_dir: str | Path) -> dict[str, Any] | None:
     """The data folder's ``dataset.json``, None if it has none."""
     path = Path(data_dir) / MANIFEST
     return json.loads(path.read_text()) if path.exists() else None
+
+
+def check_same_simulator(out_dir: str | Path, manifest: dict[str, Any] | None, simulator: ComponentRef) -> None:
+    """Refuse to add shards simulated by another backend to a data folder. ``manifest`` is the folder's
+    ``dataset.json`` (None: a new folder); one without a ``config.simulator`` was made in PyBullet,
+    the only backend before ``--sim``."""
+    if manifest is None:
+        return
+    have = {"params": {}, **manifest.get("config", {}).get("simulator", {"name": "pybullet"})}
+    want = simulator.model_dump(mode="json")
+    if have != want:
+        def text(ref: dict[str, Any]) -> str:
+            return repr(ref["name"]) + (f" (params {json.dumps(ref['params'])})" if ref["params"] else "")
+
+        out = Path(out_dir)
+        raise UserError(f"{out} holds data simulated in {text(have)} (see {out / MANIFEST}), not in {text(want)}; "
+                        "use another --out")
 
 
 def generate_shards(

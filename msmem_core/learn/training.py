@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from msmem_core.util.artifacts import atomic_save, sidecar_path
 from msmem_core.errors import UserError
+from msmem_core.util.artifacts import atomic_save, sidecar_path
 from msmem_core.util.progress import progress_bar
 
 

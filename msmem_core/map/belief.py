@@ -129,9 +129,8 @@ class EvidentialMap:
 class BeliefDelta:
     """A sparse change of a belief: the new evidence at some voxels (flat indices, sorted, unique).
 
-    Effect models that change a small region return these (in :class:`DeltaBeliefs`), so K
-    predictions cost K small arrays instead of K full maps, and IG / entropy terms touch only the
-    changed voxels.
+    An effect model's ``Prediction`` holds one per candidate action, so K predictions cost K small
+    arrays instead of K full maps, and IG / entropy / disturbance terms touch only the changed voxels.
     """
 
     idx: NDArray[np.int64]
@@ -140,6 +139,13 @@ class BeliefDelta:
     beta: NDArray[np.float32]
     eta: NDArray[np.float32]
     """[C, M] new Dirichlet evidence at ``idx``."""
+
+    def against(self, base: EvidentialMap) -> BeliefDelta:
+        """This change without the voxels whose new evidence equals ``base``'s (what actually changes)."""
+        c = base.num_classes
+        keep = (self.alpha != base.alpha.reshape(-1)[self.idx]) | (self.beta != base.beta.reshape(-1)[self.idx])
+        keep |= np.any(self.eta != base.eta.reshape(c, -1)[:, self.idx], axis=0)
+        return BeliefDelta(self.idx[keep], self.alpha[keep], self.beta[keep], self.eta[:, keep])
 
     def apply(self, base: EvidentialMap) -> EvidentialMap:
         """``base`` with this change written in (a new map)."""
@@ -151,7 +157,8 @@ class BeliefDelta:
 
 
 class DeltaBeliefs(Sequence[EvidentialMap]):
-    """K predicted beliefs stored as one base map and K :class:`BeliefDelta`; an item is built on access."""
+    """K beliefs stored as one base map and K :class:`BeliefDelta`; an item is built on access
+    (``Prediction.beliefs``)."""
 
     def __init__(self, base: EvidentialMap, deltas: Sequence[BeliefDelta]) -> None:
         self.base = base

@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from msmem_core.map import raycast
 from msmem_core.map.belief import BeliefDelta, EvidentialMap, bernoulli_entropy
+from msmem_core.util.trace import span
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
@@ -153,8 +154,9 @@ class IGService:
         """Clamped occupancy (MEM: > p_occ_clamp -> 1, < p_free_clamp -> 0, walls 1) and its entropy."""
         if belief.grid != self.grid:
             raise ValueError("belief grid differs from the IG service's grid")
-        p = belief.expected_occupancy().ravel().astype(np.float32)
-        return IGField(*self._clamp(p, self.walls))
+        with span("ig.prepare"):
+            p = belief.expected_occupancy().ravel().astype(np.float32)
+            return IGField(*self._clamp(p, self.walls))
 
     def _clamp(
         self, p: NDArray[np.float32], walls: NDArray[np.bool_]
@@ -198,7 +200,8 @@ class IGService:
         the screening rays of :meth:`coarse_rays`), remembered for this field together with where
         each ray stopped, which :meth:`view_ig_delta` uses. Fields are treated as immutable: the
         result is looked up by identity (the few most recent fields are kept)."""
-        return self._sweep(field, 0.0 if exact else self.config.early_exit, ray_step)[0].copy()
+        with span("ig.sweep", ray_step=ray_step):
+            return self._sweep(field, 0.0 if exact else self.config.early_exit, ray_step)[0].copy()
 
     def _sweep(self, field: IGField, eps: float, ray_step: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         for f, step, e, ig, t_stop in self._sweeps:
@@ -220,6 +223,11 @@ class IGService:
         full-density values). The base field's sweep (:meth:`sweep`) is computed once and reused;
         identical deltas are scored once.
         """
+        with span("ig.incremental", ray_step=ray_step, candidates=len(deltas)):
+            return self._view_ig_delta(base, deltas, exact, ray_step)
+
+    def _view_ig_delta(self, base: IGField, deltas: Sequence[IGDelta], exact: bool, ray_step: int
+                       ) -> NDArray[np.float64]:
         eps = 0.0 if exact else self.config.early_exit
         k = len(deltas)
         if k == 0:
@@ -265,14 +273,15 @@ class IGService:
         """
         eps = 0.0 if exact else self.config.early_exit
         args = (*self.rays.args(), self._g0, self._s, self._n, eps)
-        if isinstance(fields, IGField):
-            return raycast.ig_views(fields.p, fields.H, *args)
-        if len(fields) == 0:
-            return np.zeros((0, self.num_views))
-        p = np.stack([f.p for f in fields], axis=1)  # voxel-major [N, K], as the batch kernel wants
-        h = np.stack([f.H for f in fields], axis=1)
-        stop = np.all(p >= 1.0, axis=1).astype(np.uint8)
-        return raycast.ig_views_batch(p, h, stop, *args)
+        with span("ig.sweep"):
+            if isinstance(fields, IGField):
+                return raycast.ig_views(fields.p, fields.H, *args)
+            if len(fields) == 0:
+                return np.zeros((0, self.num_views))
+            p = np.stack([f.p for f in fields], axis=1)  # voxel-major [N, K], as the batch kernel wants
+            h = np.stack([f.H for f in fields], axis=1)
+            stop = np.all(p >= 1.0, axis=1).astype(np.uint8)
+            return raycast.ig_views_batch(p, h, stop, *args)
 
     def ray_ig(self, field: IGField, exact: bool = False) -> NDArray[np.float64]:
         """Per-ray IG, float64 [V, R] in image order of ``dirs`` (for debugging and tests)."""
@@ -281,10 +290,11 @@ class IGService:
 
     def after_view(self, field: IGField, view: int) -> IGField:
         """Expected field after observing ``view``: H = 0 on its rays up to each first p == 1 voxel."""
-        h = raycast.zero_entropy_along_view(
-            field.p, field.H, self.origins[view], self.dirs[view], self._g0, self._s, self._n, self.t_min, self.t_max
-        )
-        return IGField(field.p, h)
+        with span("ig.after_view"):
+            h = raycast.zero_entropy_along_view(
+                field.p, field.H, self.origins[view], self.dirs[view], self._g0, self._s, self._n, self.t_min,
+                self.t_max)
+            return IGField(field.p, h)
 
     def best_two_step(
         self, field: IGField, excluded: set[int] | frozenset[int] = frozenset(),

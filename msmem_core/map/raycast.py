@@ -126,7 +126,7 @@ def _dda_next(ax, tn, t1, ix, iy, iz, idx, tx, ty, tz, sx, sy, sz, kx, ky, kz, n
 
 
 @njit(cache=True, fastmath=False)
-def _traverse(ox, oy, oz, dx, dy, dz, g0, s, n, t_min, t_max, stop, vox, tin, tout):
+def traverse(ox, oy, oz, dx, dy, dz, g0, s, n, t_min, t_max, stop, vox, tin, tout):
     """Write the ray's voxels in order into ``vox`` with their intervals ``[tin, tout)``; return the count.
 
     Stops after the first voxel with ``stop[idx] != 0`` (pass an empty ``stop`` for none). Buffers
@@ -140,7 +140,7 @@ def _traverse(ox, oy, oz, dx, dy, dz, g0, s, n, t_min, t_max, stop, vox, tin, to
 
 @njit(cache=True, fastmath=False, inline="always")
 def _traverse_clipped(ox, oy, oz, dx, dy, dz, g0, s, n, t0, t1, stop, vox, tin, tout):
-    """:func:`_traverse` of a ray already clipped to the grid (t0 < t1 from :func:`_clip`)."""
+    """:func:`traverse` of a ray already clipped to the grid (t0 < t1 from :func:`_clip`)."""
     nx, ny, nz = n[0], n[1], n[2]
     ix, iy, iz, idx, tx, ty, tz, sx, sy, sz, kx, ky, kz = _dda_start(
         ox, oy, oz, dx, dy, dz, t0, g0[0], g0[1], g0[2], s, nx, ny, nz
@@ -276,7 +276,7 @@ def ig_views_batch(p, h, stop, origins, dirs, t_enter, t_exit, count, g0, s, n, 
     (uint8 [N]) marks voxels with p == 1 in every belief (walls, unmoved objects): each ray is
     traversed once, up to its first stop voxel, and the K sums run over that voxel list, each
     belief's transmission set to 0 once it is <= eps (adding exact zeros afterwards). prange over
-    views: the K beliefs share each traversal (about 3x faster than K separate sweeps at 1 cm).
+    views: the K beliefs share each traversal (docs/performance.md, "IG sweep").
     """
     nk = p.shape[1]
     nv = dirs.shape[0]
@@ -330,7 +330,7 @@ def zero_entropy_along_view(p, h, origin, dirs, g0, s, n, t_min, t_max):
         tin = np.empty(nbuf, dtype=np.float64)
         tout = np.empty(nbuf, dtype=np.float64)
         for r in range(c * _CHUNK, min(nr, (c + 1) * _CHUNK)):
-            m = _traverse(origin[0], origin[1], origin[2], dirs[r, 0], dirs[r, 1], dirs[r, 2], g0, s, n,
+            m = traverse(origin[0], origin[1], origin[2], dirs[r, 0], dirs[r, 1], dirs[r, 2], g0, s, n,
                           t_min, t_max, stop, vox, tin, tout)
             for j in range(m):
                 out[vox[j]] = 0.0
@@ -363,7 +363,7 @@ def integrate_rays(origins, dirs, hit_t, hit_valid, hit_class, num_classes, g0, 
             valid = hit_valid[r]
             th = hit_t[r]
             # a ray with a return is followed to the grid exit, so the voxel holding the return is found
-            m = _traverse(origins[r, 0], origins[r, 1], origins[r, 2], dirs[r, 0], dirs[r, 1], dirs[r, 2], g0, s, n,
+            m = traverse(origins[r, 0], origins[r, 1], origins[r, 2], dirs[r, 0], dirs[r, 1], dirs[r, 2], g0, s, n,
                           t_min, np.inf if valid else t_far, no_stop, vox, tin, tout)
             if m == 0 or (valid and th < tin[0]):
                 continue  # misses the grid, or the return lies before it
@@ -396,7 +396,7 @@ def first_hit(occ, origins, dirs, g0, s, n, t_min, t_max):
         tin = np.empty(nbuf, dtype=np.float64)
         tout = np.empty(nbuf, dtype=np.float64)
         for r in range(c * _CHUNK, min(nr, (c + 1) * _CHUNK)):
-            m = _traverse(origins[r, 0], origins[r, 1], origins[r, 2], dirs[r, 0], dirs[r, 1], dirs[r, 2], g0, s, n,
+            m = traverse(origins[r, 0], origins[r, 1], origins[r, 2], dirs[r, 0], dirs[r, 1], dirs[r, 2], g0, s, n,
                           t_min, t_max, occ, vox, tin, tout)
             if m > 0 and occ[vox[m - 1]] != 0:
                 t_in[r] = tin[m - 1]

@@ -1,1 +1,2 @@
-"""Speed benchmarks (`msmem perf ...`): IG sweep, push prediction, one full MSAS decision."""
+"""Speed benchmarks (`msmem perf ...`): IG sweep, one full MSAS decision. (`msmem perf push` is the push
+plugin's: `msmem_push.perf`.)"""

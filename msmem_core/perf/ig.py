@@ -19,10 +19,10 @@ from numpy.typing import NDArray
 
 from msmem_core.map import raycast
 from msmem_core.map.belief import EvidentialMap
-from msmem_core.world.camera import CameraConfig, Observation
-from msmem_core.world.grid import GridSpec
 from msmem_core.map.ig import IGConfig, IGService, shelf_wall_mask
 from msmem_core.map.ig_reference import ig_views_reference
+from msmem_core.world.camera import CameraConfig, Observation
+from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import NUM_CLASSES, ShelfSpec
 
 

@@ -8,12 +8,12 @@ rendered by the simulator and integrated with the episode's observation model, e
 is the one at the next step, with manipulation allowed.
 
 Each repeat runs ``msas.decide`` on a fresh copy of the skills as they were after the prefix (so
-the grasp skill's tracking runs every time, as once per episode step) and a fresh context; thin
-wrappers installed for the duration time every stage where ``decide`` calls it: per skill
-``track``, ``propose``, the effect model's ``predict`` and ``Objective.best`` (the scoring path of
-MSAS, refinement included), and inside them the objective terms, the IG kernels and the grasp
-skill's FPP / FE-vMF / FE-UMGF steps (found by name where the plugins define them). Medians over
-the repeats are reported.
+the grasp skill's tracking runs every time, as once per episode step) and a fresh context, with a
+``StageTimer``: a tracer (``msmem_core.util.trace``) that times every span the decision opens. Per
+skill ``track``, ``propose``, the effect model's ``predict`` and ``score`` (``Objective.best``, the
+scoring path of MSAS, refinement included), and inside them the objective terms, the IG service's
+kernels and the stages plugins mark themselves (the grasp skill's FPP / FE-vMF / FE-UMGF steps).
+Nothing is wrapped or patched. Medians over the repeats are reported.
 
 References (``reference=True``): the brute-force float64 IG of ``msmem_core.map.ig_reference``
 (extrapolated from a few views) for an IG sweep; a full, non-incremental re-score of every
@@ -26,14 +26,11 @@ screening, no early exit).
 
 from __future__ import annotations
 
-import copy
 import os
 import statistics
-import sys
 import time
 from collections import defaultdict
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,30 +38,42 @@ from typing import Any
 import numba
 import numpy as np
 
-from msmem_core.map.belief import EvidentialMap
 from msmem_core.config import RunConfig, load_config
-from msmem_core.map.ig import IGService
+from msmem_core.interfaces import Action, CandidateBatch, DecisionContext, PerceptionAction
+from msmem_core.map.ig import IGDelta, IGService
 from msmem_core.map.ig_reference import ig_views_reference
-from msmem_core.interfaces import Action, CandidateBatch
-from msmem_core.msas import BoundSkill, Decision, DecisionContext, Objective, decide
+from msmem_core.msas import Decision, Objective, decide
 from msmem_core.plugins.manager import ComponentRef, get_plugin_manager
 from msmem_core.run.runner import Episode, build_episode, set_threads
-from msmem_core.world.viewpoints import default_start_view
+from msmem_core.run.states import EpisodeState, clone_skills, decision_context, mid_episode_state
+from msmem_core.util.trace import Span, Tracer
 
 Path_ = tuple[str, ...]
-# Plugin functions timed where they are looked up at call time (module globals); skipped when the
-# module is not loaded. Core code never imports plugin packages: they are found in sys.modules.
-PLUGIN_PROBES = (
-    ("msmem_grasp.skill", "frontier_points", "FPP (frontier points)"),
-    ("msmem_grasp.weights", "predict_cloud", "FE-vMF inference"),
-    ("msmem_grasp.skill", "predict_geometric", "geometric grasp predictor"),
-)
+_IG_STAGES = {"ig.prepare": "ig.prepare (belief -> IG field)", "ig.sweep": "IG sweep (all views)",
+              "ig.after_view": "two-step: after_view"}
+
+
+def stage_label(span: Span) -> str | None:
+    """The table row of a span (None: the whole decision, reported as its total)."""
+    s = span.stage
+    if s == "decide":
+        return None
+    if s == "predict":
+        return f"{span.skill}: effect prediction"
+    if s in ("track", "propose", "score", "execute"):
+        return f"{span.skill}: {s}"
+    if s in ("term", "refine"):
+        return f"{s} {span.info['term']}"
+    if s == "ig.incremental":
+        step = int(span.info.get("ray_step", 1))
+        return f"IG incremental, screening (1 ray in {step}x{step})" if step > 1 else "IG incremental, full density"
+    return _IG_STAGES.get(s, s)  # a component's own stage is shown by its name
 
 
 @dataclass
-class Probe:
-    """Inclusive wall-clock and CPU seconds (the process's, all threads) and call counts per call path
-    while its wrappers are installed."""
+class StageTimer(Tracer):
+    """A tracer: inclusive wall-clock and CPU seconds (the process's, all threads) and call counts per
+    call path of the spans it sees (one path element per ``stage_label``)."""
 
     seconds: dict[Path_, float] = field(default_factory=lambda: defaultdict(float))
     cpu: dict[Path_, float] = field(default_factory=lambda: defaultdict(float))
@@ -72,138 +81,37 @@ class Probe:
     batches: dict[str, tuple[DecisionContext, CandidateBatch]] = field(default_factory=dict)
     """The last batch each skill scored (with its context), for the references."""
     stack: list[str] = field(default_factory=list)
-    _undo: list[tuple[Any, str, Any, bool]] = field(default_factory=list)
+    _open: list[tuple[Path_, float, float] | None] = field(default_factory=list)
 
-    def wrap(self, owner: Any, attr: str, label: str | Callable[..., str]) -> None:
-        """Time ``owner.attr`` (a method of an instance, or a module function) under ``label``."""
-        fn = getattr(owner, attr)
-        own = attr in vars(owner)
+    def begin(self, span: Span) -> None:
+        label = stage_label(span)
+        if label is None:
+            self._open.append(None)
+            return
+        if span.stage == "score" and span.skill is not None:
+            self.batches[span.skill] = (span.info["ctx"], span.info["batch"])
+        self.stack.append(label)
+        key = tuple(self.stack)
+        self.seconds.setdefault(key, 0.0)  # rows in call order, parents before children
+        self._open.append((key, time.perf_counter(), time.process_time()))
 
-        def timed(*args: Any, **kwargs: Any) -> Any:
-            self.stack.append(label(*args, **kwargs) if callable(label) else label)
-            key = tuple(self.stack)
-            self.seconds.setdefault(key, 0.0)  # rows in call order, parents before children
-            t, c = time.perf_counter(), time.process_time()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                self.seconds[key] += time.perf_counter() - t
-                self.cpu[key] += time.process_time() - c
-                self.calls[key] += 1
-                self.stack.pop()
-
-        setattr(owner, attr, timed)
-        self._undo.append((owner, attr, fn, own))
-
-    def restore(self) -> None:
-        for owner, attr, fn, own in reversed(self._undo):
-            if own:
-                setattr(owner, attr, fn)
-            else:
-                delattr(owner, attr)
-        self._undo.clear()
-
-
-def clone_skills(skills: list[BoundSkill]) -> list[BoundSkill]:
-    """Deep copies of the skills (their state, e.g. a grasp buffer) sharing effect models and any
-    torch module (weights are read-only)."""
-    out = []
-    for b in skills:
-        memo = {id(v): v for v in vars(b.skill).values() if hasattr(v, "state_dict")}
-        out.append(BoundSkill(b.name, copy.deepcopy(b.skill, memo), b.effect_model))
-    return out
-
-
-@contextmanager
-def probed(probe: Probe, skills: list[BoundSkill], objective: Objective, ig: IGService) -> Iterator[Probe]:
-    """Install the stage wrappers of one decision (removed on exit)."""
-    try:
-        for b in skills:
-            probe.wrap(b.skill, "track", f"{b.name}: track")
-            probe.wrap(b.skill, "propose", f"{b.name}: propose")
-            if b.effect_model is not None:
-                probe.wrap(b.effect_model, "predict", f"{b.name}: effect prediction")
-            buffer = getattr(b.skill, "buffer", None)
-            if buffer is not None and hasattr(buffer, "update"):
-                probe.wrap(buffer, "update", "FE-UMGF fusion")
-        for module, name, label in PLUGIN_PROBES:
-            mod = sys.modules.get(module)
-            if mod is not None and callable(getattr(mod, name, None)):
-                probe.wrap(mod, name, label)
-
-        def best_label(ctx: DecisionContext, batch: CandidateBatch) -> str:
-            probe.batches[batch.skill] = (ctx, batch)
-            return f"{batch.skill}: score"
-
-        probe.wrap(objective, "best", best_label)
-        for name, _w, term in objective.terms:
-            probe.wrap(term, "score", f"term {name}")
-            probe.wrap(term, "refine", f"refine {name}")
-        probe.wrap(ig, "prepare", "ig.prepare (belief -> IG field)")
-        probe.wrap(ig, "view_ig", "IG sweep (all views)")
-        if hasattr(ig, "sweep"):  # the base sweep shared by the view branch and the incremental IG
-            probe.wrap(ig, "sweep", "IG sweep (all views)")
-        probe.wrap(ig, "after_view", "two-step: after_view")
-        probe.wrap(ig, "view_ig_delta", lambda base, deltas, exact=False, ray_step=1: (
-            f"IG incremental, screening (1 ray in {ray_step}x{ray_step})" if ray_step > 1
-            else "IG incremental, full density"))
-        yield probe
-    finally:
-        probe.restore()
+    def end(self, span: Span) -> None:
+        opened = self._open.pop()
+        if opened is None:
+            return
+        key, t, c = opened
+        self.seconds[key] += time.perf_counter() - t
+        self.cpu[key] += time.process_time() - c
+        self.calls[key] += 1
+        self.stack.pop()
 
 
 # ----------------------------------------------------------------------------------------- set-up
-@dataclass
-class StepState:
-    """A mid-episode state: the belief, the skills after tracking every earlier step, visited views."""
-
-    belief: EvidentialMap
-    skills: list[BoundSkill]
-    visited: set[int]
-    step: int
-    views: list[int]
-
-
-def mid_episode_state(ep: Episode, views: int, seed: int) -> StepState:
-    """The start view and ``views - 1`` seeded random views, observed in the episode's simulator and
-    integrated by its observation model; every skill tracks every step as in ``run_msas``. The
-    returned state is that of step ``views - 1`` (the belief holds ``views`` views)."""
-    if views < 1:
-        raise ValueError("views must be >= 1")
-    cfg = ep.cfg
-    rng = np.random.default_rng(seed)
-    start = cfg.msas.start_view if cfg.msas.start_view is not None else default_start_view(cfg.viewpoints)
-    others = np.setdiff1d(np.arange(len(ep.viewpoints)), [start])
-    order = [start, *(int(v) for v in rng.choice(others, size=views - 1, replace=False))]
-    skills = clone_skills(ep.skills)
-    belief = ep.observe_model.update(EvidentialMap.empty(ep.ig.grid), ep.sim.observe(ep.viewpoints[start]))
-    for step in range(views - 1):
-        ctx = _context(ep, belief, _visited(order, step, start), step, False, 0)
-        for b in skills:
-            b.skill.track(ctx)
-        nxt = order[step + 1]
-        belief = ep.observe_model.update(belief, ep.sim.observe(ep.viewpoints[nxt]))
-    step = views - 1
-    return StepState(belief, skills, _visited(order, step, start), step, order)
-
-
-def _visited(order: list[int], step: int, start: int) -> set[int]:
-    """What ``run_episode`` passes at ``step``: the views taken so far (the start view at step 0 only)."""
-    return set(order[1 : step + 1]) | ({start} if step == 0 else set())
-
-
-def _context(ep: Episode, belief: EvidentialMap, visited: set[int], step: int, allowed: bool, seed: int,
-             ig: IGService | None = None) -> DecisionContext:
-    cfg = ep.cfg
-    return DecisionContext(step, belief, ig or ep.ig, ep.viewpoints, set(visited), ep.ig.grid, ep.scene.shelf,
-                           cfg.gripper, np.random.default_rng([cfg.seed, seed, step]), allowed, cfg.msas.tau_chi)
-
-
-def _decide(ep: Episode, state: StepState, objective: Objective | None = None, ig: IGService | None = None,
-            seed: int = 0) -> Decision:
+def _decide(ep: Episode, state: EpisodeState, objective: Objective | None = None, ig: IGService | None = None,
+            seed: int = 0, tracer: Tracer | None = None) -> Decision:
     """One decision at the state's step (manipulation allowed) on fresh copies of the skills."""
-    ctx = _context(ep, state.belief, state.visited, state.step, True, seed, ig)
-    return decide(ctx, clone_skills(state.skills), objective or ep.objective)
+    ctx = decision_context(ep, state.belief, state.visited, state.step, True, seed, ig)
+    return decide(ctx, clone_skills(state.skills), objective or ep.objective, tracer)
 
 
 def objective_with(ep: Episode, **ig_params: Any) -> Objective:
@@ -218,12 +126,12 @@ def objective_with(ep: Episode, **ig_params: Any) -> Objective:
 
 
 def _same(a: Decision, b: Decision) -> bool:
-    return a.skill == b.skill and a.action == b.action
+    return a.skill.name == b.skill.name and a.action == b.action
 
 
 def _describe(d: Decision) -> str:
     best = ", ".join(f"{k} {v:.1f}" for k, v in d.best.items())
-    return f"{d.skill} #{d.index} (objective {d.value:.1f}; best per skill: {best})"
+    return f"{d.skill.name} #{d.index} (objective {d.value:.1f}; best per skill: {best})"
 
 
 # -------------------------------------------------------------------------------------------- run
@@ -262,20 +170,19 @@ def perf_step(
     state = mid_episode_state(ep, views, view_seed)
     setup_s = time.perf_counter() - t_setup
 
-    per_repeat: list[Probe] = []
+    per_repeat: list[StageTimer] = []
     totals: list[float] = []
     cpu_totals: list[float] = []
     decision: Decision | None = None
     for r in range(max(1, repeats) + 1):  # the first run warms up (numba loads its cached kernels)
-        ctx = _context(ep, state.belief, state.visited, state.step, True, 0)
+        ctx = decision_context(ep, state.belief, state.visited, state.step, True, 0)
         skills = clone_skills(state.skills)
-        probe = Probe()
-        with probed(probe, skills, ep.objective, ep.ig):
-            t, c = time.perf_counter(), time.process_time()
-            decision = decide(ctx, skills, ep.objective)
-            total, cpu_total = time.perf_counter() - t, time.process_time() - c
+        timer = StageTimer()
+        t, c = time.perf_counter(), time.process_time()
+        decision = decide(ctx, skills, ep.objective, tracer=timer)
+        total, cpu_total = time.perf_counter() - t, time.process_time() - c
         if r > 0:
-            per_repeat.append(probe)
+            per_repeat.append(timer)
             totals.append(total)
             cpu_totals.append(cpu_total)
     assert decision is not None
@@ -358,7 +265,7 @@ def perf_step(
     return res
 
 
-def _references(ep: Episode, state: StepState, timed: Decision, probe: Probe, stages: dict[str, float],
+def _references(ep: Episode, state: EpisodeState, timed: Decision, probe: StageTimer, stages: dict[str, float],
                 calls: dict[str, int], refs: dict[str, tuple[float, str]], reference_views: int) -> dict[str, Any]:
     """Time the brute-force references of the stages that have one (see the module docstring)."""
     out: dict[str, Any] = {}
@@ -399,19 +306,14 @@ def _references(ep: Episode, state: StepState, timed: Decision, probe: Probe, st
     return out
 
 
-def _deltas(ctx: DecisionContext, batch: CandidateBatch) -> list[Any]:
+def _deltas(ctx: DecisionContext, batch: CandidateBatch) -> list[IGDelta]:
     """The IG deltas of a manipulation batch (as the ``ig`` term computes them)."""
-    from msmem_core.map.belief import DeltaBeliefs
-
     assert batch.prediction is not None
-    beliefs = batch.prediction.beliefs
-    if isinstance(beliefs, DeltaBeliefs) and beliefs.base is ctx.belief:
-        return [ctx.ig.belief_delta(ctx.field, d) for d in beliefs.deltas]
-    return [ctx.ig.field_delta(ctx.field, ctx.ig.prepare(b)) for b in beliefs]
+    return [ctx.ig.belief_delta(ctx.field, d) for d in batch.prediction.changes]
 
 
-def _agreement(ep: Episode, state: StepState, beliefs: int, views: int, seed: int,
-               first: tuple[Decision, Probe]) -> dict[str, int]:
+def _agreement(ep: Episode, state: EpisodeState, beliefs: int, views: int, seed: int,
+               first: tuple[Decision, StageTimer]) -> dict[str, int]:
     """How often the approximations change the chosen action (default vs unscreened vs fully exact)."""
     unscreened = objective_with(ep, screen_ray_step=1)
     exact_ig = IGService(ep.ig.grid, ep.cfg.camera, ep.viewpoints, ep.scene.shelf,
@@ -421,11 +323,8 @@ def _agreement(ep: Episode, state: StepState, beliefs: int, views: int, seed: in
         if b == 0:
             st, (d, probe) = state, first
         else:
-            st, probe = mid_episode_state(ep, views, seed + b), Probe()
-            ctx = _context(ep, st.belief, st.visited, st.step, True, 0)
-            skills = clone_skills(st.skills)
-            with probed(probe, skills, ep.objective, ep.ig):
-                d = decide(ctx, skills, ep.objective)
+            st, probe = mid_episode_state(ep, views, seed + b), StageTimer()
+            d = _decide(ep, st, tracer=probe)
         d_uns = _decide(ep, st, unscreened)
         d_exact = _decide(ep, st, unscreened, exact_ig)
         counts["beliefs"] += 1
@@ -433,8 +332,8 @@ def _agreement(ep: Episode, state: StepState, beliefs: int, views: int, seed: in
         counts["same_as_exact"] += _same(d, d_exact)
         if "push" in probe.batches:
             _, batch = probe.batches["push"]
-            i_exact = unscreened.best(_context(ep, st.belief, st.visited, st.step, True, 0), batch)[0]
-            i_screened = ep.objective.best(_context(ep, st.belief, st.visited, st.step, True, 0), batch)[0]
+            i_exact = unscreened.best(decision_context(ep, st.belief, st.visited, st.step), batch)[0]
+            i_screened = ep.objective.best(decision_context(ep, st.belief, st.visited, st.step), batch)[0]
             counts["push_batches"] += 1
             counts["push_best_differs"] += int(i_exact != i_screened)
     return counts
@@ -443,5 +342,4 @@ def _agreement(ep: Episode, state: StepState, beliefs: int, views: int, seed: in
 def is_valid_action(action: Action, num_views: int) -> bool:
     """A decision's action survives a JSON round trip through its own model and names a real view."""
     again = type(action).model_validate_json(action.model_dump_json())
-    view = getattr(action, "view", None)
-    return again == action and (view is None or 0 <= int(view) < num_views)
+    return again == action and (not isinstance(action, PerceptionAction) or 0 <= action.view < num_views)

@@ -19,6 +19,7 @@ from msmem_core.plugins.hookspec import hookimpl, hookspec
 from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager, get_plugin_manager
 from msmem_core.plugins.types import (
     BeliefModelSpec,
+    CommandSpec,
     ObjectiveTermSpec,
     SimulatorSpec,
     SkillSpec,
@@ -27,6 +28,7 @@ from msmem_core.plugins.types import (
 
 __all__ = [
     "BeliefModelSpec",
+    "CommandSpec",
     "ComponentRef",
     "MsmemPluginManager",
     "ObjectiveTermSpec",

@@ -6,7 +6,7 @@ from collections.abc import Iterable
 
 import pluggy
 
-from msmem_core.plugins.types import BeliefModelSpec, ObjectiveTermSpec, SimulatorSpec, SkillSpec
+from msmem_core.plugins.types import BeliefModelSpec, CommandSpec, ObjectiveTermSpec, SimulatorSpec, SkillSpec
 
 PROJECT = "msmem"
 hookspec = pluggy.HookspecMarker(PROJECT)
@@ -61,5 +61,20 @@ class MsmemSpecs:
                 yield ObjectiveTermSpec(name="travel-cost", factory=TravelCost,
                                         config_model=TravelCostConfig,
                                         description="Penalise long gripper paths")
+        """
+        yield from ()
+
+    @hookspec
+    def msmem_commands(self) -> Iterable[CommandSpec]:
+        """Register command-line commands (``msmem [GROUP] NAME``), e.g.::
+
+            @hookimpl
+            def msmem_commands():
+                yield CommandSpec(name="nudge", action=datagen_nudge, group="datagen",
+                                  summary="Training data for the nudge effect model")
+
+        ``action`` is a function with typer-annotated parameters (or a ``typer.Typer`` group); import
+        heavy modules inside its body, so that ``msmem --help`` stays fast. A hook that raises is
+        reported by plugin name and the rest of the command line still works.
         """
         yield from ()

@@ -16,7 +16,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from msmem_core.errors import PluginError
 from msmem_core.plugins.hookspec import PROJECT, MsmemSpecs
-from msmem_core.plugins.types import BeliefModelSpec, ObjectiveTermSpec, SimulatorSpec, SkillSpec, _Spec
+from msmem_core.plugins.types import (
+    BeliefModelSpec,
+    CommandSpec,
+    ObjectiveTermSpec,
+    SimulatorSpec,
+    SkillSpec,
+    _Spec,
+)
 
 ENTRY_POINT_GROUP = "msmem"
 BUILTIN_DISTRIBUTION = "msmem"
@@ -53,6 +60,15 @@ class Registered:
     distribution: str
 
 
+@dataclass(frozen=True)
+class RegisteredCommand:
+    """A command spec with the plugin and distribution it came from."""
+
+    spec: CommandSpec
+    plugin: str
+    distribution: str
+
+
 def _flag(name: str) -> bool:
     return os.environ.get(name, "").strip().lower() not in ("", "0", "false", "no")
 
@@ -67,7 +83,10 @@ class MsmemPluginManager(pluggy.PluginManager):
         """Plugin name -> distribution that provided it."""
         self.load_errors: dict[str, str] = {}
         """Plugin name -> why it failed to load."""
+        self.command_errors: dict[str, str] = {}
+        """Plugin name -> why its ``msmem_commands`` hook failed (its commands are left out)."""
         self._cache: dict[str, dict[str, Registered]] = {}
+        self._commands: list[RegisteredCommand] | None = None
         if _flag("MSMEM_TRACE_PLUGINS"):
             self.trace.root.setwriter(lambda s: print(s, end="", file=sys.stderr))
             self.enable_tracing()
@@ -81,6 +100,7 @@ class MsmemPluginManager(pluggy.PluginManager):
             raise PluginError(f"plugin {name!r} from {distribution} is invalid: {e}") from e
         self.distributions[name] = distribution
         self._cache.clear()
+        self._commands = None
 
     def _load_one(self, name: str, target: str, distribution: str, loader: Any) -> None:
         if self.is_blocked(name) or self.has_plugin(name):
@@ -176,6 +196,46 @@ class MsmemPluginManager(pluggy.PluginManager):
 
     def objective_terms(self) -> dict[str, ObjectiveTermSpec]:
         return {n: r.spec for n, r in self.registered("objective-term").items()}  # type: ignore[misc]
+
+    def commands(self) -> list[RegisteredCommand]:
+        """Every plugin's command specs, in registration order.
+
+        A plugin whose ``msmem_commands`` hook raises, or yields something that is not a
+        ``CommandSpec``, is named in a ``PluginLoadWarning`` and in ``command_errors``; its commands are
+        left out and everyone else's kept (a broken plugin must not take the command line down). A
+        command registered twice at the same place keeps the first, with a warning naming both plugins.
+        """
+        if self._commands is not None:
+            return self._commands
+        out: dict[str, RegisteredCommand] = {}
+        trace = _flag("MSMEM_TRACE_PLUGINS")
+        for impl in reversed(self.hook.msmem_commands.get_hookimpls()):  # registration order
+            plugin = impl.plugin_name
+            dist = self.distributions.get(plugin, "?")
+            try:
+                result: Any = impl.function()
+                specs = list(result or ())
+                for spec in specs:
+                    if not isinstance(spec, CommandSpec):
+                        raise PluginError(f"msmem_commands() must yield CommandSpec records, got {spec!r}")
+            except Exception as e:  # a broken plugin must not take the command line down
+                self.command_errors[plugin] = f"{type(e).__name__}: {e}"
+                warnings.warn(f"msmem plugin {plugin!r} (from {dist}): its msmem_commands hook failed, its commands "
+                              f"are left out: {type(e).__name__}: {e}", PluginLoadWarning, stacklevel=2)
+                continue
+            if trace:
+                names = ", ".join(s.path for s in specs)
+                print(f"msmem: msmem_commands() -> {plugin} ({dist}): {names}", file=sys.stderr)
+            for spec in specs:
+                if spec.path in out:
+                    other = out[spec.path]
+                    warnings.warn(f"command 'msmem {spec.path}' is registered twice: by plugin {other.plugin!r} "
+                                  f"from {other.distribution} (kept) and by plugin {plugin!r} from {dist} (left out)",
+                                  PluginLoadWarning, stacklevel=2)
+                    continue
+                out[spec.path] = RegisteredCommand(spec, plugin, dist)
+        self._commands = list(out.values())
+        return self._commands
 
     # ------------------------------------------------------------------------------------ building
     def build(self, kind: str, ref: ComponentRef | str, where: str | None = None, **extra: Any) -> Any:

@@ -9,9 +9,10 @@ its own result file atomically, so a killed run resumes by skipping finished tas
 - ``ray``: ``ray.remote`` tasks (one CPU each), at most ``workers`` in flight; connects to a running
   cluster if ``ray.init`` was called (or ``RAY_ADDRESS`` is set), else starts a local one.
 
-Every worker limits torch / numba / OpenMP to ``threads`` threads before it runs a task, so results do
-not depend on where a task ran (DESIGN.md, "Scale and speed"). A task that raises does not stop the
-others: it comes back as a :class:`TaskFailure` (or, with ``on_error="raise"``, the first one raises).
+Every worker applies ``configure_threads`` (the OpenMP settings, ``msmem_core.util.threads``) and limits
+torch / numba / OpenMP to ``threads`` threads before it runs a task, so results do not depend on where a
+task ran (DESIGN.md, "Scale and speed"). A task that raises does not stop the others: it comes back as
+a :class:`TaskFailure` (or, with ``on_error="raise"``, the first one raises).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from typing import Any, Literal
 
 from msmem_core.errors import UserError
 from msmem_core.util.progress import progress_bar
+from msmem_core.util.threads import configure_threads
 
 EXECUTORS = ("local", "ray")
 ExecutorName = Literal["local", "ray"]
@@ -94,6 +96,7 @@ def _call(fn: Callable[[Any], Any], index: int, task: Any, threads: int | None) 
 def _worker_init(threads: int | None) -> None:
     from msmem_core.util.malloc import keep_large_allocations
 
+    configure_threads()  # before a task imports torch or numba (also inherited from the parent, if it called it)
     keep_large_allocations()
     if threads is not None:  # before any task imports numba/torch, so the env vars take effect too
         limit_threads(threads)
@@ -131,7 +134,8 @@ def _iter_ray(
             ray.init(address=os.environ["RAY_ADDRESS"], log_to_driver=False)
         else:
             ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
-    remote = ray.remote(num_cpus=1)(_call)
+    # Ray's workers may not share this process's environment (a cluster started elsewhere): pass the settings
+    remote = ray.remote(num_cpus=1, runtime_env={"env_vars": configure_threads()})(_call)
     queue = list(enumerate(tasks))[::-1]
     in_flight: dict[Any, int] = {}
     while queue or in_flight:

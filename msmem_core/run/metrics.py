@@ -38,7 +38,7 @@ def occupancy_iou(
 
 
 def observable_iou(pred_occ: NDArray[np.bool_], gt_occ: NDArray[np.bool_], observable: NDArray[np.bool_]) -> float:
-    """Occupancy IoU restricted to the observable voxels (``groundtruth.observable_mask``).
+    """Occupancy IoU restricted to the observable voxels (``visibility.observable_mask``).
 
     The mask drops only self-occluded object interiors, which no method can observe, so the
     score is comparable across methods on the same scene.
@@ -320,7 +320,7 @@ def object_counts(
     """The paper's Table II object counts: correctly found, misclassified, not found, hallucinated.
 
     Inputs: predicted occupancy (bool) and class (0 = background) per voxel, the ground-truth
-    instance grid of ``groundtruth.voxelize_instances`` (object id per voxel, -1 = free; a voxel two
+    instance grid of ``voxelize.voxelize_instances`` (object id per voxel, -1 = free; a voxel two
     objects share belongs to one of them) over the objects still in the shelf, and the true class of
     each of those objects (``gt_instance_classes``: object id -> class id; every id in the grid must
     be a key). ``exclude`` (e.g. the shelf walls) marks voxels ignored on both sides.

@@ -27,18 +27,15 @@ import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.run.runfolder import RunData, load_run
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import CLASS_NAMES
-
-if TYPE_CHECKING:
-    from msmem_core.config import RunConfig
-    from msmem_core.world.scene import SceneSpec
 
 CLASS_COLORS: tuple[str, ...] = (
     "#b0b0b0", "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
@@ -53,92 +50,6 @@ METRIC_KEYS = ("occupancy_iou", "observable_iou", "semantic_miou", "semantic_mio
 PAPER_METRIC_KEYS = ("occupancy_miou", "semantic_miou_2d")
 """The paper's own mIoUs (docs/concepts.md), drawn dashed beside METRIC_KEYS; runs from before them lack them."""
 PAPER_SUMMARY_KEYS = (*PAPER_METRIC_KEYS, "occupancy_ece", "semantic_ece")
-
-
-# ------------------------------------------------------------------------------------ run folder files
-def save_snapshot(
-    path: str | Path, belief: EvidentialMap, gt_occ: NDArray[np.bool_], gt_cls: NDArray[np.integer]
-) -> None:
-    """Belief (float16 evidence, readable by ``EvidentialMap.load``) and ground truth after one step.
-    Evidence above float16's largest value (65504, reached by ``cnabu-observe`` over long episodes) is
-    stored as that value: the expected probabilities it implies differ by less than 1e-4."""
-    def half(x: NDArray[np.floating]) -> NDArray[np.float16]:
-        return np.minimum(x, np.finfo(np.float16).max).astype(np.float16)
-
-    np.savez_compressed(
-        path, grid=np.array(belief.grid.model_dump_json()), alpha=half(belief.alpha),
-        beta=half(belief.beta), eta=half(belief.eta),
-        gt_occ=np.asarray(gt_occ, dtype=bool), gt_cls=np.asarray(gt_cls, dtype=np.int8),
-    )
-
-
-def save_ground_truth(path: str | Path, grid: GridSpec, occ: NDArray[np.bool_], cls: NDArray[np.integer]) -> None:
-    """Ground-truth occupancy (bool) and class id (int8, 0 = free) per voxel."""
-    np.savez_compressed(path, grid=np.array(grid.model_dump_json()), occupancy=np.asarray(occ, dtype=bool),
-                        classes=np.asarray(cls, dtype=np.int8))
-
-
-def load_ground_truth(path: str | Path) -> tuple[GridSpec, NDArray[np.bool_], NDArray[np.int8]]:
-    with np.load(path) as f:
-        return GridSpec.model_validate(json.loads(str(f["grid"]))), f["occupancy"], f["classes"]
-
-
-@dataclass
-class Snapshot:
-    """The belief and ground truth after one step."""
-
-    step: int
-    belief: EvidentialMap
-    gt_occ: NDArray[np.bool_]
-    gt_cls: NDArray[np.integer]
-    label: str = ""
-
-
-@dataclass
-class RunData:
-    """A run folder, read."""
-
-    run_dir: Path
-    config: RunConfig
-    scene: SceneSpec
-    steps: list[dict[str, Any]]
-    metrics: dict[str, Any]
-    snapshots: list[Snapshot] = field(default_factory=list)
-
-    @property
-    def final(self) -> Snapshot:
-        return self.snapshots[-1]
-
-
-def load_run(run_dir: str | Path) -> RunData:
-    """Read a run folder; a missing snapshot falls back to the final belief and ground truth."""
-    from msmem_core.config import RunConfig
-    from msmem_core.errors import UserError
-    from msmem_core.world.scene import SceneSpec
-
-    d = Path(run_dir)
-    for name in ("config.json", "scene.json", "steps.jsonl", "belief_final.npz"):
-        if not (d / name).is_file():
-            raise UserError(f"{d} is not a complete run folder: {name} is missing")
-    config = RunConfig.model_validate_json((d / "config.json").read_text())
-    scene = SceneSpec.from_json(d / "scene.json")
-    steps = [json.loads(line) for line in (d / "steps.jsonl").read_text().splitlines() if line.strip()]
-    metrics = json.loads((d / "metrics.json").read_text()) if (d / "metrics.json").is_file() else {}
-    snaps: list[Snapshot] = []
-    for p in sorted(d.glob("belief_step*.npz"), key=lambda q: int(q.stem.removeprefix("belief_step"))):
-        step = int(p.stem.removeprefix("belief_step"))
-        with np.load(p) as f:
-            gt_occ, gt_cls = f["gt_occ"], f["gt_cls"]
-        snaps.append(Snapshot(step, EvidentialMap.load(p), gt_occ, gt_cls, f"after step {step}"))
-    last = len(steps) - 1
-    if not snaps or snaps[-1].step != last:
-        final = EvidentialMap.load(d / "belief_final.npz")
-        if (d / "gt_final.npz").is_file():
-            _, occ, cls = load_ground_truth(d / "gt_final.npz")
-        else:
-            occ, cls = np.zeros(final.grid.shape, bool), np.zeros(final.grid.shape, np.int8)
-        snaps.append(Snapshot(last, final, occ, cls, f"final (after step {last})"))
-    return RunData(d, config, scene, steps, metrics, snaps)
 
 
 # --------------------------------------------------------------------------------------- geometry

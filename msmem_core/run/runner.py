@@ -2,7 +2,7 @@
 
 Run folder: ``config.json`` (resolved), ``scene.json``, ``steps.jsonl`` (one record per step),
 ``metrics.json`` (final metrics and action counts), ``belief_final.npz``, and for the run report
-(``msmem_core.run.report``) ``belief_step{N}.npz`` (float16 belief and ground truth after the steps of
+(``msmem_core.run.runfolder``) ``belief_step{N}.npz`` (float16 belief and ground truth after the steps of
 ``RunConfig.snapshot_steps``) and ``gt_final.npz`` (final ground-truth occupancy and classes).
 """
 
@@ -18,12 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from msmem_core.map.belief import EvidentialMap
 from msmem_core.config import RunConfig
 from msmem_core.errors import PluginError
-from msmem_core.world.groundtruth import observable_mask, voxelize_instances
+from msmem_core.interfaces import EffectModel, ObservationModel, Outcome, Simulator, Workspace
+from msmem_core.map.belief import EvidentialMap
 from msmem_core.map.ig import IGService, shelf_interior_mask, shelf_wall_mask
-from msmem_core.interfaces import EffectModel, ObservationModel, Outcome, Simulator
+from msmem_core.msas import BoundSkill, Decision, Objective, run_msas
+from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager
 from msmem_core.run.metrics import (
     object_counts,
     observable_iou,
@@ -35,16 +36,19 @@ from msmem_core.run.metrics import (
     semantic_miou,
     semantic_miou_bev,
 )
-from msmem_core.msas import BoundSkill, Decision, DecisionContext, Objective, run_msas
-from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager
-from msmem_core.run.report import save_ground_truth, save_snapshot
+from msmem_core.run.runfolder import save_ground_truth, save_snapshot
+from msmem_core.util.threads import configure_threads
+from msmem_core.util.trace import Tracer
 from msmem_core.world.scene import SceneSpec
 from msmem_core.world.scenegen import generate_scene
 from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
+from msmem_core.world.visibility import observable_mask
+from msmem_core.world.voxelize import voxelize_instances
 
 
 def set_threads(n: int) -> None:
     """Per-episode thread counts, so results do not depend on where an episode runs."""
+    configure_threads()  # before numba.set_num_threads starts numba's threading layer
     os.environ.setdefault("OMP_NUM_THREADS", str(n))
     import numba
     import torch
@@ -73,8 +77,20 @@ class Episode:
     viewpoints: np.ndarray
     records: list[dict[str, Any]] = field(default_factory=list)
 
+    @property
+    def workspace(self) -> Workspace:
+        """The grid, shelf and gripper every skill, effect model and term of the episode works in."""
+        return Workspace(self.ig.grid, self.scene.shelf, self.cfg.gripper)
+
+    @property
+    def start_view(self) -> int:
+        """The viewpoint of the episode's first observation."""
+        start = self.cfg.msas.start_view
+        return start if start is not None else default_start_view(self.cfg.viewpoints)
+
 
 def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | None = None) -> Episode:
+    configure_threads()  # before the plugins built here load torch
     # run-wide values a component receives for config fields the user left unset
     common = {"camera": cfg.camera, "gripper": cfg.gripper, "seed": cfg.seed}
     observe_model = pm.build("belief-model", cfg.observation_model, where="observation_model", **common)
@@ -119,7 +135,7 @@ class MetricTracker:
 
     Besides the IoUs and Position Change, every step reports the paper's Table II object counts
     (``metrics.object_counts``: ``correctly_found``, ``misclassified``, ``not_found``,
-    ``hallucinated``; 5-15 ms on the default grid) over the objects still in the shelf, and
+    ``hallucinated``; docs/concepts.md) over the objects still in the shelf, and
     ``removed``: objects of the scene no longer in the shelf (grasped out, or pushed or fallen out so
     that none of their voxels is left in the shelf interior), which the four counts leave out.
 
@@ -178,17 +194,16 @@ class MetricTracker:
         }
 
 
-def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None) -> dict[str, Any]:
-    """Run MSAS for ``cfg.steps`` actions; returns the final metrics (and writes the run folder)."""
+def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
+                tracer: Tracer | None = None) -> dict[str, Any]:
+    """Run MSAS for ``cfg.steps`` actions; returns the final metrics (and writes the run folder).
+    ``tracer`` observes every stage of every step (``msmem_core.util.trace``)."""
     cfg = ep.cfg
     set_threads(cfg.threads)
-    rng = np.random.default_rng(cfg.seed)
     ep.sim.reset(ep.scene)
     metrics = MetricTracker(ep)
     grid = ep.ig.grid
-    start = cfg.msas.start_view if cfg.msas.start_view is not None else default_start_view(cfg.viewpoints)
-    belief = ep.observe_model.update(EvidentialMap.empty(grid), ep.sim.observe(ep.viewpoints[start]))
-    initial = metrics(belief)
+    initial: dict[str, float] = {}
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "config.json").write_text(cfg.model_dump_json(indent=2))
@@ -196,19 +211,20 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None) 
         steps_file = (out_dir / "steps.jsonl").open("w")
     counts: Counter[str] = Counter()
     snapshot_steps = set(cfg.snapshot_steps())
-    t_last = time.perf_counter()
+    t0 = t_last = time.perf_counter()
 
-    def make_ctx(step: int, b: EvidentialMap, visited: set[int], allowed: bool) -> DecisionContext:
-        return DecisionContext(step, b, ep.ig, ep.viewpoints, visited | ({start} if step == 0 else set()), grid,
-                               ep.scene.shelf, cfg.gripper, rng, allowed, cfg.msas.tau_chi)
+    def on_start(b: EvidentialMap) -> None:  # after the start view: the steps are timed from here
+        nonlocal t0, t_last
+        initial.update(metrics(b))
+        t0 = t_last = time.perf_counter()
 
     def on_step(step: int, d: Decision, outcome: Outcome, b: EvidentialMap) -> None:
         nonlocal t_last
         now = time.perf_counter()
         m = metrics(b)
-        counts[d.skill] += 1
+        counts[d.skill.name] += 1
         rec = {
-            "step": step, "skill": d.skill, "action": d.action.model_dump(), "objective": d.value,
+            "step": step, "skill": d.skill.name, "action": d.action.model_dump(), "objective": d.value,
             "terms": d.terms, "best_per_skill": d.best, "candidates": d.candidates,
             "success": outcome.success, "fell_or_left": outcome.fell_or_left, "info": outcome.info,
             "metrics": m, "seconds": now - t_last,
@@ -223,10 +239,9 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None) 
         if progress is not None:
             progress(rec)
 
-    t0 = time.perf_counter()
     try:
-        belief = run_msas(ep.sim, belief, ep.observe_model, ep.skills, ep.objective, make_ctx, cfg.msas, cfg.steps,
-                          on_step)
+        belief = run_msas(ep.sim, ep.observe_model, ep.skills, ep.objective, ep.ig, ep.workspace, cfg.msas, cfg.steps,
+                          ep.start_view, cfg.seed, on_step, on_start, tracer)
     finally:
         if out_dir is not None:
             steps_file.close()

@@ -17,8 +17,8 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from msmem_core.world.geometry import matrix_to_quat, pose_matrix, quat_angle, quat_to_matrix, rotation_vector, slerp
 from msmem_core.interfaces import Simulator
+from msmem_core.world.geometry import matrix_to_quat, pose_matrix, quat_angle, quat_to_matrix, rotation_vector, slerp
 from msmem_core.world.scene import SceneSpec
 
 FINGER_SPEED_MPS = 0.1

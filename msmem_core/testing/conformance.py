@@ -21,10 +21,10 @@ from collections.abc import Callable, Iterable
 import numpy as np
 from numpy.typing import NDArray
 
+from msmem_core.interfaces import GRIPPER_ID, Simulator
 from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.world.geometry import look_at, quat_to_matrix, rotation_angle_deg, yaw_quat
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.interfaces import GRIPPER_ID, Simulator
 from msmem_core.world.scene import ObjectSpec, SceneSpec, object_class
 
 PLACEMENT_TOL_M = 0.01

@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.interfaces import Capabilities, Contact, Simulator
+from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.world.scene import SceneSpec
 
 

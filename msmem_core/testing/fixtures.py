@@ -6,6 +6,12 @@ import pytest
 
 from msmem_core.plugins.manager import MsmemPluginManager, get_plugin_manager
 from msmem_core.testing.fake import FakeSimulator
+from msmem_core.util.threads import configure_threads
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Thread settings for test sessions that run episodes, before test modules import torch or numba."""
+    configure_threads()
 
 
 @pytest.fixture

@@ -155,6 +155,12 @@ class ShelfSpec(BaseModel):
     def interior_upper(self) -> NDArray[np.float64]:
         return np.array([self.width_m / 2, self.depth_m, self.height_m])
 
+    @property
+    def interior_box(self) -> tuple[float, float, float, float, float, float]:
+        """The interior as (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi)."""
+        lo, hi = self.interior_lower, self.interior_upper
+        return (float(lo[0]), float(lo[1]), float(lo[2]), float(hi[0]), float(hi[1]), float(hi[2]))
+
     def boards(self) -> list[tuple[NDArray[np.float64], NDArray[np.float64]]]:
         """(centre, half-extents) of the bottom, top, left, right and back boards."""
         w, d, h, t = self.width_m, self.depth_m, self.height_m, self.wall_m

@@ -14,7 +14,7 @@ short ones to the back (``front_bias``); the short ones are mostly small classes
 (``small_fill_probability``), and a small one goes, with ``hide_probability``, to the darkest
 spot found (ranked with point-visibility maps, the best few checked by exact ray counts, "plugs"
 behind the row's gaps block their sight lines). A scene is *hard* when at least
-``min_hidden`` objects are hidden from all viewpoints (``groundtruth.hidden_objects``); with
+``min_hidden`` objects are hidden from all viewpoints (``visibility.hidden_objects``); with
 ``require_hard`` the generator retries with sub-seeds derived from the seed until one is.
 Every random choice flows from the seed.
 """
@@ -30,19 +30,19 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from scipy.signal import fftconvolve
 from scipy.spatial import ConvexHull
 
-from msmem_core.world.camera import CameraConfig
 from msmem_core.errors import UserError
+from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import yaw_quat
-from msmem_core.world.groundtruth import (
+from msmem_core.world.meshes import part_mesh_local
+from msmem_core.world.scene import OBJECT_CLASSES, ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec
+from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
+from msmem_core.world.visibility import (
     MIN_VISIBLE_PIXELS,
     InsertionProbe,
     count_views_seeing,
     hidden_objects,
     object_pixel_counts,
 )
-from msmem_core.world.meshes import part_mesh_local
-from msmem_core.world.scene import OBJECT_CLASSES, ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec
-from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
 
 class SceneGenConfig(BaseModel):
@@ -501,7 +501,7 @@ def _place_objects(
 
 
 def _count_hidden(objects: list[ObjectSpec], cfg: SceneGenConfig, views: NDArray[np.float64]) -> int:
-    """Objects hidden from every view (``groundtruth.hidden_objects`` with the config's stride and threshold)."""
+    """Objects hidden from every view (``visibility.hidden_objects`` with the config's stride and threshold)."""
     return len(hidden_objects(objects, cfg.shelf, views, cfg.camera, cfg.visibility_stride, cfg.min_visible_pixels))
 
 

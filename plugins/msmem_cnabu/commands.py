@@ -1,21 +1,22 @@
-"""The ``msmem datagen cnabu``, ``msmem train cnabu`` and ``msmem eval belief-models`` commands.
+"""The ``msmem datagen cnabu``, ``msmem train cnabu`` and ``msmem eval belief-models`` commands
+(registered by ``plugin.msmem_commands``).
 
-``register(datagen_app, train_app, eval_app)`` adds them to msmem's typer groups (called by
-``msmem_core.cli.app`` when this package is installed). Importing this module is cheap (typer only);
-everything heavy is imported inside the command bodies.
+Importing this module is cheap (typer only); everything heavy is imported inside the command bodies.
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 
 from msmem_core.errors import UserError
+from msmem_core.plugins import CommandSpec
 
 KIND_HELP = "observe, push or grasp."
+SimOpt = Annotated[str, typer.Option("--sim", help="Simulator plugin name (e.g. pybullet, sapien).")]
 
 
 def _kind(kind: str) -> str:
@@ -38,24 +39,27 @@ def datagen_cnabu(
     samples: Annotated[int, typer.Option("--samples", help="observe: views recorded per scene.")] = 6,
     min_views: Annotated[int, typer.Option("--min-views", help="Random views before the first sample (min).")] = 1,
     max_views: Annotated[int, typer.Option("--max-views", help="Random views before the first sample (max).")] = 6,
+    sim: SimOpt = "pybullet",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
-    """CNABU training data: belief before, action, PyBullet ground truth after (sharded, resumable)."""
+    """CNABU training data: belief before, action, simulator ground truth after (sharded, resumable)."""
     from pydantic import ValidationError
 
     from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset
     from msmem_core.learn.datagen import seed_range
+    from msmem_core.plugins import ComponentRef
 
     kind = _kind(kind)
     seeds = seed_range(scenes, seed)
     try:
         cfg = CNABUDataConfig(kind=kind, voxel_m=voxel, states=states, actions_per_state=actions,
-                              observe_samples=samples, min_views=min_views, max_views=max_views)
+                              observe_samples=samples, min_views=min_views, max_views=max_views,
+                              simulator=ComponentRef(name=sim))
     except ValidationError as e:
         err = e.errors()[0]
         raise UserError(f"invalid option ({'.'.join(str(x) for x in err['loc']) or 'views'}): {err['msg']}") from e
     typer.echo(f"msmem datagen cnabu: {kind}, {scenes} scenes (seeds {seeds[0]}..{seeds[-1]}) -> {out}, "
-               f"{workers} worker(s), executor {executor}")
+               f"{workers} worker(s), executor {executor}, simulator {sim}")
     summary = generate_dataset(out, seeds, cfg, executor=executor, workers=workers, progress=not quiet,
                                log=lambda m: typer.echo(m, err=True))
     gen = summary.generated
@@ -119,18 +123,24 @@ def eval_belief_models(
     threshold_check: Annotated[int, typer.Option(
         "--threshold-check", help="push/grasp: also decide on this many mid-episode beliefs with the change "
                                   "threshold and with 0.05 and count different choices (0: skip).")] = 0,
+    sim: Annotated[str, typer.Option("--sim", help="Simulator plugin name (e.g. pybullet, sapien) of the "
+                                                   "simulate-and-remap timing and the episodes.")] = "pybullet",
 ) -> None:
     """NLL, Brier, ECE of learned vs analytic vs no-change beliefs against the real ground truth; speed."""
     from msmem_cnabu.evaluation import evaluate, format_table, threshold_agreement
 
     kind = _kind(kind)
+    if threshold_check > 0:  # fail before the metrics, not after them
+        from msmem_core.sim.build import check_simulator
+
+        check_simulator(sim)
     r = evaluate(kind, data, weights, change_threshold=change_threshold, timing=timing, candidates=candidates,
                  repeats=repeats, threads=threads, log=typer.echo, episodes=episodes,
-                 episode_steps=episode_steps)
+                 episode_steps=episode_steps, simulator=sim)
     typer.echo(format_table(r))
     if threshold_check > 0:
         r["threshold_agreement"] = threshold_agreement(kind, weights, (change_threshold, 0.05), threshold_check,
-                                                       threads=threads, log=typer.echo)
+                                                       threads=threads, log=typer.echo, simulator=sim)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(r, indent=2))
@@ -187,10 +197,16 @@ def eval_map(
         typer.echo(f"results: {json_out}")
 
 
-def register(datagen_app: Any, train_app: Any, eval_app: Any) -> None:
-    """Add the commands to msmem's ``datagen``, ``train`` and ``eval`` groups."""
-    datagen_app.command("cnabu")(datagen_cnabu)
-    train_app.command("cnabu")(train_cnabu)
-    eval_app.command("belief-models")(eval_belief_models)
-    train_app.command("cnabu-map")(train_cnabu_map)
-    eval_app.command("map")(eval_map)
+
+COMMANDS = (
+    CommandSpec(name="cnabu", action=datagen_cnabu, group="datagen",
+                summary="CNABU training data: belief before, action, ground truth after."),
+    CommandSpec(name="cnabu", action=train_cnabu, group="train",
+                summary="Train a CNABU network; keeps the best weights and a JSON sidecar."),
+    CommandSpec(name="belief-models", action=eval_belief_models, group="eval",
+                summary="Learned vs analytic vs no-change belief models: NLL, Brier, ECE, speed."),
+    CommandSpec(name="cnabu-map", action=train_cnabu_map, group="train",
+                summary="Train the whole-map observation network (cnabu-map) through rollouts of recorded views."),
+    CommandSpec(name="map", action=eval_map, group="eval",
+                summary="Rollouts of recorded views: cnabu-map against analytic-observation and column-fill."),
+)

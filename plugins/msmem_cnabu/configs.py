@@ -37,7 +37,7 @@ class CNABUEffectConfig(BaseModel):
     """A voxel changes where the predicted change probability exceeds this; elsewhere the prior is copied."""
     batch: int = Field(80, ge=1, le=1000)
     """Candidates per forward pass (80: all of a push skill's samples in one; larger batches are
-    faster per candidate, about 40 MB of working memory per 40 candidates)."""
+    faster per candidate and need more working memory: docs/cnabu.md)."""
     threads: int | None = Field(None, ge=1)
     """torch threads while predicting (None: leave the process's setting)."""
 

@@ -2,8 +2,9 @@
 
 Per scene seed (every random choice from ``np.random.default_rng([seed, kind])``, the scene and the
 simulator's segmentation noise from the seed): generate a shelf scene (``msmem_core.world.scenegen``),
-reset PyBullet, observe the episode's start view and ``min_views``-``max_views`` random views into an
-analytic belief (``msmem_analytic``), then by kind:
+reset the simulator (``simulator``, ``--sim``: any backend, built by the plugin manager), observe the
+episode's start view and ``min_views``-``max_views`` random views into an analytic belief
+(``msmem_analytic``), then by kind:
 
 - ``observe``: ``observe_samples`` times: a random unvisited view is rendered; its ray masks
   (free / occupied / class seen, ``AnalyticObservationModel.masks``) are the action; the belief
@@ -12,7 +13,7 @@ analytic belief (``msmem_analytic``), then by kind:
   belief (UPS sampler of ``msmem_push``; UGS of ``msmem_grasp`` with its FE-UMGF buffer, FE-vMF
   weights if installed, else its geometric fallback) and ``actions_per_state`` of them, drawn at
   random, are each executed under physics from a ``snapshot`` and the ground truth after it is
-  voxelised from the simulator's object poses (``groundtruth.voxelize``); then ``restore``.
+  voxelised from the simulator's object poses (``voxelize.voxelize``); then ``restore``.
   Between states one of the candidates is executed for real (the world changes, the belief keeps
   its now partly stale evidence as in an episode) and ``views_between`` more views are integrated.
 
@@ -51,8 +52,11 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from msmem_cnabu.network import KINDS, Kind, action_channel_counts
 from msmem_core.errors import UserError
+from msmem_core.interfaces import Workspace
 from msmem_core.learn import datagen
 from msmem_core.learn.datagen import DatagenSummary, ShardTask, read_manifest, read_npz, save_npz, shard_path
+from msmem_core.msas import execute_measured
+from msmem_core.plugins import ComponentRef
 from msmem_core.world.grid import GridSpec
 
 SHARD_VERSION = 1
@@ -67,7 +71,7 @@ class CNABUDataConfig(BaseModel):
     voxel_m: float = Field(0.01, gt=0.001, le=0.05)
     margin_voxels: int = Field(1, ge=1, le=10)
     require_hard: bool = False
-    """Hard scenes take ~10x longer to generate; random 30-45 % occupancy shelves are used."""
+    """Hard scenes instead of random 30-45 % occupancy shelves (slower to generate: docs/cnabu.md)."""
     min_views: int = Field(1, ge=0)
     max_views: int = Field(6, ge=0)
     """Random views integrated (after the start view) before the first sample."""
@@ -84,6 +88,9 @@ class CNABUDataConfig(BaseModel):
     """push/grasp: views integrated after the real action between two states (uniform, inclusive)."""
     label_noise: float = Field(0.05, ge=0.0, le=1.0)
     """The simulator's structured segmentation noise (its default)."""
+    simulator: ComponentRef = ComponentRef(name="pybullet")
+    """The backend the scenes are simulated in (``--sim``); its ``seed`` is the scene seed and its
+    ``label_noise`` the one above, unless ``params`` set them."""
 
     @model_validator(mode="after")
     def _views(self) -> CNABUDataConfig:
@@ -100,6 +107,10 @@ class ShardError(datagen.ShardError):
 
 
 # ------------------------------------------------------------------------------------------ shards
+_WORKSPACE_KEYS = ("interior_m", "tool", "gripper")
+"""Fields push and grasp actions had before the workspace came with the context instead."""
+
+
 @dataclass
 class CNABUShard:
     """One scene's samples (see the module docstring for the fields)."""
@@ -138,9 +149,20 @@ class CNABUShard:
         return EvidentialMap(self.grid, self.alpha[s].astype(np.float32), self.beta[s].astype(np.float32),
                              self.eta[s].astype(np.float32))
 
+    @property
+    def workspace(self) -> Workspace:
+        """The ``Workspace`` the samples were made in: the shard's grid, the shelf with its interior,
+        the default gripper (the skills datagen builds use it)."""
+        from msmem_core.world.scene import ShelfSpec
+
+        x_lo, _, _, x_hi, y_hi, z_hi = (float(v) for v in self.interior)
+        return Workspace(self.grid, ShelfSpec(width_m=x_hi - x_lo, depth_m=y_hi, height_m=z_hi))
+
     def action(self, i: int) -> Any:
         """Sample ``i``'s action as the skill's pydantic model (push / grasp) or a dict (observe)."""
         data = json.loads(str(self.actions[i]))
+        for key in _WORKSPACE_KEYS:  # carried by the actions of shards made before they stopped doing so
+            data.pop(key, None)
         if self.kind == "push":
             from msmem_push.skill import PushAction
 
@@ -285,7 +307,7 @@ class _Recorder:
 
 
 def _ground_truth(sim: Any, scene: Any, grid: GridSpec) -> tuple[NDArray[np.bool_], NDArray[np.int16]]:
-    from msmem_core.world.groundtruth import voxelize
+    from msmem_core.world.voxelize import voxelize
 
     poses = sim.object_poses()
     objects = {o.id: o for o in scene.objects}
@@ -295,9 +317,9 @@ def _ground_truth(sim: Any, scene: Any, grid: GridSpec) -> tuple[NDArray[np.bool
 def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
     """Simulate one scene and record its samples (see the module docstring)."""
     from msmem_analytic.observation import AnalyticObservationModel
-    from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
 
     from msmem_core.map.belief import EvidentialMap
+    from msmem_core.sim.build import build_simulator
     from msmem_core.world.scenegen import SceneGenConfig, generate_scene
     from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 
@@ -310,7 +332,7 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
     vp_cfg = ViewpointConfig()
     viewpoints = generate_viewpoints(vp_cfg, scene.shelf)
     model = AnalyticObservationModel()
-    sim = PyBulletSimulator(PyBulletConfig(seed=seed, label_noise=cfg.label_noise))
+    sim = build_simulator(cfg.simulator, seed=seed, label_noise=cfg.label_noise)
     rec = _Recorder()
     visited: list[int] = []
     t_sim = 0.0
@@ -344,7 +366,8 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
                 visited.append(v)
         else:
             skill = _skill(cfg.kind, seed)
-            ctx = SimpleNamespace(shelf=scene.shelf)
+            ctx = SimpleNamespace(shelf=scene.shelf)  # what a skill's execute reads of a DecisionContext
+            workspace = Workspace(grid, scene.shelf)
             step = 0
             for state_i in range(cfg.states):
                 actions: list[Any] = []
@@ -361,17 +384,17 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
                     from msmem_cnabu.features import manipulation_channels
 
                     chosen = [actions[int(i)] for i in pick]
-                    vox, scalars, _ = manipulation_channels(cfg.kind, belief, chosen)
+                    vox, scalars, _ = manipulation_channels(cfg.kind, belief, chosen, workspace)
                     for a, av, sc in zip(chosen, vox, scalars, strict=True):
                         token = sim.snapshot()
                         t0 = time.perf_counter()
-                        out = skill.execute(sim, a, ctx)
+                        out = execute_measured(skill, sim, a, ctx)
                         t_sim += time.perf_counter() - t0
                         rec.sample(s, av, sc, _ground_truth(sim, scene, grid), a.model_dump_json(), bool(out.success),
                                    len(out.info.get("moved", [])))
                         sim.restore(token)
                     if state_i + 1 < cfg.states:  # the world moves on: one candidate for real
-                        skill.execute(sim, actions[int(rng.integers(len(actions)))], ctx)
+                        skill.execute(sim, actions[int(rng.integers(len(actions)))], ctx)  # the world moves on
                 if state_i + 1 < cfg.states:
                     lo_v, hi_v = cfg.views_between
                     belief = look(belief, fresh_views(int(rng.integers(lo_v, hi_v + 1))))
@@ -428,11 +451,15 @@ def generate_dataset(
     log: Callable[[str], None] = print,
 ) -> DatagenSummary:
     """Make the shards of ``seeds`` in ``out_dir`` that are missing (or corrupt), in parallel."""
+    from msmem_core.sim.build import check_simulator
+
     out = Path(out_dir)
     old = read_manifest(out)
     if old is not None and old.get("config", {}).get("kind") not in (None, config.kind):
         raise UserError(f"{out} already holds {old['config']['kind']!r} data (see {out / datagen.MANIFEST}); "
                         f"use another --out for {config.kind!r}")
+    datagen.check_same_simulator(out, old, config.simulator)
+    check_simulator(config.simulator, label_noise=config.label_noise)  # a bad --sim fails before any worker
 
     def check(path: Path) -> None:
         if load_shard(path).kind != config.kind:

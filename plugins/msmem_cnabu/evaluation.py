@@ -20,10 +20,13 @@ voxels, dilated by one voxel, without the boards: where the models differ).
 
 Timing (push, grasp): the learned model and the twin predict ``candidates`` candidates (the first
 held-out state's actions, repeated) in one call, best of ``repeats``; simulate-and-remap of one
-candidate = PyBullet snapshot, execute the action under physics, re-observe from the state's last
+candidate = simulator snapshot, execute the action under physics, re-observe from the state's last
 view, integrate it (analytic update), restore; mean over ``repeats`` candidates on the shard's
 scene. Speed-up = simulate-and-remap of one candidate / learned prediction time per candidate (and
 per the whole batch). Observe: learned vs analytic update time per view on the same masks.
+
+The simulator is the one named by ``simulator`` (``--sim``, default ``pybullet``), built by the
+plugin manager; the closed-loop episodes (observe) and ``threshold_agreement`` run on it too.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from numpy.typing import NDArray
 from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard
 from msmem_cnabu.features import dilate, grid_interior, wall_mask
 from msmem_core.errors import UserError
+from msmem_core.plugins import ComponentRef
 
 BINS = 15
 MODELS = ("learned", "analytic", "no-change")
@@ -149,8 +153,8 @@ def _predict_state(kind: str, learned: Any, twin: Any, shard: CNABUShard, sample
             "analytic": [twin.update(belief, shard.masks(i)) for i in samples],
         }
     actions = [shard.action(i) for i in samples]
-    return {"learned": list(learned.predict(belief, actions).beliefs),
-            "analytic": list(twin.predict(belief, actions).beliefs)}
+    return {"learned": list(learned.predict(belief, actions, shard.workspace).beliefs),
+            "analytic": list(twin.predict(belief, actions, shard.workspace).beliefs)}
 
 
 def evaluate(
@@ -165,11 +169,17 @@ def evaluate(
     log: Callable[[str], None] = print,
     episodes: int = 2,
     episode_steps: int = 40,
+    simulator: str | ComponentRef = "pybullet",
 ) -> dict[str, Any]:
     """All metrics (see the module docstring) as a JSON-able dict. observe: also the rollout of each
     scene's recorded views and, with ``episodes`` > 0, closed-loop view-only episodes of
     ``episode_steps`` on generated scenes 10000, 10001, ... (``episode_nll``), whose NLL then decides
-    ``better_nll`` (else the rollout's)."""
+    ``better_nll`` (else the rollout's). ``simulator``: the backend of the timing and the episodes."""
+    sim = _sim_ref(simulator)
+    if (kind == "observe" and episodes > 0) or (kind != "observe" and timing):
+        from msmem_core.sim.build import check_simulator
+
+        check_simulator(sim)  # a bad --sim fails now, not after the metrics
     torch.set_num_threads(threads)
     paths = list_shards(data_dir, kind)
     learned, twin = build_models(kind, Path(weights) if weights is not None else None, change_threshold)
@@ -207,7 +217,7 @@ def evaluate(
     result: dict[str, Any] = {
         "kind": kind, "data": str(data_dir), "scenes": n_scenes, "samples": n_samples,
         "weights": str(learned.meta.get("weights")), "weights_sha256": learned.meta.get("sha256"),
-        "change_threshold": change_threshold,
+        "change_threshold": change_threshold, "simulator": sim.model_dump(),
         "metrics": {m: {r: cal[m][r].result() for r in REGIONS} for m in MODELS},
         "changed_voxels_per_sample": {m: changed[m] / max(n_samples, 1) for m in MODELS},
     }
@@ -221,11 +231,11 @@ def evaluate(
         judged = result["rollout"]
         if episodes > 0:  # closed loop: the MSAS chooses the views on the model's own belief
             judged = result["episodes"] = episode_nll(weights, tuple(range(10000, 10000 + episodes)),
-                                                      episode_steps, log=log)
+                                                      episode_steps, log=log, simulator=sim)
         r_nll = {m: judged["metrics"][m]["occ_nll"] + judged["metrics"][m]["sem_nll"] for m in ("learned", "analytic")}
         result["better_nll"] = min(r_nll, key=r_nll.__getitem__)
     if timing:
-        result["timing"] = time_models(kind, learned, twin, first, candidates, repeats, log)
+        result["timing"] = time_models(kind, learned, twin, first, candidates, repeats, log, sim)
     return result
 
 
@@ -262,12 +272,14 @@ def episode_nll(
     steps: int = 40,
     method: str = "view-only",
     log: Callable[[str], None] = print,
+    simulator: str | ComponentRef = "pybullet",
 ) -> dict[str, Any]:
     """observe, closed loop: ``method`` episodes of ``steps`` actions on generated scenes (``scene_seeds``:
     10000 and up, never used for training data) with the learned and with the analytic observation
     model, each integrating every view into its own belief and the MSAS choosing the views on it, as
     ``msmem run`` does; calibration of the final belief against the final ground truth (all voxels
-    but the boards), pooled over the scenes, plus the episodes' own metrics."""
+    but the boards), pooled over the scenes, plus the episodes' own metrics. The episodes run on
+    ``simulator`` (``msmem_core.run.runner``)."""
     import tempfile
 
     from msmem_core.config import load_config
@@ -275,6 +287,7 @@ def episode_nll(
     from msmem_core.plugins.manager import get_plugin_manager
     from msmem_core.run.runner import build_episode, run_episode
 
+    sim = _sim_ref(simulator).model_dump()
     models = {"learned": {"name": "cnabu-observe", "params": {} if weights is None else {"weights": str(weights)}},
               "analytic": {"name": "analytic-observation"}}
     cal = {m: Calibration() for m in models}
@@ -282,7 +295,7 @@ def episode_nll(
     for seed in scene_seeds:
         for m, ref in models.items():
             cfg = load_config(method, None, {"scene": {"seed": seed, "file": None}, "steps": steps,
-                                             "observation_model": ref})
+                                             "observation_model": ref, "simulator": sim})
             ep = build_episode(cfg, get_plugin_manager())
             with tempfile.TemporaryDirectory() as tmp:
                 final = run_episode(ep, Path(tmp))
@@ -298,6 +311,10 @@ def episode_nll(
             "metrics": {m: cal[m].result() for m in models}, "episodes": episodes}
 
 
+def _sim_ref(simulator: str | ComponentRef) -> ComponentRef:
+    return ComponentRef(name=simulator) if isinstance(simulator, str) else simulator
+
+
 def _best_of(fn: Callable[[], Any], repeats: int) -> float:
     best = np.inf
     for _ in range(max(1, repeats)):
@@ -308,7 +325,7 @@ def _best_of(fn: Callable[[], Any], repeats: int) -> float:
 
 
 def time_models(kind: str, learned: Any, twin: Any, shard: CNABUShard, candidates: int, repeats: int,
-                log: Callable[[str], None] = print) -> dict[str, Any]:
+                log: Callable[[str], None] = print, simulator: str | ComponentRef = "pybullet") -> dict[str, Any]:
     """Prediction times of the learned model and its twin, and simulate-and-remap (see the module docstring)."""
     s = int(shard.state[0])
     samples = [int(i) for i in np.flatnonzero(shard.state == s)]
@@ -320,10 +337,12 @@ def time_models(kind: str, learned: Any, twin: Any, shard: CNABUShard, candidate
         return {"learned_update_s": t_l, "analytic_update_s": t_a, "speedup_vs_analytic": t_a / t_l,
                 "note": "both need the view's ray masks (the same traversal), not included"}
     actions = [shard.action(samples[j % len(samples)]) for j in range(candidates)]
-    learned.predict(belief, actions[:1])  # warm-up
-    t_l = _best_of(lambda: learned.predict(belief, actions), repeats)
-    t_a = _best_of(lambda: twin.predict(belief, actions), repeats)
-    t_sim = simulate_and_remap(kind, shard, s, [shard.action(samples[j % len(samples)]) for j in range(repeats)], log)
+    ws = shard.workspace
+    learned.predict(belief, actions[:1], ws)  # warm-up
+    t_l = _best_of(lambda: learned.predict(belief, actions, ws), repeats)
+    t_a = _best_of(lambda: twin.predict(belief, actions, ws), repeats)
+    t_sim = simulate_and_remap(kind, shard, s, [shard.action(samples[j % len(samples)]) for j in range(repeats)], log,
+                               simulator)
     per = t_l / candidates
     return {
         "candidates": candidates,
@@ -336,16 +355,16 @@ def time_models(kind: str, learned: Any, twin: Any, shard: CNABUShard, candidate
 
 
 def simulate_and_remap(kind: str, shard: CNABUShard, state: int, actions: list[Any],
-                       log: Callable[[str], None] = print) -> float:
-    """Mean seconds of: snapshot, execute in PyBullet, re-observe, integrate, restore (per action).
+                       log: Callable[[str], None] = print, simulator: str | ComponentRef = "pybullet") -> float:
+    """Mean seconds of: snapshot, execute in ``simulator``, re-observe, integrate, restore (per action).
     The world is the shard's scene after ``reset`` (the state's belief is only a stand-in: the timing
     does not depend on it)."""
     from types import SimpleNamespace
 
     from msmem_analytic.observation import AnalyticObservationModel
-    from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
 
     from msmem_cnabu.datagen import _skill
+    from msmem_core.sim.build import build_simulator
     from msmem_core.world.scenegen import SceneGenConfig, generate_scene
     from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
@@ -357,7 +376,7 @@ def simulate_and_remap(kind: str, shard: CNABUShard, state: int, actions: list[A
     model = AnalyticObservationModel()
     skill = _skill(kind, shard.seed)
     ctx = SimpleNamespace(shelf=scene.shelf)
-    sim = PyBulletSimulator(PyBulletConfig(seed=shard.seed))
+    sim = build_simulator(_sim_ref(simulator), seed=shard.seed)
     times = []
     try:
         sim.reset(scene)
@@ -439,20 +458,22 @@ def threshold_agreement(
     scene_seed: int = 1,
     threads: int = 2,
     log: Callable[[str], None] = print,
+    simulator: str | ComponentRef = "pybullet",
 ) -> dict[str, Any]:
-    """How often ``change_threshold`` changes the chosen action (issue 8).
+    """How often ``change_threshold`` changes the chosen action (docs/cnabu.md, "The change threshold").
 
     On ``beliefs`` mid-episode beliefs (``msmem perf step``'s: generated scene ``scene_seed``, the
     start view plus ``views - 1`` seeded random views, seeds 0, 1, ...), method ``ours`` with the
     learned ``kind`` effect model decides once with each threshold (the MSAS's full ``decide``: views,
     pushes and grasps through OIG and CDC). Returns per belief the two decisions and whether they agree,
-    and the changed voxels per candidate of the manipulation batch at each threshold.
+    and the changed voxels per candidate of the manipulation batch at each threshold. The episode's
+    world runs on ``simulator``.
     """
-    from msmem_core.config import ComponentRef, load_config
+    from msmem_core.config import load_config
     from msmem_core.msas import decide
-    from msmem_core.perf.step import _context, clone_skills, mid_episode_state
     from msmem_core.plugins.manager import get_plugin_manager
     from msmem_core.run.runner import build_episode
+    from msmem_core.run.states import clone_skills, decision_context, mid_episode_state
 
     if kind not in ("push", "grasp"):
         raise UserError(f"--threshold-check needs an effect model (push or grasp), not {kind!r}")
@@ -460,7 +481,7 @@ def threshold_agreement(
     params: dict[str, Any] = {"change_threshold": thresholds[0]}
     if weights is not None:
         params["weights"] = str(weights)
-    cfg = load_config("ours", None, {"scene": {"seed": scene_seed}})
+    cfg = load_config("ours", None, {"scene": {"seed": scene_seed}, "simulator": _sim_ref(simulator).model_dump()})
     skills = [s.model_copy(update={"effect_model": ComponentRef(name=f"cnabu-{kind}", params=params)})
               if s.name == kind else s for s in cfg.skills]
     cfg = cfg.model_copy(update={"skills": skills})
@@ -476,13 +497,13 @@ def threshold_agreement(
         row: dict[str, Any] = {"belief": b}
         for t in thresholds:
             model.config = base_cfg.model_copy(update={"change_threshold": t})  # type: ignore[attr-defined]
-            ctx = _context(ep, st.belief, st.visited, st.step, True, 0)
+            ctx = decision_context(ep, st.belief, st.visited, st.step)
             d = decide(ctx, clone_skills(st.skills), ep.objective)
-            batch = d.batch if d.skill == kind else None
+            batch = d.batch if d.skill.name == kind else None
             changed = None
             if batch is not None and batch.prediction is not None and len(batch.actions):
-                changed = float(batch.prediction.changed.reshape(len(batch.actions), -1).sum(1).mean())
-            row[str(t)] = {"skill": d.skill, "index": int(d.index), "action": d.action.model_dump(mode="json"),
+                changed = float(np.mean([len(c.idx) for c in batch.prediction.changes]))
+            row[str(t)] = {"skill": d.skill.name, "index": int(d.index), "action": d.action.model_dump(mode="json"),
                            "changed_voxels_per_candidate": changed,
                            "best_per_skill": {k: float(v) for k, v in d.best.items()}}
         a, c = (row[str(t)] for t in thresholds)

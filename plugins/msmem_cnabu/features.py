@@ -26,6 +26,7 @@ import torch
 from numpy.typing import NDArray
 from torch import Tensor
 
+from msmem_core.interfaces import Workspace
 from msmem_core.world.grid import GridSpec
 
 Interior = tuple[float, float, float, float, float, float]
@@ -70,28 +71,29 @@ def observe_channels(free: NDArray[np.bool_], occ: NDArray[np.bool_], seen: NDAr
     return np.concatenate([free[None], occ[None], seen]).astype(bool)
 
 
-def push_indices(grid: GridSpec, action: Any) -> tuple[list[NDArray[np.int64]], NDArray[np.float32]]:
+def push_indices(workspace: Workspace, action: Any) -> tuple[list[NDArray[np.int64]], NDArray[np.float32]]:
     """The voxel channels of a ``PushAction`` as flat indices ([swept volume, tool at the start]) and
     its [4] scalars."""
     from msmem_push.geometry import swept_voxels
 
     u = action.u
     scalars = np.array([u[0], u[1], action.length_m / 0.25, action.height_m / 0.1], np.float32)
-    at_start = swept_voxels(grid, action.start, action.u, action.height_m, action.tool)
-    return [action.swept_indices(grid), at_start], scalars
+    at_start = swept_voxels(workspace.grid, action.start, action.u, action.height_m, action.tool(workspace.gripper))
+    return [action.swept_indices(workspace), at_start], scalars
 
 
-def grasp_indices(grid: GridSpec, action: Any, region: NDArray[np.int64]
+def grasp_indices(workspace: Workspace, action: Any, region: NDArray[np.int64]
                   ) -> tuple[list[NDArray[np.int64]], NDArray[np.float32]]:
     """The voxel channels of a ``GraspAction`` as flat indices ([swept volume, grasped region and the
     contact voxel]) and its [4] scalars; ``region``: flat indices of the grasped object's believed voxels."""
+    grid = workspace.grid
     second = region
     ijk = grid.index_of(np.asarray(action.contact_m)[None])[0]
     if grid.contains_index(ijk):
         second = np.append(region, np.ravel_multi_index(tuple(ijk), grid.shape))
     a = action.matrix[:3, 2]
     scalars = np.array([a[0], a[1], a[2], action.width_m / 0.08], np.float32)
-    return [action.swept_indices(grid), second], scalars
+    return [action.swept_indices(workspace), second], scalars
 
 
 def dense_channels(grid: GridSpec, channels: Sequence[NDArray[np.int64]]) -> NDArray[np.bool_]:
@@ -102,32 +104,27 @@ def dense_channels(grid: GridSpec, channels: Sequence[NDArray[np.int64]]) -> NDA
     return vox.reshape(len(channels), *grid.shape)
 
 
-def grasp_regions(belief: Any, actions: Sequence[Any]) -> list[NDArray[np.int64]]:
+def grasp_regions(belief: Any, actions: Sequence[Any], workspace: Workspace) -> list[NDArray[np.int64]]:
     """The grasped object's believed region (flat indices) of each grasp, as ``grasp-analytic`` sees it."""
     from msmem_grasp.effect import AnalyticGraspEffect
     from msmem_grasp.planning import Objects
 
     twin = AnalyticGraspEffect()
-    objects: dict[tuple[float, ...], Any] = {}
-    out = []
-    for a in actions:
-        key = tuple(a.interior_m)
-        if key not in objects:
-            objects[key] = Objects.of(belief, key, twin.config.occupied_threshold)
-        out.append(twin.target_region(belief, objects[key], a)[1])
-    return out
+    if not actions:
+        return []
+    objects = Objects.of(belief, workspace.interior_box, twin.config.occupied_threshold)
+    return [twin.target_region(belief, objects, a)[1] for a in actions]
 
 
-def manipulation_indices(kind: str, belief: Any, actions: Sequence[Any]
+def manipulation_indices(kind: str, belief: Any, actions: Sequence[Any], workspace: Workspace
                          ) -> tuple[list[list[NDArray[np.int64]]], NDArray[np.float32], list[NDArray[np.int64]] | None]:
     """(per action its two voxel channels as flat indices, [K, 4] scalars, grasped regions or None)."""
-    grid = belief.grid
     if kind == "push":
-        pairs = [push_indices(grid, a) for a in actions]
+        pairs = [push_indices(workspace, a) for a in actions]
         regions = None
     elif kind == "grasp":
-        regions = grasp_regions(belief, actions)
-        pairs = [grasp_indices(grid, a, r) for a, r in zip(actions, regions, strict=True)]
+        regions = grasp_regions(belief, actions, workspace)
+        pairs = [grasp_indices(workspace, a, r) for a, r in zip(actions, regions, strict=True)]
     else:
         raise ValueError(f"not a manipulation kind: {kind!r}")
     scalars = np.stack([p[1] for p in pairs]) if pairs else np.zeros((0, 4), np.float32)
@@ -156,11 +153,11 @@ def _increasing(a: NDArray[np.int64]) -> bool:
     return bool(len(a) < 2 or np.all(a[1:] > a[:-1]))
 
 
-def manipulation_channels(kind: str, belief: Any, actions: Sequence[Any]
+def manipulation_channels(kind: str, belief: Any, actions: Sequence[Any], workspace: Workspace
                           ) -> tuple[NDArray[np.bool_], NDArray[np.float32], list[NDArray[np.int64]] | None]:
     """([K, 2, X, Y, Z], [K, 4], grasped regions or None) of K push or grasp actions on ``belief``."""
     grid = belief.grid
-    ind, scalars, regions = manipulation_indices(kind, belief, actions)
+    ind, scalars, regions = manipulation_indices(kind, belief, actions, workspace)
     if not ind:
         return np.zeros((0, 2, *grid.shape), bool), scalars, regions
     return np.stack([dense_channels(grid, c) for c in ind]), scalars, regions

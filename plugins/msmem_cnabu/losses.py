@@ -4,7 +4,7 @@ after the action, plus a binary cross-entropy on the change map (push, grasp).
 
 Per voxel (valid voxels only: the shelf's boards are excluded):
 
-- occupancy: ``msmem_grasp.losses.evidential_beta_loss`` (the FE-vMF affordance loss) on
+- occupancy: ``msmem_grasp.learn.losses.evidential_beta_loss`` (the FE-vMF affordance loss) on
   (alpha, beta) against GT occupancy;
 - semantics: the Dirichlet version, E[-log q_y] = psi(S) - psi(eta_y) and
   KL(Dir(eta~) || Dir(1)) with eta~ = y + (1 - y) * eta (the true class's evidence reset to 1);
@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
-from msmem_grasp.losses import beta_expected_ce, beta_kl_uniform, evidential_beta_loss
+from msmem_grasp.learn.losses import beta_expected_ce, beta_kl_uniform, evidential_beta_loss
 from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 

@@ -213,7 +213,8 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
                     f"(last view {rec['occ_nll_last']:.4f}) sem {rec['sem_nll_mean']:.4f} "
                     f"(last {rec['sem_nll_last']:.4f})")
             if done % 25 == 0:
-                write_weights(net.eval(), out, _record(cfg, sorted(used), history, time.perf_counter() - t0, "checkpoint"))
+                rec = _record(cfg, sorted(used), history, time.perf_counter() - t0, "checkpoint")
+                write_weights(net.eval(), out, rec)
             if cfg.time_limit_s is not None and time.perf_counter() - t0 > cfg.time_limit_s:
                 stopped = "time limit"
                 break

@@ -8,9 +8,10 @@
   in batches of ``batch`` (the belief's share of the network's stem is computed once). The changed
   mask is ``p_change > change_threshold`` (outside the shelf's boards); there the new evidence is
   ``old * (1 - p_change) + pred * p_change``; outside it the prior is copied exactly. The result is
-  a sparse ``DeltaBeliefs`` holding only the changed voxels (those whose evidence differs), so the
+  a sparse ``Prediction`` holding only the changed voxels (those whose evidence differs), so the
   incremental IG stays incremental. ``cnabu-grasp`` reports the grasped object's believed region
-  (as ``grasp-analytic`` finds it) in ``Prediction.excluded`` for CDC.
+  (as ``grasp-analytic`` finds it) in ``Prediction.excluded`` for CDC. The shelf interior and the
+  gripper (for the swept volumes) come from the ``Workspace``.
 
 Weights: ``weights`` (default: the shipped ``msmem_cnabu/weights/cnabu_<kind>.pt``), loaded when the
 model is built, with ``torch.load(weights_only=True)`` and the sha256 of their sidecar; a missing file
@@ -39,8 +40,8 @@ from msmem_cnabu.features import (
 )
 from msmem_cnabu.network import FlatPrediction
 from msmem_cnabu.weights import WeightsError, load_cnabu
-from msmem_core.interfaces import Action, EffectModel, ObservationModel, Prediction
-from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
+from msmem_core.interfaces import Action, EffectModel, ObservationModel, Prediction, Workspace
+from msmem_core.map.belief import BeliefDelta, EvidentialMap
 from msmem_core.world.camera import Observation
 
 
@@ -173,39 +174,25 @@ class _CNABUEffect(EffectModel):
             self._inside_cache[key] = torch.from_numpy(~wall_mask(grid, interior))
         return self._inside_cache[key]
 
-    def predict(self, belief: EvidentialMap, actions: Sequence[Action]) -> Prediction:
+    def predict(self, belief: EvidentialMap, actions: Sequence[Action], workspace: Workspace) -> Prediction:
         cfg = self.config
         grid = belief.grid
         _check_grid(self.kind, self.net, belief)
         self._check_actions(actions)
         k_n = len(actions)
-        changed = np.zeros((k_n, grid.size), dtype=bool)
-        excluded = np.zeros((k_n, grid.size), dtype=bool) if self.kind == "grasp" else None
         if k_n == 0:
-            return Prediction(DeltaBeliefs(belief, []), changed.reshape(0, *grid.shape),
-                              excluded=None if excluded is None else excluded.reshape(0, *grid.shape))
+            return Prediction(belief, [], excluded=[] if self.kind == "grasp" else None)
         with _Threads(cfg.threads):
             feats = _features(belief)
-            interiors = [tuple(a.interior_m) for a in actions]  # type: ignore[attr-defined]
-            inside = {it: self._inside(grid, it) for it in set(interiors)}
-            shared = len(inside) == 1
-            prep = self.net.prepare(feats, None, inside[interiors[0]][None] if shared else None)
-            ind, scalars, regions = manipulation_indices(self.kind, belief, actions)
+            prep = self.net.prepare(feats, None, self._inside(grid, workspace.interior_box)[None])
+            ind, scalars, regions = manipulation_indices(self.kind, belief, actions, workspace)
             parts = []
             for start in range(0, k_n, cfg.batch):
                 stop = min(start + cfg.batch, k_n)
                 vox, nz = sparse_channels(grid, ind[start:stop])
-                region = None if shared else torch.stack([inside[it] for it in interiors[start:stop]])
                 parts.append(self.net.predict_flat(prep, None, vox, torch.from_numpy(scalars[start:stop]),
-                                                   cfg.change_threshold, region=region, nonzero=nz))
-        deltas = _deltas(belief, FlatPrediction.cat(parts))
-        for j, d in enumerate(deltas):
-            changed[j, d.idx] = True
-            if excluded is not None and regions is not None:
-                excluded[j, regions[j]] = True
-        shape = (k_n, *grid.shape)
-        return Prediction(DeltaBeliefs(belief, deltas), changed.reshape(shape),
-                          excluded=None if excluded is None else excluded.reshape(shape))
+                                                   cfg.change_threshold, region=None, nonzero=nz))
+        return Prediction(belief, _deltas(belief, FlatPrediction.cat(parts)), excluded=regions)
 
     def _check_actions(self, actions: Sequence[Action]) -> None:
         from msmem_grasp.skill import GraspAction

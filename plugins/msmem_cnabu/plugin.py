@@ -4,7 +4,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from msmem_cnabu.configs import CNABUEffectConfig, CNABUMapConfig, CNABUObserveConfig
-from msmem_core.plugins import BeliefModelSpec, hookimpl
+from msmem_core.plugins import BeliefModelSpec, CommandSpec, hookimpl
 
 
 def _observe(config: Any) -> Any:
@@ -71,3 +71,11 @@ def msmem_belief_models() -> Iterable[BeliefModelSpec]:
         description="sigma_g by a learned 2.5-D U-Net (CNABU) with a change map: outside p_change > "
                     "change_threshold the prior is copied exactly. " + _WEIGHTS.format(k="grasp"),
     )
+
+
+@hookimpl
+def msmem_commands() -> Iterable[CommandSpec]:
+    """``msmem datagen cnabu, train cnabu and eval belief-models`` (bodies import what they need on use)."""
+    from msmem_cnabu.commands import COMMANDS
+
+    yield from COMMANDS

@@ -19,7 +19,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -29,13 +28,12 @@ import trimesh
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.world.geometry import pose_matrix
+from msmem_core.world.geometry import F64, boxes_overlap, pose_matrix
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.meshes import class_mesh
-from msmem_core.world.scene import OBJECT_CLASSES, ObjectClass, Part, SceneSpec, object_class
+from msmem_core.world.scene import ObjectClass, Part, SceneSpec, object_class
 from msmem_grasp.fevmf import executable_grasp
 
-F64 = NDArray[np.float64]
 CACHE_VERSION = 1
 """Bump when the generator changes so stale cache files are not reused."""
 
@@ -192,7 +190,7 @@ class Solids:
                                           <= reach + np.linalg.norm(self.half[s])))
             for lo in range(0, len(near), chunk):
                 idx = near[lo:lo + chunk]
-                cand = idx[_obb_overlap(centre[idx], rot[idx], half[idx], self.centre[s], self.rot[s], self.half[s])]
+                cand = idx[boxes_overlap(centre[idx], rot[idx], half[idx], self.centre[s], self.rot[s], self.half[s])]
                 if not self.is_cylinder[s]:
                     hit[cand] = True
                     continue
@@ -203,27 +201,6 @@ class Solids:
                     fcl.collide(box, obj, request, result)
                     hit[m] = result.is_collision
         return hit
-
-
-def _obb_overlap(ca: F64, ra: F64, ha: F64, cb: F64, rb: F64, hb: F64) -> NDArray[np.bool_]:
-    """Separating-axis test of boxes A [M] against one box B; touching counts as overlap."""
-    r = np.einsum("mji,jk->mik", ra, rb)  # B's axes in A's frame: r[m, i, k] = a_i . b_k
-    t = np.einsum("mji,mj->mi", ra, cb - ca)  # centre offset in A's frame
-    ar = np.abs(r) + 1e-12
-    sep = np.zeros(len(ca), dtype=bool)
-    for i in range(3):  # A's face axes
-        sep |= np.abs(t[:, i]) > ha[:, i] + ar[:, i, :] @ hb
-    for k in range(3):  # B's face axes
-        sep |= np.abs(np.einsum("mi,mi->m", t, r[:, :, k])) > np.einsum("mi,mi->m", ha, ar[:, :, k]) + hb[k]
-    for i in range(3):  # cross products a_i x b_k
-        i1, i2 = (i + 1) % 3, (i + 2) % 3
-        for k in range(3):
-            k1, k2 = (k + 1) % 3, (k + 2) % 3
-            dist = np.abs(t[:, i2] * r[:, i1, k] - t[:, i1] * r[:, i2, k])
-            ra_ = ha[:, i1] * ar[:, i2, k] + ha[:, i2] * ar[:, i1, k]
-            rb_ = hb[k1] * ar[:, i, k2] + hb[k2] * ar[:, i, k1]
-            sep |= dist > ra_ + rb_
-    return ~sep
 
 
 def gripper_boxes(poses: F64, openings: F64, gripper: GripperSpec) -> tuple[F64, F64, F64]:
@@ -395,19 +372,3 @@ def grasps_in_scene(
         others = Solids.concat([boards, *(s for i, s in solids.items() if i != o.id)])
         out[o.id] = grasps.subset(~grasp_collides(grasps, others, gripper, margin))
     return out
-
-
-def main() -> None:
-    """Generate (or load) the grasps of every class and print counts and times."""
-    config = AntipodalConfig()
-    print(f"cache: {cache_dir()}  config: {config.model_dump()}")
-    total = time.perf_counter()
-    for cls in OBJECT_CLASSES:
-        t = time.perf_counter()
-        g = class_grasps(cls.name, config)
-        print(f"{cls.name:18s} {len(g):7d} grasps  {time.perf_counter() - t:6.2f} s")
-    print(f"total {time.perf_counter() - total:.1f} s")
-
-
-if __name__ == "__main__":
-    main()

@@ -25,13 +25,14 @@ front), from the belief alone:
   background-class evidence, the weight of two views, so they are confident): each confident voxel
   of a neighbour's class becomes confident background, which is what a CDC term counts (a reset to
   the prior would hide the damage from it: CDC counts only voxels confident afterwards). Nothing
-  else in the corridor changes. Objects merely touching the grasped one stay (measured: none moved,
-  docs/grasp.md); ``touch_shift_m`` > 0 shifts them along the retreat instead.
+  else in the corridor changes. Objects merely touching the grasped one stay (docs/grasp.md);
+  ``touch_shift_m`` > 0 shifts them along the retreat instead.
 - Not modelled: toppling, rotation, the grasp failing (the prediction is the successful grasp), and
   the unseen parts of other objects (only believed-occupied voxels move).
 
-The prediction is sparse: a ``DeltaBeliefs`` (one ``BeliefDelta`` per action), the changed-voxel
-masks and the excluded (grasped-object) masks. The components are labelled once per call.
+The prediction is sparse (a ``Prediction``: one ``BeliefDelta`` of the changed voxels per action, and
+per action the grasped object's region as ``excluded``). The shelf interior and the gripper come from
+the ``Workspace``. The components are labelled once per call.
 """
 
 from __future__ import annotations
@@ -43,9 +44,10 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
+from msmem_core.interfaces import Action, EffectModel, Prediction, Workspace
+from msmem_core.map.belief import BeliefDelta, EvidentialMap
 from msmem_core.world.grid import GridSpec
-from msmem_core.interfaces import Action, EffectModel, Prediction
+from msmem_core.world.gripper import GripperSpec
 from msmem_grasp.planning import Objects, fill_down, gripper_points, path_offsets, shift_voxels, swept_indices, way_out
 from msmem_grasp.skill import GraspAction
 
@@ -81,30 +83,20 @@ class AnalyticGraspEffect(EffectModel):
     def __init__(self, config: GraspEffectConfig | None = None) -> None:
         self.config = config or GraspEffectConfig()
 
-    def predict(self, belief: EvidentialMap, actions: Sequence[Action]) -> Prediction:
-        grid = belief.grid
-        k_n = len(actions)
-        changed = np.zeros((k_n, grid.size), dtype=bool)
-        excluded = np.zeros((k_n, grid.size), dtype=bool)
-        scenes: dict[tuple[float, ...], Objects] = {}
-        deltas = []
-        alpha = belief.alpha.reshape(-1)
-        beta = belief.beta.reshape(-1)
-        eta = belief.eta.reshape(belief.num_classes, -1)
-        for n, a in enumerate(actions):
-            if not isinstance(a, GraspAction):
-                raise TypeError(f"grasp-analytic predicts grasp actions, got a {a.kind!r} action")
-            interior = tuple(a.interior_m)
-            if interior not in scenes:
-                scenes[interior] = Objects.of(belief, interior, self.config.occupied_threshold)
-            d, region = self._predict_one(belief, scenes[interior], a)
-            keep = (d.alpha != alpha[d.idx]) | (d.beta != beta[d.idx]) | np.any(d.eta != eta[:, d.idx], axis=0)
-            d = BeliefDelta(d.idx[keep], d.alpha[keep], d.beta[keep], d.eta[:, keep])
-            changed[n, d.idx] = True
-            excluded[n, region] = True
-            deltas.append(d)
-        shape = (k_n, *grid.shape)
-        return Prediction(DeltaBeliefs(belief, deltas), changed.reshape(shape), excluded=excluded.reshape(shape))
+    def predict(self, belief: EvidentialMap, actions: Sequence[Action], workspace: Workspace) -> Prediction:
+        grasps = [a for a in actions if isinstance(a, GraspAction)]
+        if len(grasps) < len(actions):
+            other = next(a for a in actions if not isinstance(a, GraspAction))
+            raise TypeError(f"grasp-analytic predicts grasp actions, got a {other.kind!r} action")
+        if not grasps:
+            return Prediction(belief, [], excluded=[])
+        objects = Objects.of(belief, workspace.interior_box, self.config.occupied_threshold)
+        changes, excluded = [], []
+        for a in grasps:
+            d, region = self._predict_one(belief, objects, a, workspace.gripper)
+            changes.append(d.against(belief))
+            excluded.append(region)
+        return Prediction(belief, changes, excluded=excluded)
 
     # ----------------------------------------------------------------------------------- one grasp
     def target_region(self, belief: EvidentialMap, objects: Objects, a: GraspAction) -> tuple[int, I64]:
@@ -118,10 +110,10 @@ class AnalyticGraspEffect(EffectModel):
             return 0, np.zeros(0, np.int64)
         return label, objects.region(grid, label, pose, a.opening_m, self.config.max_object_radius_m)
 
-    def moves(self, belief: EvidentialMap, objects: Objects, a: GraspAction
+    def moves(self, belief: EvidentialMap, objects: Objects, a: GraspAction, gripper: GripperSpec
               ) -> tuple[I64, list[I64], I64, list[tuple[I64, int]]]:
         """(grasped region, bodies pushed out of the shelf, corridor swept on the way out, touching
-        bodies shifted by whole voxels along -y) of one grasp."""
+        bodies shifted by whole voxels along -y) of one grasp with ``gripper``."""
         cfg = self.config
         grid = belief.grid
         s = grid.voxel_m
@@ -137,7 +129,7 @@ class AnalyticGraspEffect(EffectModel):
         body_path, body_step = way_out(grid, fill_down(grid, p, lab3, region, label, cfg.free_threshold), lift)
         grasp = a.matrix[:3, 3]
         path = path_offsets(np.array([grasp, *a.retreat_m]), s / 2) if a.retreat_m else grasp[None]
-        pts = gripper_points(a.gripper, a.width_m, s / 2, cfg.tolerance_m)
+        pts = gripper_points(gripper, a.width_m, s / 2, cfg.tolerance_m)
         grip = swept_indices(grid, a.matrix[:3, :3], pts, path)
         grip_y = grasp[1] - np.unravel_index(grip, grid.shape)[1] * s  # how far the gripper has come when there
         grip_step = np.maximum(0, np.round(grip_y / s)).astype(np.int64) + lift
@@ -195,10 +187,11 @@ class AnalyticGraspEffect(EffectModel):
         d = np.hypot(*(ijk[:, :2] - c[:2]).T) * grid.voxel_m
         return vox[d <= self.config.max_object_radius_m]
 
-    def _predict_one(self, belief: EvidentialMap, objects: Objects, a: GraspAction) -> tuple[BeliefDelta, I64]:
+    def _predict_one(self, belief: EvidentialMap, objects: Objects, a: GraspAction, gripper: GripperSpec
+                     ) -> tuple[BeliefDelta, I64]:
         cfg = self.config
         grid = belief.grid
-        region, pushed, _corridor, touching = self.moves(belief, objects, a)
+        region, pushed, _corridor, touching = self.moves(belief, objects, a, gripper)
         src = np.concatenate([region, *pushed]) if pushed else region
         moved_from, moved_to = [], []
         for body, m in touching:
@@ -233,9 +226,9 @@ class AnalyticGraspEffect(EffectModel):
             na[pd], nb[pd], ne[:, pd] = alpha[frm], beta[frm], eta[:, frm]
         return BeliefDelta(idx, na.astype(np.float32), nb.astype(np.float32), ne.astype(np.float32)), region
 
-    def displacements(self, belief: EvidentialMap, action: Any) -> dict[str, Any]:
+    def displacements(self, belief: EvidentialMap, action: GraspAction, workspace: Workspace) -> dict[str, Any]:
         """What one grasp does to the believed objects: the grasped region, the bodies pushed out,
         the corridor (flat voxel indices) — for tests and inspection."""
-        objects = Objects.of(belief, tuple(action.interior_m), self.config.occupied_threshold)
-        region, pushed, corridor, touching = self.moves(belief, objects, action)
+        objects = Objects.of(belief, workspace.interior_box, self.config.occupied_threshold)
+        region, pushed, corridor, touching = self.moves(belief, objects, action, workspace.gripper)
         return {"region": region, "pushed": pushed, "corridor": corridor, "touching": touching}

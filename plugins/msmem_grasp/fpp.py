@@ -11,8 +11,8 @@ camera poses and pixel directions (no per-ray arrays are built first).
 The analytic observation update marks as occupied the voxel that *contains* a depth return, after
 free voxels, so the 0.5-isosurface of the trilinear field lies on the voxel boundary in front of
 the true surface, while the surface itself is anywhere inside the hit voxel. ``surface_offset_voxels``
-moves each point that far along its ray: 0.5 (the default) halves the mean distance to the true
-surface (measured in docs/grasp-learning.md).
+moves each point that far along its ray: 0.5 (the default) puts it at the middle of the hit voxel,
+which halves the expected distance to a surface lying anywhere inside that voxel.
 
 Points seen by several rays are deduplicated on a grid of ``dedup_m`` (first ray wins), and up to
 ``num_points`` are drawn without replacement, seeded. Per drawn point, the outward normal is the
@@ -197,7 +197,7 @@ def _ray_crossings(p, occ, rot, pos, d_cam, g0, s, n, t_min, t_max, frac, thresh
             dx = (rot[v, 0, 0] * d_cam[r, 0] + rot[v, 0, 2] * d_cam[r, 2]) + rot[v, 0, 1] * d_cam[r, 1]
             dy = (rot[v, 1, 0] * d_cam[r, 0] + rot[v, 1, 2] * d_cam[r, 2]) + rot[v, 1, 1] * d_cam[r, 1]
             dz = (rot[v, 2, 0] * d_cam[r, 0] + rot[v, 2, 2] * d_cam[r, 2]) + rot[v, 2, 1] * d_cam[r, 1]
-            m = raycast._traverse(ox, oy, oz, dx, dy, dz, g0, s, n, t_min, t_max, occ, vox, tin, tout)
+            m = raycast.traverse(ox, oy, oz, dx, dy, dz, g0, s, n, t_min, t_max, occ, vox, tin, tout)
             if m == 0 or occ[vox[m - 1]] == 0:
                 continue
             t_in, t_out = tin[m - 1], tout[m - 1]

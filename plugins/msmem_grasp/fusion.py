@@ -38,11 +38,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from msmem_core.world.geometry import F64
+
 if TYPE_CHECKING:
     from msmem_core.map.belief import EvidentialMap
     from msmem_grasp.fevmf import GraspPrediction
-
-F64 = NDArray[np.float64]
 
 
 def _unit(v: F64) -> tuple[F64, F64]:

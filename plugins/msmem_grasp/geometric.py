@@ -32,12 +32,11 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.geometry import F64
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scene import ShelfSpec
 from msmem_grasp.fpp import SurfaceCloud, _trilinear, occupancy_normals
 from msmem_grasp.fusion import GraspHypotheses
-
-F64 = NDArray[np.float64]
 
 
 class GeometricConfig(BaseModel):

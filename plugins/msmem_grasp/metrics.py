@@ -7,9 +7,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import rankdata
 
+from msmem_core.world.geometry import F64
 from msmem_grasp.vmf import log_normaliser
-
-F64 = NDArray[np.float64]
 
 
 def auroc(scores: NDArray[np.floating], labels: NDArray[np.floating]) -> float:

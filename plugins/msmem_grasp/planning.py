@@ -24,13 +24,13 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from msmem_core.map.belief import EvidentialMap
-from msmem_core.world.grid import GridSpec
-from msmem_core.world.gripper import GripperSpec
 from msmem_core.map.ig import shelf_wall_mask
 from msmem_core.map.raycast import grid_params
+from msmem_core.world.geometry import F64
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scene import ShelfSpec
 
-F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 

@@ -2,7 +2,7 @@
 
 from collections.abc import Iterable
 
-from msmem_core.plugins import BeliefModelSpec, SkillSpec, hookimpl
+from msmem_core.plugins import BeliefModelSpec, CommandSpec, SkillSpec, hookimpl
 from msmem_grasp.effect import AnalyticGraspEffect, GraspEffectConfig
 from msmem_grasp.skill import GraspConfig, GraspSkill
 
@@ -29,3 +29,11 @@ def msmem_belief_models() -> Iterable[BeliefModelSpec]:
         description="sigma_g: the grasped object's region returns to the prior; objects in its way out are "
                     "pushed out of the shelf, their corridor believed free",
     )
+
+
+@hookimpl
+def msmem_commands() -> Iterable[CommandSpec]:
+    """``msmem datagen grasp, train fe-vmf, eval fe-vmf and bench-grasp`` (bodies import what they need on use)."""
+    from msmem_grasp.commands import COMMANDS
+
+    yield from COMMANDS

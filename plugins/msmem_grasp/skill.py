@@ -47,9 +47,13 @@ close (``set_gripper(0)``: the fingers stop on contact and keep squeezing with t
 force), lift, retreat out of the shelf front, then ``held_object()``: the grasp succeeded only if
 an object is still between both fingers, held by friction alone (no attachment constraint). On
 success the object is taken out of the workspace (``remove_object``). Open, park, settle. The
-outcome reports the XY displacement of every object still present (``object_poses`` before and
-after; the removed object is excluded), the objects that fell (tilted > ``fall_tilt_deg``) or left
-the shelf interior, and the removed object.
+outcome reports the removed object (MSAS measures the other objects' displacement and which fell or
+left the shelf, as for every skill).
+
+A ``GraspAction`` holds what the skill decided (pose, width, opening, approach and retreat); the
+gripper it is executed with and the shelf come from the workspace (``Workspace``). Stages of
+``track`` are spans (``FPP (frontier points)``, ``FE-vMF inference`` or ``geometric grasp
+predictor``, ``FE-UMGF fusion``) that a tracer such as ``msmem perf step`` times.
 """
 
 from __future__ import annotations
@@ -64,14 +68,16 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill, Workspace
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.util.trace import span
 from msmem_core.world.camera import CameraConfig
+from msmem_core.world.geometry import F64
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
 from msmem_core.world.scene import ShelfSpec
 from msmem_grasp.fpp import FPPConfig, frontier_points, virtual_front_views
-from msmem_grasp.fusion import FusionConfig, FusionStats, GraspBuffer, GraspHypotheses
+from msmem_grasp.fusion import FusionConfig, GraspBuffer, GraspHypotheses
 from msmem_grasp.geometric import GeometricConfig, predict_geometric
 from msmem_grasp.planning import (
     Objects,
@@ -88,17 +94,9 @@ from msmem_grasp.planning import (
 )
 
 log = logging.getLogger("msmem.grasp")
-F64 = NDArray[np.float64]
 Vec3 = tuple[float, float, float]
 _SIN15 = math.sin(math.radians(15.0))
 _WARNED: set[str] = set()
-_DEFAULT_INTERIOR = (*ShelfSpec().interior_lower.tolist(), *ShelfSpec().interior_upper.tolist())
-
-
-def interior_of(shelf: ShelfSpec) -> tuple[float, float, float, float, float, float]:
-    """(x_lo, y_lo, z_lo, x_hi, y_hi, z_hi) of a shelf's interior."""
-    lo, hi = shelf.interior_lower, shelf.interior_upper
-    return (float(lo[0]), float(lo[1]), float(lo[2]), float(hi[0]), float(hi[1]), float(hi[2]))
 
 
 class GraspAction(Action):
@@ -127,9 +125,6 @@ class GraspAction(Action):
     """Fused 2/S."""
     predictor: str = ""
     """What predicted the grasp evidence: ``fe-vmf:<weights>`` or ``geometric``."""
-    gripper: GripperSpec = GripperSpec()
-    interior_m: tuple[float, float, float, float, float, float] = _DEFAULT_INTERIOR
-    """The shelf interior the grasp was planned in: (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi)."""
 
     @field_validator("pose")
     @classmethod
@@ -152,15 +147,15 @@ class GraspAction(Action):
         m[:3, 3] = origin
         return m
 
-    def swept_indices(self, grid: GridSpec) -> NDArray[np.int64]:
-        """Flat voxel indices the gripper covers: open along the approach, closed to the width
-        while lifting and retreating (the grasped object's own sweep is not included)."""
-        return np.flatnonzero(self._swept_mask(grid))
+    def swept_indices(self, workspace: Workspace) -> NDArray[np.int64]:
+        """Flat voxel indices the workspace's gripper covers: open along the approach, closed to the
+        width while lifting and retreating (the grasped object's own sweep is not included)."""
+        return np.flatnonzero(self._swept_mask(workspace.grid, workspace.gripper))
 
-    def swept_volume(self, grid: GridSpec) -> NDArray[np.bool_]:
-        return self._swept_mask(grid).reshape(grid.shape)
+    def swept_volume(self, workspace: Workspace) -> NDArray[np.bool_]:
+        return self._swept_mask(workspace.grid, workspace.gripper).reshape(workspace.grid.shape)
 
-    def _swept_mask(self, grid: GridSpec) -> NDArray[np.bool_]:
+    def _swept_mask(self, grid: GridSpec, gripper: GripperSpec) -> NDArray[np.bool_]:
         """The flat grid mask of ``swept_indices``."""
         s = grid.voxel_m
         r = self.matrix[:3, :3]
@@ -168,8 +163,8 @@ class GraspAction(Action):
         app = path_offsets(np.array([*self.approach_m, grasp]), s / 2)
         ret = path_offsets(np.array([grasp, *self.retreat_m]), s / 2)
         mask = np.zeros(grid.size, dtype=bool)
-        mark_swept(mask, grid, r, gripper_points(self.gripper, self.opening_m, s / 2), app)
-        mark_swept(mask, grid, r, gripper_points(self.gripper, self.width_m, s / 2), ret)
+        mark_swept(mask, grid, r, gripper_points(gripper, self.opening_m, s / 2), app)
+        mark_swept(mask, grid, r, gripper_points(gripper, self.width_m, s / 2), ret)
         return mask
 
 
@@ -237,9 +232,7 @@ class GraspConfig(BaseModel):
     retreat_speed_mps: float = Field(0.1, gt=0.0, le=1.0)
     """Speed of the retreat out of the shelf with the object."""
     settle_s: float = Field(0.5, ge=0.0, le=10.0)
-    """Physics after parking, before the poses are read."""
-    fall_tilt_deg: float = Field(30.0, gt=0.0, lt=90.0)
-    """An object whose up axis tilted more has fallen."""
+    """Physics after parking (objects come to rest before MSAS reads their poses)."""
     max_object_radius_m: float = Field(0.10, gt=0.0, le=1.0)
     """The target's region reaches at most this far across the closing axis (same-class neighbours
     touching it stay out)."""
@@ -271,7 +264,6 @@ class GraspSkill(Skill):
     def __init__(self, config: GraspConfig | None = None) -> None:
         self.config = config or GraspConfig()
         self.buffer = GraspBuffer(self.config.fusion)
-        self.last_stats: FusionStats | None = None
         self._model: Any = None
         self._predictor: str | None = None
         self._tracked: tuple[int, EvidentialMap] | None = None
@@ -308,14 +300,17 @@ class GraspSkill(Skill):
         """Per-point evidential grasps on the FPP cloud of ``belief`` seen from ``views`` [V, 4, 4]."""
         cfg = self.config
         fpp = FPPConfig(num_points=cfg.num_points, ray_stride_px=cfg.ray_stride_px, camera=cfg.camera, seed=seed)
-        cloud = frontier_points(belief, views, fpp, shelf=shelf)
+        with span("FPP (frontier points)"):
+            cloud = frontier_points(belief, views, fpp, shelf=shelf)
         if not len(cloud):
             return GraspHypotheses.empty()
         if self.predictor == "geometric":
-            return predict_geometric(belief, cloud, shelf, cfg.gripper, cfg.geometric)
+            with span("geometric grasp predictor"):
+                return predict_geometric(belief, cloud, shelf, cfg.gripper, cfg.geometric)
         from msmem_grasp.weights import predict_cloud
 
-        return GraspHypotheses.from_prediction(cloud.points, predict_cloud(self._model, cloud))
+        with span("FE-vMF inference"):
+            return GraspHypotheses.from_prediction(cloud.points, predict_cloud(self._model, cloud))
 
     def track(self, ctx: Any) -> None:
         """FE-UMGF step: fuse this step's predictions into the buffer (once per step)."""
@@ -338,11 +333,11 @@ class GraspSkill(Skill):
         elif not visited:
             # no view since the manipulation: the belief is the effect model's prediction, and grasps
             # planned on predicted geometry fail (docs/results.md); wait for a real view
-            self.last_stats = None
             return
         seed = int(np.random.default_rng([self.config.seed, int(ctx.step)]).integers(2**31))
         new = self.predict(ctx.belief, ctx.shelf, views, seed)
-        self.last_stats = self.buffer.update(new, ctx.belief)
+        with span("FE-UMGF fusion"):
+            self.buffer.update(new, ctx.belief)
 
     # -------------------------------------------------------------------------------- proposal
     def propose(self, ctx: Any) -> list[Action]:
@@ -373,7 +368,7 @@ class GraspSkill(Skill):
         width = np.minimum(g.width, grip.max_opening_m)
         from msmem_grasp.fevmf import executable_grasp  # torch: imported on use
 
-        objects = Objects.of(belief, interior_of(shelf), cfg.occupied_threshold)
+        objects = Objects.of(belief, shelf.interior_box, cfg.occupied_threshold)
         return Candidates(
             grasps=g, width=width, opening=np.minimum(width + cfg.opening_margin_m, grip.max_opening_m),
             poses=executable_grasp(g.contact, a, b, width),  # type: ignore[arg-type]
@@ -396,8 +391,7 @@ class GraspSkill(Skill):
             target_class=int(c.objects.classes[lab]),
             approach_m=tuple(tuple(float(v) for v in p) for p in approach),  # type: ignore[misc]
             retreat_m=retreat, affordance=float(np.clip(c.grasps.affordance[i], 0, 1)),
-            uncertainty=float(np.clip(c.grasps.uncertainty[i], 0, 1)), predictor=self.predictor, gripper=cfg.gripper,
-            interior_m=interior_of(shelf),
+            uncertainty=float(np.clip(c.grasps.uncertainty[i], 0, 1)), predictor=self.predictor,
         )
 
     def executable(self, belief: EvidentialMap, shelf: ShelfSpec) -> list[GraspAction]:
@@ -504,9 +498,7 @@ class GraspSkill(Skill):
     # ------------------------------------------------------------------------------- execution
     def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
         cfg = self.config
-        shelf: ShelfSpec = ctx.shelf
         a = action if isinstance(action, GraspAction) else GraspAction.model_validate(action.model_dump())
-        before = sim.object_poses()
         grasp = a.matrix
         if a.approach_m:
             sim.move_gripper([a.at(p) for p in a.approach_m], opening_m=a.opening_m, speed_mps=cfg.travel_speed_mps)
@@ -525,28 +517,9 @@ class GraspSkill(Skill):
         sim.park_gripper()
         if cfg.settle_s > 0:
             sim.step(cfg.settle_s)
-        after = sim.object_poses()
-        disp = {i: float(np.linalg.norm(after[i][:2, 3] - before[i][:2, 3])) for i in before if i in after}
-        fell = []
-        lo, hi = shelf.interior_lower, shelf.interior_upper
-        for i, t0 in before.items():
-            if i in removed:
-                continue
-            t1 = after.get(i)
-            if t1 is None:
-                fell.append(i)
-                continue
-            tilt = math.degrees(math.acos(float(np.clip(t0[:3, 2] @ t1[:3, 2], -1.0, 1.0))))
-            pos = t1[:3, 3]
-            outside = not (lo[0] <= pos[0] <= hi[0] and lo[1] <= pos[1] <= hi[1]) or pos[2] < lo[2] - 0.02
-            if tilt > cfg.fall_tilt_deg or outside:
-                fell.append(i)
         return Outcome(
             success=held is not None,
-            displacement_m=disp,
-            fell_or_left=fell,
             removed=removed,
             info={"held": held, "touching_after_close": touching, "closed_opening_m": closed,
-                  "pose_error_m": float(np.linalg.norm(reached[:3, 3] - grasp[:3, 3])),
-                  "moved": [i for i, d in disp.items() if d > 0.005], "predictor": a.predictor},
+                  "pose_error_m": float(np.linalg.norm(reached[:3, 3] - grasp[:3, 3])), "predictor": a.predictor},
         )

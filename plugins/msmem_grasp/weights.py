@@ -13,12 +13,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from msmem_core.util import artifacts
 from msmem_core.errors import UserError
-from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction, executable_grasp
+from msmem_core.util import artifacts
+from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction
 from msmem_grasp.fpp import SurfaceCloud
-from msmem_grasp.training import WEIGHTS_FORMAT
 
+WEIGHTS_FORMAT = "msmem-fe-vmf"
+"""The ``format`` of an FE-vMF weights sidecar (``msmem_grasp.learn.training`` writes it)."""
+WEIGHTS_VERSION = 1
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "fe_vmf.pt"
 
 
@@ -53,19 +55,3 @@ def predict_cloud(model: FEVMF, cloud: SurfaceCloud) -> GraspPrediction:
         pts = torch.from_numpy(np.ascontiguousarray(cloud.points, dtype=np.float32))
         feats = torch.from_numpy(cloud.features()) if model.config.in_features else None
         return model(pts, feats).detach()
-
-
-def select_grasps(
-    cloud: SurfaceCloud, pred: GraspPrediction, min_affordance: float = 0.5
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Executable grasps of the points with E[q] > ``min_affordance``: (poses [K, 4, 4] per
-    ``executable_grasp``, affordance [K], point index [K]), best first. No point -> K = 0."""
-    q = pred.affordance.numpy().astype(np.float64)
-    idx = np.flatnonzero(q > min_affordance)
-    idx = idx[np.argsort(-q[idx], kind="stable")]
-    if len(idx) == 0:
-        return np.zeros((0, 4, 4)), np.zeros(0), idx.astype(np.int64)
-    mu_a, _ = pred.approach()
-    poses = executable_grasp(cloud.points[idx].astype(np.float64), mu_a.numpy()[idx].astype(np.float64),
-                             pred.mu_b.numpy()[idx].astype(np.float64), pred.width.numpy()[idx].astype(np.float64))
-    return np.asarray(poses), q[idx], idx.astype(np.int64)

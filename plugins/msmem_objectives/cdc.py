@@ -8,7 +8,8 @@ the grasped object's region clipped to the gripper's opening box) are ignored to
 
 The term returns ``-|U_diff|``; with weight ``zeta_cdc`` the objective becomes
 ``DOIG = OIG - zeta_cdc * |U_diff|``. Views change nothing, so the term applies to manipulation
-candidates only. Only each candidate's changed voxels can differ, so only those are compared.
+candidates only. Only each candidate's changed voxels (``Prediction.changes``) can differ, so only
+those are compared.
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.map.belief import DeltaBeliefs
 from msmem_core.interfaces import CandidateBatch, Category, Term
 
 
@@ -57,18 +57,8 @@ class CDCTerm(Term):
         pred = batch.prediction
         assert pred is not None
         tau = self.config.tau_chi if self.config.tau_chi is not None else ctx.tau_chi
-        base = ctx.belief
-        eta0 = base.eta.reshape(base.num_classes, -1)
-        excluded = None if pred.excluded is None else pred.excluded.reshape(len(pred.beliefs), -1)
-        out = np.zeros(len(pred.beliefs))
-        if isinstance(pred.beliefs, DeltaBeliefs) and pred.beliefs.base is base:
-            for k, d in enumerate(pred.beliefs.deltas):
-                ex = None if excluded is None else excluded[k, d.idx]
-                out[k] = disturbed_voxels(eta0[:, d.idx], d.eta, tau, ex).sum()
-        else:
-            changed = pred.changed.reshape(len(pred.beliefs), -1)
-            for k, b in enumerate(pred.beliefs):
-                idx = np.flatnonzero(changed[k])
-                ex = None if excluded is None else excluded[k, idx]
-                out[k] = disturbed_voxels(eta0[:, idx], b.eta.reshape(b.num_classes, -1)[:, idx], tau, ex).sum()
+        eta0 = pred.base.eta.reshape(pred.base.num_classes, -1)
+        out = np.zeros(len(pred))
+        for k, d in enumerate(pred.changes):
+            out[k] = disturbed_voxels(eta0[:, d.idx], d.eta, tau, pred.excluded_among(k)).sum()
         return -out

@@ -4,8 +4,8 @@
 categorical summed over all voxels (``EvidentialMap.total_semantic_entropy``). Clipped at 0 as in
 DESIGN.md: a manipulation is penalised for the semantic uncertainty its predicted scene change adds,
 never rewarded for entropy the effect model happens to remove. Weighted by [MEM]'s zeta_o = 0.2 in
-the presets. Only the changed voxels contribute, so sparse predictions (``DeltaBeliefs``) are
-scored on their changed voxels alone.
+the presets. Only the changed voxels contribute, so each candidate is scored on its change
+(``Prediction.changes``) alone.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
-from msmem_core.map.belief import DeltaBeliefs, categorical_entropy
 from msmem_core.interfaces import CandidateBatch, Category, Term
+from msmem_core.map.belief import categorical_entropy
 
 
 class SemanticEntropyConfig(BaseModel):
@@ -31,18 +31,10 @@ class SemanticEntropyTerm(Term):
         self.config = config or SemanticEntropyConfig()
 
     def score(self, ctx: Any, batch: CandidateBatch) -> NDArray[np.float64]:
-        assert batch.prediction is not None
-        beliefs = batch.prediction.beliefs
-        base = ctx.belief
-        eta0 = base.eta.reshape(base.num_classes, -1)
-        out = np.zeros(len(beliefs))
-        if isinstance(beliefs, DeltaBeliefs) and beliefs.base is base:
-            for k, d in enumerate(beliefs.deltas):
-                out[k] = float(categorical_entropy(eta0[:, d.idx]).sum() - categorical_entropy(d.eta).sum())
-        else:
-            key = "semantic_entropy_total"
-            if key not in ctx.cache:
-                ctx.cache[key] = base.total_semantic_entropy()
-            for k, b in enumerate(beliefs):
-                out[k] = ctx.cache[key] - b.total_semantic_entropy()
+        pred = batch.prediction
+        assert pred is not None
+        eta0 = pred.base.eta.reshape(pred.base.num_classes, -1)
+        out = np.zeros(len(pred))
+        for k, d in enumerate(pred.changes):
+            out[k] = float(categorical_entropy(eta0[:, d.idx]).sum() - categorical_entropy(d.eta).sum())
         return np.minimum(0.0, out)

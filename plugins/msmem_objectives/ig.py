@@ -16,9 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.map.belief import DeltaBeliefs
-from msmem_core.map.ig import IGDelta
 from msmem_core.interfaces import CandidateBatch, Term
+from msmem_core.map.ig import IGDelta
 
 
 class IGTermConfig(BaseModel):
@@ -37,13 +36,10 @@ class IGTermConfig(BaseModel):
     """Candidates re-scored at full density after screening."""
 
 
-def _deltas(ctx: Any, batch: CandidateBatch) -> list[IGDelta]:
+def ig_deltas(ctx: Any, batch: CandidateBatch) -> list[IGDelta]:
+    """The IG-field change of each manipulation candidate (from its ``Prediction.changes``)."""
     assert batch.prediction is not None
-    beliefs = batch.prediction.beliefs
-    base = ctx.field
-    if isinstance(beliefs, DeltaBeliefs) and beliefs.base is ctx.belief:
-        return [ctx.ig.belief_delta(base, d) for d in beliefs.deltas]
-    return [ctx.ig.field_delta(base, ctx.ig.prepare(b)) for b in beliefs]
+    return [ctx.ig.belief_delta(ctx.field, d) for d in batch.prediction.changes]
 
 
 def _manipulation_state(ctx: Any, batch: CandidateBatch, cfg: IGTermConfig) -> dict[str, Any]:
@@ -52,13 +48,13 @@ def _manipulation_state(ctx: Any, batch: CandidateBatch, cfg: IGTermConfig) -> d
     key = ("manipulation_ig", id(batch.prediction), cfg.incremental, cfg.screen_ray_step, cfg.finalists)
     if key in ctx.cache:
         return ctx.cache[key]
-    beliefs = batch.prediction.beliefs
     state: dict[str, Any] = {"deltas": None}
     if not cfg.incremental:
-        out = np.asarray(ctx.ig.view_ig([ctx.ig.prepare(b) for b in beliefs]), dtype=np.float64).max(axis=1)
+        fields = [ctx.ig.prepare(b) for b in batch.prediction.beliefs]
+        out = np.asarray(ctx.ig.view_ig(fields), dtype=np.float64).max(axis=1)
         exact = np.ones(len(out), dtype=bool)
     else:
-        deltas = state["deltas"] = _deltas(ctx, batch)
+        deltas = state["deltas"] = ig_deltas(ctx, batch)
         exact = np.ones(len(deltas), dtype=bool)
         if cfg.screen_ray_step > 1 and len(deltas) > cfg.finalists:
             coarse = ctx.ig.view_ig_delta(ctx.field, deltas, ray_step=cfg.screen_ray_step).max(axis=1)

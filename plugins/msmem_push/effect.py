@@ -32,8 +32,9 @@ What it predicts for a push (tool tip at ``height_m`` from ``start_m`` along ``d
   parts of an object (only its believed-occupied voxels move; its unknown interior stays unknown
   where it was).
 
-The prediction is sparse: a ``DeltaBeliefs`` (one ``BeliefDelta`` per action) and the changed-voxel
-masks. Work per action is a constant number of array operations on the voxels involved (no Python
+The prediction is sparse (a ``Prediction``: one ``BeliefDelta`` of the changed voxels per action). The
+shelf interior and the tool's shape (the run's gripper, the action's ``palm``) come from the
+``Workspace``. Work per action is a constant number of array operations on the voxels involved (no Python
 loop over voxels); the components are labelled once per call.
 """
 
@@ -48,9 +49,9 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
-from msmem_core.interfaces import Action, EffectModel, Prediction
-from msmem_push.geometry import across, swept_voxels
+from msmem_core.interfaces import Action, EffectModel, Prediction, Workspace
+from msmem_core.map.belief import BeliefDelta, EvidentialMap
+from msmem_push.geometry import Box, across, swept_voxels
 from msmem_push.skill import PushAction
 
 
@@ -110,31 +111,27 @@ class AnalyticPushEffect(EffectModel):
         members = [order[bounds[i] : bounds[i + 1]] for i in range(n + 1)]
         return _Scene(flat, members, c.reshape(-1, 3))
 
-    def predict(self, belief: EvidentialMap, actions: Sequence[Action]) -> Prediction:
-        grid = belief.grid
-        deltas: list[BeliefDelta] = []
-        changed = np.zeros((len(actions), grid.size), dtype=bool)
-        scenes: dict[tuple[float, ...], _Scene] = {}
-        mark = np.zeros(grid.size, dtype=bool)
-        for k, a in enumerate(actions):
-            if not isinstance(a, PushAction):
-                raise TypeError(f"push-analytic predicts push actions, got a {a.kind!r} action")
-            interior = tuple(a.interior_m)
-            if interior not in scenes:
-                scenes[interior] = self._scene(belief, interior)
-            d, (a0, b0, e0) = self._predict_one(belief, scenes[interior], a, interior, mark)
-            keep = (d.alpha != a0) | (d.beta != b0) | np.any(d.eta != e0, axis=0)
-            d = BeliefDelta(d.idx[keep], d.alpha[keep], d.beta[keep], d.eta[:, keep])
-            changed[k, d.idx] = True
-            deltas.append(d)
-        return Prediction(DeltaBeliefs(belief, deltas), changed.reshape(len(actions), *grid.shape))
+    def predict(self, belief: EvidentialMap, actions: Sequence[Action], workspace: Workspace) -> Prediction:
+        pushes = [a for a in actions if isinstance(a, PushAction)]
+        if len(pushes) < len(actions):
+            other = next(a for a in actions if not isinstance(a, PushAction))
+            raise TypeError(f"push-analytic predicts push actions, got a {other.kind!r} action")
+        if not pushes:
+            return Prediction(belief, [])
+        interior = workspace.interior_box
+        scene = self._scene(belief, interior)
+        mark = np.zeros(belief.grid.size, dtype=bool)
+        changes = [self._predict_one(belief, scene, a, interior, a.tool(workspace.gripper), mark).against(belief)
+                   for a in pushes]
+        return Prediction(belief, changes)
 
     # ------------------------------------------------------------------------------------ one push
-    def displacements(self, belief: EvidentialMap, action: Any) -> list[tuple[NDArray[np.int64], float]]:
+    def displacements(self, belief: EvidentialMap, action: PushAction, workspace: Workspace
+                      ) -> list[tuple[NDArray[np.int64], float]]:
         """The bodies a push moves: (flat voxel indices, displacement in metres along the push)."""
-        interior = tuple(action.interior_m)
+        interior = workspace.interior_box
         scene = self._scene(belief, interior)
-        return self._moves(belief.grid, scene, action, interior)[0]
+        return self._moves(belief.grid, scene, action, interior, action.tool(workspace.gripper))[0]
 
     def _body(self, scene: _Scene, label: int, contact: int, free: NDArray[np.bool_]) -> NDArray[np.int64]:
         """The voxels of instance ``label`` within ``max_object_radius_m`` (xy) of the contact voxel
@@ -154,22 +151,22 @@ class AnalyticPushEffect(EffectModel):
         first[1:] = lab[1:] != lab[:-1]
         return {int(lab[i]): (float(gap[order[i]]), int(vox[order[i]])) for i in np.flatnonzero(first)}
 
-    def _moves(self, grid: Any, scene: _Scene, a: Any, interior: tuple[float, ...]
+    def _moves(self, grid: Any, scene: _Scene, a: PushAction, interior: tuple[float, ...], tool: Sequence[Box]
                ) -> tuple[list[tuple[NDArray[np.int64], float]], NDArray[np.int64]]:
         s = grid.voxel_m
         u = np.asarray(a.direction, dtype=np.float64)
         start = np.asarray(a.start_m, dtype=np.float64)
         length = float(a.length_m)
         # the tool is the first pusher: its voxels at the start, moving by the push length
-        tool_vox = swept_voxels(grid, start, u, a.height_m, a.tool, length * u)
+        tool_vox = swept_voxels(grid, start, u, a.height_m, tool, length * u)
         free = np.ones(grid.size, dtype=bool)
-        at_start = swept_voxels(grid, start, u, a.height_m, a.tool)
+        at_start = swept_voxels(grid, start, u, a.height_m, tool)
         contacts = self._ahead(grid, scene, at_start, length, u, free, beside=True)
         # the gap to the tool from its exact leading face (the part at the contact's height)
         ext = 0.5 * grid.voxel_m * (abs(u[0]) + abs(u[1]))
         for lab, (_, v) in list(contacts.items()):
             z = scene.centers[v, 2] - a.height_m
-            half = max((b[0] for b in a.tool if b[2] - ext < z < b[3] + ext), default=0.0)
+            half = max((b[0] for b in tool if b[2] - ext < z < b[3] + ext), default=0.0)
             contacts[lab] = (max(0.0, float((scene.centers[v, :2] - start) @ u) - half - ext), v)
         vox_of: list[NDArray[np.int64]] = []
         dist: list[float] = []
@@ -275,16 +272,16 @@ class AnalyticPushEffect(EffectModel):
         near = gap[pick] < d
         return self._first_contacts(scene.labels[vox[pick][near]], vox[pick][near], gap[pick][near])
 
-    def _predict_one(self, belief: EvidentialMap, scene: _Scene, a: Any, interior: tuple[float, ...],
-                     mark: NDArray[np.bool_]) -> tuple[BeliefDelta, tuple[NDArray[np.float32], ...]]:
-        """One action's change and the evidence it replaces (alpha, beta, eta at its voxels); ``mark``
+    def _predict_one(self, belief: EvidentialMap, scene: _Scene, a: PushAction, interior: tuple[float, ...],
+                     tool: Sequence[Box], mark: NDArray[np.bool_]) -> BeliefDelta:
+        """One action's change (its voxels may include some whose evidence stays the same); ``mark``
         is an all-False scratch mask [N] (left all-False)."""
         cfg = self.config
         grid = belief.grid
         s = grid.voxel_m
         nx, ny, nz = grid.shape
         u = np.asarray(a.direction, dtype=np.float64)
-        moved, tool_vox = self._moves(grid, scene, a, interior)
+        moved, tool_vox = self._moves(grid, scene, a, interior, tool)
         src_parts, dst_parts, dst_from, path_parts = [], [], [], [tool_vox]
         for vox, d in moved:
             shift = np.rint(d * u / s).astype(np.int64)
@@ -331,4 +328,4 @@ class AnalyticPushEffect(EffectModel):
         na[pos] = toward_prior(alpha[frm], cfg.moved_keep)
         nb[pos] = toward_prior(beta[frm], cfg.moved_keep)
         ne[:, pos] = toward_prior(eta[:, frm], cfg.moved_keep)
-        return BeliefDelta(idx, na, nb, ne), old
+        return BeliefDelta(idx, na, nb, ne)

@@ -2,7 +2,7 @@
 
 from collections.abc import Iterable
 
-from msmem_core.plugins import BeliefModelSpec, SkillSpec, hookimpl
+from msmem_core.plugins import BeliefModelSpec, CommandSpec, SkillSpec, hookimpl
 from msmem_push.effect import AnalyticPushEffect, PushEffectConfig
 from msmem_push.skill import PushConfig, PushSkill
 
@@ -27,3 +27,11 @@ def msmem_belief_models() -> Iterable[BeliefModelSpec]:
         roles=frozenset({"effect"}),
         description="sigma_p: move pushed objects' evidence (chain included), lower confidence where they swept",
     )
+
+
+@hookimpl
+def msmem_commands() -> Iterable[CommandSpec]:
+    """``msmem perf push`` (bodies import what they need on use)."""
+    from msmem_push.commands import COMMANDS
+
+    yield from COMMANDS

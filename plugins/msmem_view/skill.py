@@ -2,19 +2,17 @@
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict
 
-from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
+from msmem_core.interfaces import Action, Category, Outcome, PerceptionAction, Simulator, Skill
 
 
-class ViewAction(Action):
+class ViewAction(PerceptionAction):
     """Observe from viewpoint ``view`` (an index into the run's viewpoints)."""
 
     kind: str = "view"
-    category: Literal["perception"] = "perception"
-    view: int
 
 
 class ViewConfig(BaseModel):

@@ -26,12 +26,18 @@ import pybullet as p
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.errors import UserError
+from msmem_core.interfaces import GRIPPER_ID, SHELF_ID, Capabilities, Contact
+from msmem_core.sim.motion import (
+    FINGER_SPEED_MPS,
+    PARK_POSITION_M,
+    PARK_QUAT_XYZW,
+    FloatingGripperSimulator,
+    PathTarget,
+)
+from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.world.geometry import matrix_to_quat, pose_matrix
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.interfaces import GRIPPER_ID, SHELF_ID, Capabilities, Contact
-from msmem_core.sim.motion import FINGER_SPEED_MPS, PARK_POSITION_M, PARK_QUAT_XYZW, FloatingGripperSimulator, PathTarget
 from msmem_core.world.scene import ObjectClass, ObjectSpec, SceneSpec, ShelfSpec, object_class, parts_centroid
 
 OBJECT_FRICTION = 0.6

@@ -1,6 +1,6 @@
 """``python -m msmem_sapien``: which camera the SAPIEN backend will use here, and why."""
 
-from msmem_sapien.simulator import lavapipe_icd, native_renderer
+from msmem_sapien.camera import lavapipe_icd, native_renderer
 
 
 def main() -> None:

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from msmem_core.interfaces import GRIPPER_ID, Simulator
-from msmem_core.world.scene import ObjectSpec, SceneSpec, object_class
 from msmem_core.testing.conformance import (
     conformance_scene,
     front_view,
@@ -17,6 +16,7 @@ from msmem_core.testing.conformance import (
     push_along_y,
     single_object_scene,
 )
+from msmem_core.world.scene import ObjectSpec, SceneSpec, object_class
 
 
 def labels_per_view(noisy: Callable[[int], Simulator], seed: int, views: int = 6) -> list[dict[int, int]]:

@@ -5,8 +5,8 @@ classes in its footprint columns. Its evidence moves sideways by the nudge dista
 and the voxels it leaves return to the prior: nothing is known yet about what the object hid. Changed
 voxels are the union of the two. Not modelled: rotation, tipping, objects in the way (the skill does
 not propose nudges into believed neighbours) and the object's unseen parts, which stay where they were.
-The prediction is sparse (``DeltaBeliefs``), so the built-in ``ig`` term re-scores only the rays the
-change touches.
+The prediction is sparse (one ``BeliefDelta`` of the changed voxels per action), so the built-in ``ig``
+term re-scores only the rays the change touches.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from collections.abc import Sequence
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
-from msmem_core.interfaces import Action, EffectModel, Prediction
+from msmem_core.interfaces import Action, EffectModel, Prediction, Workspace
+from msmem_core.map.belief import BeliefDelta, EvidentialMap
 from msmem_nudge.skill import shift_x
 
 
@@ -49,13 +49,13 @@ class NudgeEffect(EffectModel):
         mask[region] = (p > self.config.occupied_threshold) & (cls != 0)
         return mask
 
-    def predict(self, belief: EvidentialMap, actions: Sequence[Action]) -> Prediction:
+    def predict(self, belief: EvidentialMap, actions: Sequence[Action], workspace: Workspace) -> Prediction:
         grid = belief.grid
         keep = self.config.moved_keep
         a0, b0 = belief.alpha.reshape(-1), belief.beta.reshape(-1)
         e0 = belief.eta.reshape(belief.num_classes, -1)
-        deltas, changed = [], np.zeros((len(actions), *grid.shape), dtype=bool)
-        for k, a in enumerate(actions):
+        changes = []
+        for a in actions:
             src = self.target_voxels(belief, a)
             n = round(a.nudge_m * a.direction[0] / grid.voxel_m)  # type: ignore[attr-defined]
             dst = shift_x(src, n)
@@ -70,7 +70,5 @@ class NudgeEffect(EffectModel):
             alpha[pos] = 1.0 + keep * (a0[src_of] - 1.0)
             beta[pos] = 1.0 + keep * (b0[src_of] - 1.0)
             eta[:, pos] = 1.0 + keep * (e0[:, src_of] - 1.0)
-            diff = (alpha != a0[idx]) | (beta != b0[idx]) | np.any(eta != e0[:, idx], axis=0)
-            deltas.append(BeliefDelta(idx[diff], alpha[diff], beta[diff], eta[:, diff]))
-            changed[k].reshape(-1)[idx[diff]] = True
-        return Prediction(DeltaBeliefs(belief, deltas), changed)
+            changes.append(BeliefDelta(idx, alpha, beta, eta).against(belief))  # only what differs
+        return Prediction(belief, changes)

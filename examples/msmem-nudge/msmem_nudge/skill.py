@@ -21,6 +21,8 @@ is dropped if the gripper would not fit under the top board, if the tool's path 
 believed-occupied voxel other than the target (approach, descent, lift, retreat and the nudge
 itself), if the nudged object would run into another believed object, or if the nudge would
 probably tip the object over (``assumed_friction`` * contact height > half its believed width).
+
+``execute`` only moves the gripper; MSAS measures what moved and what fell or left the shelf.
 """
 
 from __future__ import annotations
@@ -34,8 +36,8 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
+from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill, Workspace
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill
 
 Box = tuple[float, float, float, float, float, float]
 """Axis-aligned box (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi) in metres."""
@@ -82,7 +84,6 @@ class NudgeConfig(BaseModel):
     speed_mps: float = Field(0.05, gt=0.0, le=1.0)
     travel_speed_mps: float = Field(0.2, gt=0.0, le=2.0)
     settle_s: float = Field(0.5, ge=0.0, le=10.0)
-    fall_tilt_deg: float = Field(30.0, gt=0.0, lt=90.0)
 
 
 class NudgeAction(Action):
@@ -106,26 +107,24 @@ class NudgeAction(Action):
     """Believed footprint of the object (x_lo, y_lo, x_hi, y_hi)."""
     top_m: float
     """Believed height of the object's top."""
-    tool_m: tuple[float, float, float, float, float, float]
-    """Tool half-extents: fingers (x, y, length) and palm (x, y, depth); see ``tool_of``."""
 
-    def path_boxes(self) -> list[Box]:
-        """Boxes the tool sweeps: approach, descent, nudge, lift and retreat (in that order)."""
+    def path_boxes(self, tool: tuple[float, ...]) -> list[Box]:
+        """Boxes the tool (``tool_of``) sweeps: approach, descent, nudge, lift and retreat (in that order)."""
         x0, y, zt = self.start_m
         x1 = x0 + self.length_m * self.direction[0]
         za, ya = self.approach_z_m, self.approach_y_m
         return [
-            *_sweep(self.tool_m, (x0, ya, za), (x0, y, za)),
-            *_sweep(self.tool_m, (x0, y, za), (x0, y, zt)),
-            *_sweep(self.tool_m, (x0, y, zt), (x1, y, zt)),
-            *_sweep(self.tool_m, (x1, y, zt), (x1, y, za)),
-            *_sweep(self.tool_m, (x1, y, za), (x1, ya, za)),
+            *_sweep(tool, (x0, ya, za), (x0, y, za)),
+            *_sweep(tool, (x0, y, za), (x0, y, zt)),
+            *_sweep(tool, (x0, y, zt), (x1, y, zt)),
+            *_sweep(tool, (x1, y, zt), (x1, y, za)),
+            *_sweep(tool, (x1, y, za), (x1, ya, za)),
         ]
 
-    def swept_volume(self, grid: Any) -> NDArray[np.bool_]:
-        mask = np.zeros(grid.shape, dtype=bool)
-        for box in self.path_boxes():
-            mask[box_slices(grid, box)] = True
+    def swept_volume(self, workspace: Workspace) -> NDArray[np.bool_]:
+        mask = np.zeros(workspace.grid.shape, dtype=bool)
+        for box in self.path_boxes(tool_of(workspace.gripper)):
+            mask[box_slices(workspace.grid, box)] = True
         return mask
 
 
@@ -263,7 +262,7 @@ class NudgeSkill(Skill):
                         start_m=(float(x0), float(y), float(z_tip)), direction=(sign, 0.0, 0.0),
                         length_m=float(cfg.standoff_m + nudge), nudge_m=float(nudge), approach_z_m=float(z_app),
                         approach_y_m=cfg.approach_y_m, target_class=obj.cls, footprint_m=obj.footprint_m,
-                        top_m=obj.top_m, tool_m=self.tool,
+                        top_m=obj.top_m,
                     )
                     if self._valid(a, obj, obstacles, grid, lo, hi):
                         out.append(a)
@@ -273,7 +272,7 @@ class NudgeSkill(Skill):
 
     def _valid(self, a: NudgeAction, obj: BelievedObject, obstacles: NDArray[np.bool_], grid: Any,
                lo: NDArray[np.float64], hi: NDArray[np.float64]) -> bool:
-        boxes = a.path_boxes()
+        boxes = a.path_boxes(self.tool)
         for b in boxes:  # the tool stays inside the shelf (the front is open)
             if b[0] < lo[0] or b[3] > hi[0] or b[5] > hi[2] or b[4] > hi[1]:
                 return False
@@ -294,7 +293,6 @@ class NudgeSkill(Skill):
         x0, y, zt = a.start_m
         x1 = x0 + a.length_m * a.direction[0]
         za, ya = a.approach_z_m, a.approach_y_m
-        before = sim.object_poses()
         sim.move_gripper([tool_pose(x0, ya, za), tool_pose(x0, y, za), tool_pose(x0, y, zt)], opening_m=0.0,
                          speed_mps=cfg.travel_speed_mps)
         reached = sim.move_gripper([tool_pose(x1, y, zt)], speed_mps=cfg.speed_mps)
@@ -302,12 +300,8 @@ class NudgeSkill(Skill):
         sim.park_gripper()
         if cfg.settle_s > 0:
             sim.step(cfg.settle_s)
-        after = sim.object_poses()
-        disp = {i: float(np.linalg.norm(after[i][:2, 3] - before[i][:2, 3])) for i in before if i in after}
-        fell = fallen_or_left(before, after, ctx.shelf, cfg.fall_tilt_deg)
         miss = float(np.linalg.norm(reached[:3, 3] - np.array([x1, y, zt])))
-        return Outcome(success=miss < 0.02, displacement_m=disp, fell_or_left=fell,
-                       info={"tool_end_error_m": miss, "moved": [i for i, d in disp.items() if d > 0.005]})
+        return Outcome(success=miss < 0.02, info={"tool_end_error_m": miss})
 
 
 def tool_pose(x: float, y: float, z: float) -> NDArray[np.float64]:
@@ -331,19 +325,3 @@ def shift_x(mask: NDArray[np.bool_], n: int) -> NDArray[np.bool_]:
         out[:] = mask
     return out
 
-
-def fallen_or_left(before: dict[int, NDArray[np.float64]], after: dict[int, NDArray[np.float64]], shelf: Any,
-                   tilt_deg: float) -> list[int]:
-    """Objects that vanished, tilted more than ``tilt_deg`` or left the shelf interior."""
-    lo, hi = shelf.interior_lower, shelf.interior_upper
-    out = []
-    for i, t0 in before.items():
-        t1 = after.get(i)
-        if t1 is None:
-            out.append(i)
-            continue
-        tilt = math.degrees(math.acos(float(np.clip(t0[:3, 2] @ t1[:3, 2], -1.0, 1.0))))
-        pos = t1[:3, 3]
-        if tilt > tilt_deg or not (lo[0] <= pos[0] <= hi[0] and lo[1] <= pos[1] <= hi[1]) or pos[2] < lo[2] - 0.02:
-            out.append(i)
-    return out

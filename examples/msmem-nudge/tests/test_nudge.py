@@ -12,15 +12,17 @@ from msmem_nudge.effect import NudgeEffect
 from msmem_nudge.skill import NudgeAction, NudgeConfig, NudgeSkill
 from msmem_nudge.travel import TravelCost, TravelCostConfig
 
+from msmem_core.interfaces import CandidateBatch, Workspace
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.msas import execute_measured
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
-from msmem_core.interfaces import CandidateBatch
 from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec, object_class
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01, 1)
+WORKSPACE = Workspace(GRID, SHELF)
 CAN = object_class("potted_meat_can").class_id
 
 
@@ -61,7 +63,7 @@ def test_nudges_are_proposed_beside_a_seen_object_at_70_percent_of_its_height():
         side = a.start_m[0] < -0.05 if a.direction[0] > 0 else a.start_m[0] > 0.05
         assert side, "the fingers start beside the object, on the side they push from"
         assert a.approach_z_m > a.top_m
-        assert not (a.swept_volume(GRID) & (belief.expected_occupancy() > 0.5)).all()
+        assert not (a.swept_volume(WORKSPACE) & (belief.expected_occupancy() > 0.5)).all()
 
 
 def test_no_nudge_for_objects_too_tall_for_the_gripper_or_likely_to_tip():
@@ -74,7 +76,7 @@ def test_no_nudge_for_objects_too_tall_for_the_gripper_or_likely_to_tip():
 def test_the_effect_model_shifts_the_object_and_frees_what_it_left():
     belief = box_belief((-0.05, 0.05), (0.03, 0.08), 0.09)
     acts = [a for a in NudgeSkill().sample(belief, SHELF, np.random.default_rng(0)) if a.direction[0] > 0]
-    pred = NudgeEffect().predict(belief, acts[:1])
+    pred = NudgeEffect().predict(belief, acts[:1], WORKSPACE)
     after = pred.beliefs[0]
     n = round(acts[0].nudge_m / GRID.voxel_m)
     occ_before = belief.expected_occupancy() > 0.5
@@ -103,7 +105,7 @@ def test_execute_composes_simulator_moves_and_parks(fake_simulator):
     belief = box_belief((-0.05, 0.05), (0.03, 0.08), 0.09)
     action = NudgeSkill().sample(belief, SHELF, np.random.default_rng(0))[0]
     fake_simulator.reset(SceneSpec(name="empty"))
-    out = NudgeSkill().execute(fake_simulator, action, SimpleNamespace(shelf=SHELF))
+    out = execute_measured(NudgeSkill(), fake_simulator, action, SimpleNamespace(shelf=SHELF))  # as MSAS runs it
     assert fake_simulator.calls.count("move_gripper") == 3
     assert out.success
     assert out.fell_or_left == []
@@ -128,7 +130,7 @@ def test_a_real_pybullet_nudge_moves_the_object_sideways(plugin_manager):
         assert acts, "the can is low and at the front: it should be nudgeable"
         action: NudgeAction = next(a for a in acts if a.direction[0] > 0)
         before = sim.object_poses()[0]
-        out = skill.execute(sim, action, SimpleNamespace(shelf=scene.shelf))
+        out = execute_measured(skill, sim, action, SimpleNamespace(shelf=scene.shelf))
         after = sim.object_poses()[0]
     finally:
         sim.close()

@@ -1,4 +1,5 @@
-"""``msmem bench-grasp``: success rate of the top-1 fused grasp, executed in PyBullet.
+"""``msmem bench-grasp``: success rate of the top-1 fused grasp, executed in the simulator (``--sim``,
+default PyBullet; any backend, built by the plugin manager).
 
 Per scene seed (generated like the episodes' scenes) and trial: reset the simulator, observe the
 episode's start view and ``views - 1`` random viewpoints (seeded by scene and trial) into an analytic
@@ -22,6 +23,8 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.plugins import ComponentRef
+
 
 class GraspBenchConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -42,6 +45,9 @@ class GraspBenchConfig(BaseModel):
     """The simulator's structured segmentation noise (its default)."""
     skill: dict[str, Any] = Field(default_factory=dict)
     """Parameters of the grasp skill (``GraspConfig``)."""
+    simulator: ComponentRef = ComponentRef(name="pybullet")
+    """The backend the grasps are executed in (``--sim``); its ``seed`` is set per scene and trial and
+    its ``label_noise`` is the one above, unless ``params`` set them."""
 
 
 @dataclass
@@ -64,12 +70,13 @@ class TrialResult:
 def run_scene(task: tuple[int, GraspBenchConfig]) -> list[dict[str, Any]]:
     """All trials of one scene seed (a module-level function: executors pickle it)."""
     from msmem_analytic.observation import AnalyticObservationModel
-    from msmem_pybullet.simulator import PyBulletSimulator
 
     from msmem_core.map.belief import EvidentialMap
+    from msmem_core.map.ig import IGService
+    from msmem_core.msas import execute_measured
+    from msmem_core.sim.build import build_simulator
     from msmem_core.world.camera import CameraConfig
     from msmem_core.world.grid import GridSpec
-    from msmem_core.map.ig import IGService
     from msmem_core.world.scenegen import SceneGenConfig, generate_scene
     from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
     from msmem_grasp.skill import GraspConfig, GraspSkill
@@ -85,7 +92,7 @@ def run_scene(task: tuple[int, GraspBenchConfig]) -> list[dict[str, Any]]:
     out = []
     for trial in range(cfg.trials):
         t0 = time.perf_counter()
-        sim = PyBulletSimulator(label_noise=cfg.label_noise, seed=1000 * seed + trial)
+        sim = build_simulator(cfg.simulator, label_noise=cfg.label_noise, seed=1000 * seed + trial)
         try:
             sim.reset(scene)
             rng = np.random.default_rng([seed, trial])
@@ -112,7 +119,7 @@ def run_scene(task: tuple[int, GraspBenchConfig]) -> list[dict[str, Any]]:
             res = TrialResult(seed, trial, len(cands), False, False, None, None, 0.0, 0.0, 0, skill.predictor, 0.0)
             if cands:
                 a = cands[0]
-                outcome = skill.execute(sim, a, SimpleNamespace(shelf=scene.shelf))
+                outcome = execute_measured(skill, sim, a, SimpleNamespace(shelf=scene.shelf))  # as MSAS does
                 held = outcome.removed[0] if outcome.removed else None
                 res.executed = True
                 res.success = outcome.success
@@ -150,7 +157,9 @@ def bench_grasp(cfg: GraspBenchConfig, out: Path | None = None, executor: str = 
     """Run every scene (one task each) and return the summary; with ``out``, write ``trials.jsonl``
     and ``summary.json`` there."""
     from msmem_core.run.executors import TaskFailure, run_tasks
+    from msmem_core.sim.build import check_simulator
 
+    check_simulator(cfg.simulator, label_noise=cfg.label_noise)  # a bad --sim fails before any scene starts
     results = run_tasks(run_scene, [(s, cfg) for s in cfg.scene_seeds], executor=executor, workers=workers,
                         progress=progress, threads=1, description="bench-grasp", on_error="raise")
     rows = [r for res in results if not isinstance(res, TaskFailure) for r in res]

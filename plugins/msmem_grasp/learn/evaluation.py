@@ -30,7 +30,8 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.spatial import cKDTree
 
-from msmem_grasp.datagen import GraspShard, list_shards, load_shard
+from msmem_core.world.geometry import F64
+from msmem_grasp.learn.datagen import GraspShard, list_shards, load_shard
 from msmem_grasp.metrics import (
     angular_error,
     auroc,
@@ -41,8 +42,6 @@ from msmem_grasp.metrics import (
     precision_recall,
     vmf_nll,
 )
-
-F64 = NDArray[np.float64]
 
 
 class HeuristicConfig(BaseModel):
@@ -108,7 +107,7 @@ def heuristic_predict(shard: GraspShard, cfg: HeuristicConfig | None = None) -> 
 
 
 def model_predict(model: Any, shard: GraspShard) -> Prediction:
-    from msmem_grasp.training import predict_shard
+    from msmem_grasp.learn.training import predict_shard
 
     out = predict_shard(model, shard)
     mu_a, kappa_a = out.approach()

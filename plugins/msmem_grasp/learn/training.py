@@ -21,19 +21,18 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.learn.datagen import read_manifest
+from msmem_core.learn.training import TrainingRun, optimizer_step, split_scenes, training_record, warmup_cosine
 from msmem_core.util.artifacts import sha256_file as sha256_file  # re-exported: callers import it from here
 from msmem_core.util.artifacts import sidecar_path as sidecar_path
 from msmem_core.util.artifacts import write_sidecar
-from msmem_core.learn.datagen import read_manifest
-from msmem_core.learn.training import TrainingRun, optimizer_step, split_scenes, training_record, warmup_cosine
-from msmem_grasp.datagen import GraspShard, list_shards, load_shard
 from msmem_grasp.fevmf import FEVMF, FEVMFConfig, GraspPrediction
 from msmem_grasp.fpp import FEATURES
-from msmem_grasp.losses import GraspTargets, LossConfig, total_loss
+from msmem_grasp.learn.datagen import GraspShard, list_shards, load_shard
+from msmem_grasp.learn.losses import GraspTargets, LossConfig, total_loss
 from msmem_grasp.metrics import angular_error, auroc
-
-WEIGHTS_FORMAT = "msmem-fe-vmf"
-WEIGHTS_VERSION = 1
+from msmem_grasp.weights import WEIGHTS_FORMAT as WEIGHTS_FORMAT  # re-exported: the format this module writes
+from msmem_grasp.weights import WEIGHTS_VERSION
 
 
 def default_model_config() -> FEVMFConfig:

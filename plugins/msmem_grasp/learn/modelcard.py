@@ -1,6 +1,6 @@
 """Write ``MODEL_CARD.md`` for FE-vMF weights from their sidecar and an evaluation JSON.
 
-    python -m msmem_grasp.modelcard --weights plugins/msmem_grasp/weights/fe_vmf.pt \\
+    python -m msmem_grasp.learn.modelcard --weights plugins/msmem_grasp/weights/fe_vmf.pt \\
         --eval runs/grasp-eval.json --notes runs/grasp-notes.json
 
 ``--notes`` (optional JSON) adds facts the sidecar cannot know: the data-generation commands and
@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from msmem_core.util.artifacts import sidecar_path
-from msmem_grasp.evaluation import format_table
+from msmem_grasp.learn.evaluation import format_table
 
 
 def _ranges(seeds: list[int]) -> str:
@@ -93,7 +93,7 @@ def model_card(weights: Path, metrics: dict[str, Any], notes: dict[str, Any] | N
         "",
         "Heuristic (no learning, same FPP cloud): b = -normal, affordance from a normal-opposition test",
         "along -normal within 8 cm, approach orthogonal to b closest to top-down; its single kappa per",
-        "direction is fitted on the test set itself. See `msmem_grasp.evaluation`.",
+        "direction is fitted on the test set itself. See `msmem_grasp.learn.evaluation`.",
         "",
         "| metric | FE-vMF | heuristic |",
         "| --- | ---: | ---: |",

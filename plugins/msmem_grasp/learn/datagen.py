@@ -1,6 +1,7 @@
 """Training data for FE-vMF (paper sec. "Data generation", scaled to a CPU).
 
-Per scene seed: generate a shelf scene, reset the PyBullet simulator (objects settle), observe 3-10
+Per scene seed: generate a shelf scene, reset the simulator (objects settle; ``simulator``, ``--sim``:
+any backend, built by the plugin manager, default PyBullet), observe 3-10
 random viewpoints into an analytic belief, project the belief's surface with FPP from those views,
 and label every point: positive if it lies within max(2 mm, half a voxel) of a ground-truth antipodal
 contact (``grasps_in_scene`` at the settled poses), with the approach, directed baseline and width of
@@ -24,12 +25,13 @@ import torch
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.errors import UserError
 from msmem_core.learn import datagen
 from msmem_core.learn.datagen import DatagenSummary, ShardTask, read_npz, save_npz, shard_path
-from msmem_core.errors import UserError
+from msmem_core.plugins import ComponentRef
 from msmem_grasp.antipodal import AntipodalConfig, GraspSet
 from msmem_grasp.fpp import FPPConfig, SurfaceCloud, frontier_points
-from msmem_grasp.losses import GraspTargets, assign_targets
+from msmem_grasp.learn.losses import GraspTargets, assign_targets
 
 SHARD_VERSION = 1
 
@@ -44,14 +46,17 @@ class GraspDataConfig(BaseModel):
     """Each scene is observed from a uniform number of random viewpoints in [min_views, max_views]."""
     voxel_m: float = Field(0.01, gt=0.001, le=0.05)
     require_hard: bool = False
-    """Hard scenes (> 3 objects hidden from all views) take ~10x longer to generate; the paper's
-    training scenes are plain random arrangements with 30-45 % floor occupancy."""
+    """Hard scenes (> 3 objects hidden from all views; slower to generate: docs/grasp.md) instead of
+    the paper's training scenes, plain random arrangements with 30-45 % floor occupancy."""
     label_radius_m: float | None = Field(None, gt=0.0)
     """A point is positive within this distance of a GT contact (None: max(2 mm, half a voxel))."""
     max_grasps: int = Field(16, ge=1)
     """GT grasps kept per positive point (nearest contacts first)."""
     fpp: FPPConfig = FPPConfig()
     antipodal: AntipodalConfig = AntipodalConfig()
+    simulator: ComponentRef = ComponentRef(name="pybullet")
+    """The backend the scenes settle and are observed in (``--sim``); its ``camera`` is FPP's and its
+    ``seed`` the scene seed, unless ``params`` set them."""
 
     def radius_m(self) -> float:
         return self.label_radius_m if self.label_radius_m is not None else max(0.002, 0.5 * self.voxel_m)
@@ -173,9 +178,9 @@ def scene_views(seed: int, config: GraspDataConfig, num_views: int) -> NDArray[n
 def make_shard(seed: int, config: GraspDataConfig | None = None) -> GraspShard:
     """Generate, observe, project and label one scene."""
     from msmem_analytic.observation import AnalyticObservationModel
-    from msmem_pybullet.simulator import PyBulletConfig, PyBulletSimulator
 
     from msmem_core.map.belief import EvidentialMap
+    from msmem_core.sim.build import build_simulator
     from msmem_core.world.grid import GridSpec
     from msmem_core.world.scenegen import SceneGenConfig, generate_scene
     from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
@@ -189,7 +194,7 @@ def make_shard(seed: int, config: GraspDataConfig | None = None) -> GraspShard:
     grid = GridSpec.around_box(scene.shelf.interior_lower, scene.shelf.interior_upper, cfg.voxel_m, 1)
     poses_all = generate_viewpoints(ViewpointConfig(), scene.shelf)
     views = scene_views(seed, cfg, len(poses_all))
-    sim = PyBulletSimulator(PyBulletConfig(camera=cfg.fpp.camera, seed=seed))
+    sim = build_simulator(cfg.simulator, camera=cfg.fpp.camera, seed=seed)
     try:
         sim.reset(scene)
         model = AnalyticObservationModel()
@@ -237,7 +242,11 @@ def generate_dataset(
     log: Callable[[str], None] = print,
 ) -> DatagenSummary:
     """Make the shards of ``seeds`` in ``out_dir`` that are missing (or corrupt), in parallel."""
+    from msmem_core.sim.build import check_simulator
+
     cfg = config or GraspDataConfig()
+    datagen.check_same_simulator(out_dir, datagen.read_manifest(out_dir), cfg.simulator)
+    check_simulator(cfg.simulator, camera=cfg.fpp.camera)  # a bad --sim fails before any worker starts
     manifest = {"config": cfg.model_dump(mode="json"), "seeds": [int(s) for s in seeds], "version": SHARD_VERSION}
     return datagen.generate_shards(out_dir, seeds, run_shard_task, cfg.model_dump_json(), load_shard, manifest,
                                    executor, workers, progress, log, "scenes")

@@ -1,0 +1,201 @@
+"""The loop's contracts with its plugins, on the fake simulator and toy skills: MSAS measures what a
+manipulation moved and what fell or left (once, for every skill), a tracer sees every stage of a
+decision in order, and a perception action must name its view."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import pytest
+from msmem_view.skill import ViewSkill
+
+from msmem_core.config import MSASConfig
+from msmem_core.errors import PluginError
+from msmem_core.interfaces import (
+    Action,
+    CandidateBatch,
+    Category,
+    DecisionContext,
+    EffectModel,
+    ObservationModel,
+    Outcome,
+    Prediction,
+    Simulator,
+    Skill,
+    Term,
+    Workspace,
+)
+from msmem_core.map.belief import BeliefDelta, EvidentialMap
+from msmem_core.map.ig import IGService
+from msmem_core.msas import BoundSkill, Decision, Objective, decide, run_msas
+from msmem_core.testing import FakeSimulator
+from msmem_core.util.trace import Span, Tracer, active_tracer, span
+from msmem_core.world.camera import CameraConfig, Observation
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec
+from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
+
+SHELF = ShelfSpec()
+GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.02)
+WORKSPACE = Workspace(GRID, SHELF)
+CAMERA = CameraConfig(width_px=32, height_px=24)
+SCENE = SceneSpec(name="two", objects=(
+    ObjectSpec(id=0, class_name="sugar_box", position_m=(-0.1, 0.15, 0.0)),
+    ObjectSpec(id=1, class_name="tomato_soup_can", position_m=(0.1, 0.15, 0.0)),
+))
+
+
+# ------------------------------------------------------------------------------------------ toy plugins
+class ToppleAction(Action):
+    kind: str = "topple"
+    category: Literal["manipulation"] = "manipulation"
+
+
+class ToppleSkill(Skill):
+    """Tips object 0 over and slides object 1 by 3 cm in the fake simulator; reports only success."""
+
+    category: ClassVar[Category] = "manipulation"
+
+    def propose(self, ctx: Any) -> list[Action]:
+        return [ToppleAction(target_object=0)] if ctx.manipulation_allowed else []
+
+    def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
+        assert isinstance(sim, FakeSimulator)
+        tip = np.eye(4)
+        tip[1:3, 1:3] = [[0.0, -1.0], [1.0, 0.0]]  # 90 degrees about x
+        sim.poses[0] = sim.poses[0] @ tip
+        sim.poses[1][0, 3] += 0.03
+        return Outcome(success=True, info={"toppled": 0})
+
+
+class NoChange(EffectModel):
+    def predict(self, belief: EvidentialMap, actions: Sequence[Action], workspace: Workspace) -> Prediction:
+        empty = BeliefDelta(np.zeros(0, np.int64), np.zeros(0, np.float32), np.zeros(0, np.float32),
+                            np.zeros((belief.num_classes, 0), np.float32))
+        return Prediction(belief, [empty for _ in actions])
+
+
+class Glance(Skill):
+    """A perception skill whose actions do not say where they look from."""
+
+    def propose(self, ctx: Any) -> list[Action]:
+        return [Action(kind="glance", category="perception")]
+
+    def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
+        raise AssertionError("never executed")
+
+
+class KeepBelief(ObservationModel):
+    def update(self, belief: EvidentialMap, observation: Observation) -> EvidentialMap:
+        return belief
+
+
+class Constant(Term):
+    """Manipulations score 100, views 1 (after touching the IG field, so its span nests here)."""
+
+    def score(self, ctx: Any, batch: CandidateBatch) -> np.ndarray:
+        assert ctx.field is not None
+        return np.full(len(batch.actions), 100.0 if batch.category == "manipulation" else 1.0)
+
+
+@pytest.fixture(scope="module")
+def ig() -> IGService:
+    views = generate_viewpoints(ViewpointConfig(targets_x_m=(0.0,), grid=2), SHELF)
+    return IGService(GRID, CAMERA, views, SHELF)
+
+
+def skills() -> list[BoundSkill]:
+    return [BoundSkill("view", ViewSkill()), BoundSkill("topple", ToppleSkill(), NoChange())]
+
+
+def run(ig: IGService, steps: int, tracer: Tracer | None = None) -> list[tuple[int, Decision, Outcome]]:
+    sim = FakeSimulator(CAMERA)
+    sim.reset(SCENE)
+    out: list[tuple[int, Decision, Outcome]] = []
+    cfg = MSASConfig(manipulation_window=(0, 10), mapped_fraction=1.0)
+    run_msas(sim, KeepBelief(), skills(), Objective([("constant", 1.0, Constant())]), ig, WORKSPACE, cfg, steps,
+             start_view=0, seed=0, on_step=lambda step, d, o, b: out.append((step, d, o)), tracer=tracer)
+    return out
+
+
+# -------------------------------------------------------------------------------------------- tests
+def test_the_loop_measures_what_a_manipulation_moved_and_what_fell_for_a_skill_that_does_not(ig):
+    steps = run(ig, 4)
+    assert [d.skill.name for _, d, _ in steps] == ["topple", "view", "view", "view"]
+    _, first, outcome = steps[0]
+    assert first.skill.skill.__class__ is ToppleSkill  # the decision carries its bound skill
+    assert outcome.fell_or_left == [0], "the tipped object fell over"
+    assert outcome.displacement_m[1] == pytest.approx(0.03)
+    assert outcome.displacement_m[0] == pytest.approx(0.0)
+    assert outcome.info == {"toppled": 0, "moved": [1]}
+    # after it, only views: the manipulation's associated view, then none since an object fell
+    assert all("topple" not in d.candidates for _, d, _ in steps[1:])
+    for _, _, o in steps[1:]:
+        assert o.fell_or_left == []
+        assert o.displacement_m == {}  # perception actions are not measured
+
+
+def test_a_tracer_sees_every_stage_of_a_step_in_order(ig):
+    events: list[tuple[str, str, str | None]] = []
+    spans: dict[str, Span] = {}
+
+    class Recorder(Tracer):
+        def begin(self, s: Span) -> None:
+            events.append(("begin", s.stage, s.skill))
+
+        def end(self, s: Span) -> None:
+            events.append(("end", s.stage, s.skill))
+            spans.setdefault(s.stage, s)
+
+    ((_, decision, outcome),) = run(ig, 1, Recorder())
+    core = [e for e in events if e[1] in ("decide", "track", "propose", "predict", "score", "term", "execute")]
+    assert core == [
+        ("begin", "decide", None),
+        ("begin", "track", "view"), ("end", "track", "view"),
+        ("begin", "propose", "view"), ("end", "propose", "view"),
+        ("begin", "score", "view"), ("begin", "term", "view"), ("end", "term", "view"), ("end", "score", "view"),
+        ("begin", "track", "topple"), ("end", "track", "topple"),
+        ("begin", "propose", "topple"), ("end", "propose", "topple"),
+        ("begin", "predict", "topple"), ("end", "predict", "topple"),
+        ("begin", "score", "topple"), ("begin", "term", "topple"), ("end", "term", "topple"),
+        ("end", "score", "topple"),
+        ("end", "decide", None),
+        ("begin", "execute", "topple"), ("end", "execute", "topple"),
+    ]
+    # the IG service's own stage nests inside the term that first needed the field
+    i = events.index(("begin", "ig.prepare", None))
+    assert events[i - 1] == ("begin", "term", "view")
+    assert spans["decide"].result is decision
+    assert spans["execute"].result is outcome
+    assert isinstance(spans["predict"].result, Prediction)
+    assert len(spans["propose"].result) == decision.candidates["view"] == len(ig.viewpoints) - 1  # not the start
+    assert spans["score"].info["batch"].skill == "view"
+    assert active_tracer() is None  # reported only while the loop runs
+
+
+def test_without_a_tracer_spans_cost_nothing_but_a_lookup():
+    assert active_tracer() is None
+    with span("anything", skill="x", payload=object()) as s:
+        assert s is None
+
+
+def test_a_perception_action_without_a_view_index_is_refused_naming_the_skill(ig):
+    ctx = DecisionContext(0, EvidentialMap.empty(GRID), ig, ig.viewpoints, set(), WORKSPACE,
+                          np.random.default_rng(0), False, 0.5)
+    objective = Objective([("constant", 1.0, Constant())])
+    with pytest.raises(PluginError, match=r"perception skill 'glance' proposed a Action \('glance'\) without a view"):
+        decide(ctx, [BoundSkill("glance", Glance())], objective)
+
+
+def test_an_effect_model_must_predict_from_the_belief_it_was_given(ig):
+    class Elsewhere(NoChange):
+        def predict(self, belief: EvidentialMap, actions: Sequence[Action], workspace: Workspace) -> Prediction:
+            return super().predict(belief.copy(), actions, workspace)
+
+    ctx = DecisionContext(3, EvidentialMap.empty(GRID), ig, ig.viewpoints, set(), WORKSPACE,
+                          np.random.default_rng(0), True, 0.5)
+    objective = Objective([("constant", 1.0, Constant())])
+    with pytest.raises(PluginError, match="effect model of skill 'topple'"):
+        decide(ctx, [BoundSkill("topple", ToppleSkill(), Elsewhere())], objective)
