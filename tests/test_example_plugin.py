@@ -1,10 +1,8 @@
 """A skill from a separately installed package is offered by MSAS: examples/msmem-nudge installed into
-the venv, its skill proposed, scored and (where it wins) executed in ``msmem run``, its own tests green."""
+a throwaway folder, its skill proposed, scored and (where it wins) executed in ``msmem run``, its own tests green."""
 
 from __future__ import annotations
 
-import importlib
-import importlib.metadata as md
 import json
 import os
 import subprocess
@@ -26,31 +24,22 @@ SCENE = EXAMPLE / "demo_scene.json"
 """Low objects at the front (nudgeable) hiding small ones behind them."""
 
 
-def _installed() -> bool:
-    importlib.invalidate_caches()
-    try:
-        md.distribution("msmem-nudge")
-    except md.PackageNotFoundError:
-        return False
-    return True
-
-
 @pytest.fixture(scope="module")
-def nudge_package() -> Iterator[None]:
-    """pip-install the example package (editable, no dependencies, no build isolation: offline) and
-    uninstall it afterwards, unless it was installed before the test."""
-    was_installed = _installed()
-    if not was_installed:
-        cmd = [PY, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "-e", str(EXAMPLE)]
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=ENV, check=False)
-        assert out.returncode == 0, out.stdout + out.stderr
+def nudge_package(tmp_path_factory) -> Iterator[None]:
+    """Install the example package into a throwaway folder (``pip install --target``: no dependencies, no
+    build isolation, offline), never into the live environment, and hand it to the subprocesses below
+    on ``PYTHONPATH`` ahead of this checkout, so it is found as an installed distribution is."""
+    target = tmp_path_factory.mktemp("nudge") / "site"
+    cmd = [PY, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--no-index", "--target",
+           str(target), str(EXAMPLE)]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=ENV, check=False)
+    assert out.returncode == 0, out.stdout + out.stderr
+    here = [str(ROOT / d) for d in ("", "plugins", "simulators")]
+    ENV["PYTHONPATH"] = os.pathsep.join([str(target), *here])
     try:
         yield
     finally:
-        if not was_installed:
-            subprocess.run([PY, "-m", "pip", "uninstall", "-y", "-q", "msmem-nudge"], capture_output=True, timeout=300,
-                           env=ENV, check=False)
-            importlib.invalidate_caches()
+        ENV.pop("PYTHONPATH")
 
 
 def test_the_installed_package_registers_its_components(nudge_package):

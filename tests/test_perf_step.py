@@ -40,7 +40,6 @@ def test_every_stage_of_every_skill_is_timed(small):
             assert f"{skill}: score / term ig" in stages
             assert f"{skill}: score / term cdc" in stages
     assert res["candidates"]["push"] > 0
-    assert all(v >= 0.0 for v in stages.values())
     assert res["decide_s"] > 0.0
     assert sum(1 for line in lines if line.startswith("  ")) >= len(stages)  # one table row per stage
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import subprocess
@@ -17,10 +18,13 @@ from msmem_core.plugins.manager import PluginLoadWarning
 
 ROOT = Path(__file__).resolve().parents[1]
 MSMEM = str(Path(sys.executable).with_name("msmem"))
+EXTRA_PATH: list[str] = []
+"""Folders of throwaway installs (``pip install --target``) the CLI subprocesses see first."""
 
 
 def run_cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    path = os.pathsep.join(str(ROOT / d) for d in ("", "plugins", "simulators"))  # this checkout's plugins too
+    here = [str(ROOT / d) for d in ("", "plugins", "simulators")]  # this checkout's plugins too
+    path = os.pathsep.join([*EXTRA_PATH, *here])
     full_env = {**os.environ, "PYTHONPATH": path, **(env or {})}
     return subprocess.run([MSMEM, *args], capture_output=True, text=True, env=full_env, timeout=300, check=False)
 
@@ -144,11 +148,23 @@ def installed_third_party(tmp_path_factory):
         [tool.setuptools]
         packages = ["msmem_tinyplugin"]
     '''))
-    pip = [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", str(root)]
+    # into a throwaway folder, never into the live environment: put on sys.path (and the CLI's PYTHONPATH)
+    # for this module only, so its entry points are found as an installed distribution's are
+    target = root / "site"
+    pip = [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--no-index",
+           "--target", str(target), str(root)]
     subprocess.run(pip, check=True, capture_output=True, timeout=300)
-    yield "msmem-tinyplugin"
-    subprocess.run([sys.executable, "-m", "pip", "uninstall", "-q", "-y", "msmem-tinyplugin"], check=True,
-                   capture_output=True, timeout=300)
+    sys.path.insert(0, str(target))
+    EXTRA_PATH.append(str(target))
+    importlib.invalidate_caches()
+    try:
+        yield "msmem-tinyplugin"
+    finally:
+        sys.path.remove(str(target))
+        EXTRA_PATH.remove(str(target))
+        for name in [m for m in sys.modules if m.startswith("msmem_tinyplugin")]:
+            del sys.modules[name]
+        importlib.invalidate_caches()
 
 
 def test_separately_installed_plugin_appears_in_cli_and_builds(installed_third_party):
