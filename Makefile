@@ -35,11 +35,12 @@ $(STAMP): pyproject.toml
 demo: setup
 	$(VENV)/bin/msmem run --out runs/demo
 
+# Two workers (pytest-xdist), a test file per worker: each file's module fixtures are built once.
 test: setup
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -m "not slow" -n 2 --dist loadfile
 
 test-slow: setup
-	$(PY) -m pytest -q -m slow
+	$(PY) -m pytest -q -m slow -n 2 --dist loadfile
 
 # Optional SAPIEN backend (not part of `make test`'s install): the extra, and a CPU Vulkan driver
 # (Mesa 25 lavapipe, unpacked into .venv/lavapipe; no system package changes) for SAPIEN's own

@@ -16,7 +16,8 @@ from msmem_core.config import METHODS
 from tests.golden.episodes import GOLDEN_DIR, record
 
 
-@pytest.mark.parametrize("method", METHODS)
+# the default method's episode guards every fast run; the other presets run in the slow suite (CI runs both)
+@pytest.mark.parametrize("method", [m if m == "ours" else pytest.param(m, marks=pytest.mark.slow) for m in METHODS])
 def test_golden_episode(method: str) -> None:
     want = json.loads((GOLDEN_DIR / f"{method}.json").read_text())
     got = json.loads(json.dumps(record(method)))

@@ -52,6 +52,8 @@ class MapTrainConfig(BaseModel):
     weight_decay: float = Field(1e-4, ge=0.0)
     sem_weight: float = Field(1.0, ge=0.0)
     """Weight of the class NLL beside the occupancy NLL."""
+    occupied_class_weight: float = Field(1.0, ge=1.0)
+    """Weight of truly occupied voxels in the class NLL (``mapnet.map_loss``)."""
     seed: int = 0
     threads: int = Field(1, ge=1, le=64)
     time_limit_s: float | None = Field(None, gt=0.0)
@@ -129,7 +131,8 @@ def empty_evidence(bsz: int, shape: Sequence[int], num_classes: int) -> tuple[to
 
 
 def rollout_loss(net: MapNet, batch: dict[str, torch.Tensor], valid: torch.Tensor, sem_weight: float = 1.0,
-                 opt: torch.optim.Optimizer | None = None, sched: Any = None) -> list[tuple[float, float]]:
+                 opt: torch.optim.Optimizer | None = None, sched: Any = None, occupied_class_weight: float = 1.0
+                 ) -> list[tuple[float, float]]:
     """Unroll the batch's views from the empty map, each step on the network's own (detached) output;
     with ``opt``, one optimiser step (and ``sched`` step) per view. Per view: (occupancy NLL, class NLL)."""
     cfg = net.config
@@ -139,7 +142,8 @@ def rollout_loss(net: MapNet, batch: dict[str, torch.Tensor], valid: torch.Tenso
     for t in range(batch["free"].shape[1]):
         with torch.set_grad_enabled(opt is not None):
             o, c = net(a, b, e, batch["free"][:, t], batch["occ"][:, t], batch["seen"][:, t], valid)
-            lo, lc = map_loss(o, c, batch["gt_occ"], batch["gt_cls"], valid, cfg.s_max, cfg.t_max)
+            lo, lc = map_loss(o, c, batch["gt_occ"], batch["gt_cls"], valid, cfg.s_max, cfg.t_max,
+                              occupied_class_weight)
         if opt is not None:
             opt.zero_grad(set_to_none=True)
             (lo + sem_weight * lc).backward()
@@ -202,7 +206,7 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
             flips = [bool(rng.integers(2)) and q.mirror_ok for q in seqs]
             batch = _batch(seqs, flips)
             net.train()
-            losses = rollout_loss(net, batch, valid, cfg.sem_weight, opt, sched)
+            losses = rollout_loss(net, batch, valid, cfg.sem_weight, opt, sched, cfg.occupied_class_weight)
             done += 1
             rec = {"batch": done, "seconds": time.perf_counter() - t0, "occ_nll_last": losses[-1][0],
                    "sem_nll_last": losses[-1][1], "occ_nll_mean": float(np.mean([x[0] for x in losses])),

@@ -1,0 +1,66 @@
+"""Paired per-scene differences between `msmem bench` folders run with different configs.
+
+    .venv/bin/python examples/paired_benches.py runs/map-bench/cnabu-map runs/map-bench/analytic runs/map-bench/column-fill
+
+The first folder is compared with each of the others on the scenes both finished (same method and
+scene index), metric by metric: mean of (first - other) and the half-width of its 95% t-interval
+(`msmem_core.run.bench.mean_ci`); an interval excluding 0 is marked *. Suite-cumulative paper metrics
+of each folder are printed too (from `results.json`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+from msmem_core.run.bench import mean_ci
+
+METRICS = ("occupancy_miou", "semantic_miou_2d", "observable_iou", "occupancy_iou", "semantic_miou",
+           "occupancy_ece", "semantic_ece")
+
+
+def episodes(folder: Path) -> dict[tuple[str, int], dict]:
+    out = {}
+    for f in sorted((folder / "episodes").glob("*.json")):
+        r = json.loads(f.read_text())
+        if r.get("status") == "ok":
+            out[(r["method"], r["scene_index"])] = r["metrics"]
+    return out
+
+
+def main(folders: list[str]) -> None:
+    first, *others = (Path(f) for f in folders)
+    base = episodes(first)
+    print("| folder | episodes | " + " | ".join(METRICS) + " (suite-cumulative: occupancy mIoU, semantic mIoU 2-D) |")
+    print("|---|---|" + "---|" * len(METRICS))
+    for folder in (first, *others):
+        eps = episodes(folder)
+        cells = []
+        for k in METRICS:
+            m, c = mean_ci([e[k] for e in eps.values() if k in e])
+            cells.append(f"{m:.3f} ± {c:.3f}")
+        cum = json.loads((folder / "results.json").read_text())["summary"]["table"]
+        cum_cells = ", ".join(f"{v.get('cumulative', {}).get('occupancy_miou', float('nan')):.3f} / "
+                              f"{v.get('cumulative', {}).get('semantic_miou_2d', float('nan')):.3f}"
+                              for v in cum.values())
+        print(f"| {folder.name} | {len(eps)} | " + " | ".join(cells) + f" | {cum_cells} |")
+    print()
+    print(f"Paired differences, {first.name} minus each (mean ± 95% CI over scenes; * = interval excludes 0):")
+    print()
+    print("| difference | scenes | " + " | ".join(METRICS) + " |")
+    print("|---|---|" + "---|" * len(METRICS))
+    for folder in others:
+        other = episodes(folder)
+        keys = sorted(set(base) & set(other))
+        cells = []
+        for k in METRICS:
+            m, c = mean_ci([base[s][k] - other[s][k] for s in keys])
+            star = "*" if not math.isnan(c) and abs(m) > c else ""
+            cells.append(f"{m:+.3f} ± {c:.3f}{star}")
+        print(f"| {first.name} - {folder.name} | {len(keys)} | " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
