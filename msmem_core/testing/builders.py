@@ -16,7 +16,7 @@ that decides with a skill of its own runs in well under a second::
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -173,7 +173,7 @@ def _bound(s: BoundSkill | tuple[str, Skill] | tuple[str, Skill, EffectModel]) -
     if isinstance(s, BoundSkill):
         bound = s
     elif isinstance(s, tuple) and len(s) in (2, 3) and isinstance(s[0], str):
-        bound = BoundSkill(*s)  # type: ignore[arg-type]
+        bound = BoundSkill(*s)
     else:
         raise TypeError(f"one_decision: each skill must be {SKILL_SPECS_WITH_NAME}, got {type(s).__name__}")
     if not isinstance(bound.skill, Skill):
@@ -200,7 +200,7 @@ def one_decision(
     step: int = 1,
     manipulation_allowed: bool = True,
     ctx: DecisionContext | None = None,
-    **context: object,
+    **context: Any,
 ) -> Decision:
     """One MSAS decision (``msmem_core.msas.decide``) with your skills, as an episode makes it.
 
@@ -220,7 +220,7 @@ def one_decision(
     elif not isinstance(objective, Objective):
         objective = Objective(list(objective))
     if ctx is None:
-        ctx = decision_context(belief, step, manipulation_allowed=manipulation_allowed, **context)  # type: ignore[arg-type]
+        ctx = decision_context(belief, step, manipulation_allowed=manipulation_allowed, **context)
     return decide(ctx, bound, objective)
 
 

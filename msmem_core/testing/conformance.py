@@ -378,8 +378,9 @@ def simulator_conformance(
     a whole object may carry its confusable class. ``camera`` and ``gripper`` are the backend's
     configuration (defaults: ``CameraConfig()``, ``GripperSpec()``).
     """
-    sim = built(factory, Simulator, "simulator_conformance", "a factory returning a msmem_core.interfaces.Simulator "
-                "(e.g. `lambda: MySimulator(...)`) or a registered simulator name", _build_simulator)
+    sim: Simulator = built(factory, Simulator, "simulator_conformance", "a factory returning a "
+                           "msmem_core.interfaces.Simulator (e.g. `lambda: MySimulator(...)`) or a registered "
+                           "simulator name", _build_simulator)
     scene = scene or conformance_scene()
     camera = camera or CameraConfig()
     gripper = gripper or GripperSpec()

@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Sequence
-from typing import Any, Literal, TypeVar
+from dataclasses import dataclass, field
+from typing import Any, Literal
 
 import numpy as np
 
@@ -45,10 +46,18 @@ from msmem_core.testing.builders import belief_of_scene, decision_context, defau
 from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.world.scene import SceneSpec
 
-T = TypeVar("T")
 SimulatorChoice = Callable[[], Simulator] | Literal["pybullet", "fake"] | None
 EXECUTE_CAMERA = CameraConfig(width_px=160, height_px=120)
 """Camera of the simulator ``skill_conformance`` builds (small: fast to render)."""
+
+
+@dataclass
+class SkillReport:
+    """What ``skill_conformance`` saw: the actions proposed on the belief and the outcomes of those
+    it executed (as ``execute`` returned them), for further assertions of the plugin's own."""
+
+    actions: list[Action]
+    outcomes: list[Outcome] = field(default_factory=list)
 
 
 class ConformanceError(AssertionError):
@@ -83,7 +92,7 @@ def describe(obj: object) -> str:
                                                                            f" ({where})")
 
 
-def built(factory: Any, expected: type[T], suite: str, what: str, build: Callable[[str], Any] | None = None) -> T:
+def built(factory: Any, expected: type, suite: str, what: str, build: Callable[[str], Any] | None = None) -> Any:
     """Call ``factory`` (``build(name)`` for a string) and check it returned an ``expected``;
     anything else raises ``ConformanceUsageError`` naming the suite, what it expected and what it got."""
     want = f"{suite} expects {what}"
@@ -242,8 +251,9 @@ def _simulator(choice: SimulatorChoice, camera: CameraConfig) -> Simulator:
         from msmem_core.sim.build import build_simulator
 
         return build_simulator("pybullet", camera=camera, seed=0, label_noise=0.0)
-    return built(choice, Simulator, "skill_conformance", "simulator= a factory returning a Simulator, "
-                 "'pybullet', 'fake' or None")
+    sim: Simulator = built(choice, Simulator, "skill_conformance", "simulator= a factory returning a Simulator, "
+                           "'pybullet', 'fake' or None")
+    return sim
 
 
 def default_skill_scene() -> SceneSpec:
@@ -266,9 +276,9 @@ def skill_conformance(
     simulator: SimulatorChoice = "pybullet",
     execute: int = 1,
     camera: CameraConfig | None = None,
-) -> list[Action]:
+) -> SkillReport:
     """Run every skill check on skills from ``factory``, registered as ``name``; return the actions
-    proposed on ``belief``.
+    proposed on ``belief`` and the outcomes of those executed (``SkillReport``).
 
     ``factory`` is a class or function returning a fresh ``Skill``, or a registered name (built
     through the plugin manager; ``name`` defaults to it). The context is ``decision_context(belief,
@@ -283,9 +293,13 @@ def skill_conformance(
     default 160 x 120), ``"fake"`` (``FakeSimulator``: control flow only), or a factory.
     """
     suite = "skill_conformance"
-    skill = built(factory, Skill, suite, "a factory returning a msmem_core.interfaces.Skill (or a registered "
-                  "skill name)", _plugin_manager_build("skill"))
-    make: Callable[[], Skill] = (lambda: built(factory, Skill, suite, "a Skill", _plugin_manager_build("skill")))
+    skill: Skill = built(factory, Skill, suite, "a factory returning a msmem_core.interfaces.Skill (or a registered "
+                         "skill name)", _plugin_manager_build("skill"))
+
+    def make() -> Skill:
+        fresh: Skill = built(factory, Skill, suite, "a Skill", _plugin_manager_build("skill"))
+        return fresh
+
     if name is None:
         if not isinstance(factory, str):
             raise ConformanceUsageError(f"{suite} needs the skill's registered name: {suite}(factory, 'name')")
@@ -312,17 +326,18 @@ def skill_conformance(
     check_reproducible(make, name, lambda: ctx_of(True), actions)
     if skill.category == "manipulation":
         check_manipulation_gate(make(), name, ctx_of(False))
+    report = SkillReport(actions)
     if simulator is None or execute <= 0:
-        return actions
+        return report
     sim = _simulator(simulator, camera or EXECUTE_CAMERA)
     try:
         ids = {o.id for o in scene.objects}
         for action in actions[:execute]:
             sim.reset(scene)
-            check_outcome(skill.execute(sim, action, ctx), name, skill, action, ids)
+            report.outcomes.append(check_outcome(skill.execute(sim, action, ctx), name, skill, action, ids))
     finally:
         sim.close()
-    return actions
+    return report
 
 
 # ------------------------------------------------------------------------------------ effect models
@@ -354,14 +369,14 @@ def check_prediction(prediction: object, belief: EvidentialMap, actions: Sequenc
             _fail(f"{at}: voxel indices outside the grid [0, {size}): {idx.min()}..{idx.max()}")
         if n > 1 and not np.all(np.diff(idx) > 0):
             _fail(f"{at}: voxel indices must be sorted and unique")
-        for field, arr, shape in (("alpha", d.alpha, (n,)), ("beta", d.beta, (n,)), ("eta", d.eta, (c, n))):
+        for what, arr, shape in (("alpha", d.alpha, (n,)), ("beta", d.beta, (n,)), ("eta", d.eta, (c, n))):
             arr = np.asarray(arr)
             if arr.shape != shape:
-                _fail(f"{at}: {field} has shape {arr.shape}, expected {shape}")
+                _fail(f"{at}: {what} has shape {arr.shape}, expected {shape}")
             if not np.all(np.isfinite(arr)):
-                _fail(f"{at}: {field} is not finite everywhere")
+                _fail(f"{at}: {what} is not finite everywhere")
             if n and arr.min() < 1.0:
-                _fail(f"{at}: {field} falls below the prior 1 (min {float(arr.min()):.3g}): evidence is >= 1")
+                _fail(f"{at}: {what} falls below the prior 1 (min {float(arr.min()):.3g}): evidence is >= 1")
         same = (d.alpha == a0[idx]) & (d.beta == b0[idx]) & np.all(d.eta == e0[:, idx], axis=0)
         if same.any():
             _fail(f"{at}: lists {int(same.sum())} voxel(s) whose evidence equals the base's; list only what "
@@ -385,9 +400,9 @@ def check_prediction(prediction: object, belief: EvidentialMap, actions: Sequenc
 
 def check_base_unchanged(belief: EvidentialMap, before: tuple[np.ndarray, np.ndarray, np.ndarray], label: str) -> None:
     """``predict`` left the belief it was given as it was."""
-    for field, arr, old in zip(("alpha", "beta", "eta"), (belief.alpha, belief.beta, belief.eta), before, strict=True):
+    for what, arr, old in zip(("alpha", "beta", "eta"), (belief.alpha, belief.beta, belief.eta), before, strict=True):
         if not np.array_equal(arr, old):
-            _fail(f"{label}: predict modified the belief it was given ({field} of "
+            _fail(f"{label}: predict modified the belief it was given ({what} of "
                   f"{int(np.sum(arr != old))} voxel(s)); predictions are changes relative to it")
 
 
@@ -417,8 +432,9 @@ def effect_model_conformance(
     what moves.
     """
     suite = "effect_model_conformance"
-    model = built(factory, EffectModel, suite, "a factory returning a msmem_core.interfaces.EffectModel (or a "
-                  "registered belief-model name with the effect role)", _plugin_manager_build("belief-model"))
+    model: EffectModel = built(factory, EffectModel, suite, "a factory returning a msmem_core.interfaces.EffectModel "
+                               "(or a registered belief-model name with the effect role)",
+                               _plugin_manager_build("belief-model"))
     label = f"effect model {type(model).__name__}" + (f" ({factory!r})" if isinstance(factory, str) else "")
     if not callable(actions_for):
         raise ConformanceUsageError(f"{suite} expects actions_for= a function of the DecisionContext returning "
@@ -452,6 +468,7 @@ __all__ = [
     "EXECUTE_CAMERA",
     "ConformanceError",
     "ConformanceUsageError",
+    "SkillReport",
     "built",
     "check_actions",
     "check_base_unchanged",
