@@ -26,9 +26,10 @@ from msmem_core.map.belief import EvidentialMap
 from msmem_core.map.ig import IGService
 from msmem_core.msas import BoundSkill, Decision, Objective, decide
 from msmem_core.world.camera import CameraConfig
+from msmem_core.world.geometry import yaw_quat
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.scene import SceneSpec, ShelfSpec
+from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 from msmem_core.world.voxelize import voxelize
 
@@ -66,6 +67,21 @@ def small_ig(workspace: Workspace | None = None, viewpoints: NDArray[np.float64]
     ws = workspace or default_workspace()
     views = small_viewpoints(ws.shelf) if viewpoints is None else viewpoints
     return IGService(ws.grid, camera or IG_CAMERA, views, ws.shelf)
+
+
+def conformance_scene() -> SceneSpec:
+    """Three well separated objects on the shelf floor: a tall box, a small box and a rotated box
+    (a sugar box and a potted meat can at the back corners, a foam brick at the front in the middle)."""
+    return SceneSpec(
+        name="conformance",
+        objects=(
+            ObjectSpec(id=0, class_name="sugar_box", position_m=(-0.22, 0.22, 0.0)),
+            ObjectSpec(id=1, class_name="foam_brick", position_m=(0.0, 0.12, 0.0)),
+            ObjectSpec(
+                id=2, class_name="potted_meat_can", position_m=(0.22, 0.22, 0.0), quat_xyzw=tuple(yaw_quat(0.5))
+            ),
+        ),
+    )
 
 
 # -------------------------------------------------------------------------------------------- beliefs
@@ -230,6 +246,7 @@ __all__ = [
     "Box",
     "belief_of_scene",
     "belief_with_boxes",
+    "conformance_scene",
     "decision_context",
     "default_objective",
     "default_workspace",

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from msmem_core.interfaces import GRIPPER_ID, Simulator
+from msmem_core.testing.builders import conformance_scene
 from msmem_core.testing.plugin_conformance import (
     ConformanceError,
     ConformanceUsageError,
@@ -35,7 +36,7 @@ from msmem_core.testing.plugin_conformance import (
     skill_conformance,
 )
 from msmem_core.world.camera import CameraConfig, Observation
-from msmem_core.world.geometry import look_at, quat_to_matrix, rotation_angle_deg, yaw_quat
+from msmem_core.world.geometry import look_at, quat_to_matrix, rotation_angle_deg
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scene import ObjectSpec, SceneSpec, object_class
 
@@ -49,20 +50,6 @@ ROUND_TRIP_TOL = 1e-6
 
 
 # ------------------------------------------------------------------------------------------- scenes
-def conformance_scene() -> SceneSpec:
-    """Three well separated objects on the shelf floor: a tall box, a small box and a rotated box."""
-    return SceneSpec(
-        name="conformance",
-        objects=(
-            ObjectSpec(id=0, class_name="sugar_box", position_m=(-0.22, 0.22, 0.0)),
-            ObjectSpec(id=1, class_name="foam_brick", position_m=(0.0, 0.12, 0.0)),
-            ObjectSpec(
-                id=2, class_name="potted_meat_can", position_m=(0.22, 0.22, 0.0), quat_xyzw=tuple(yaw_quat(0.5))
-            ),
-        ),
-    )
-
-
 def single_object_scene(class_name: str, position_m: tuple[float, float, float], object_id: int = 7) -> SceneSpec:
     """One upright object (yaw 0) in the default shelf."""
     return SceneSpec(

@@ -42,7 +42,13 @@ from msmem_core.interfaces import (
 )
 from msmem_core.map.belief import BeliefDelta, EvidentialMap
 from msmem_core.map.ig import IGService
-from msmem_core.testing.builders import belief_of_scene, decision_context, default_workspace, small_ig
+from msmem_core.testing.builders import (
+    belief_of_scene,
+    conformance_scene,
+    decision_context,
+    default_workspace,
+    small_ig,
+)
 from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.world.scene import SceneSpec
 
@@ -256,14 +262,6 @@ def _simulator(choice: SimulatorChoice, camera: CameraConfig) -> Simulator:
     return sim
 
 
-def default_skill_scene() -> SceneSpec:
-    """The scene ``skill_conformance`` executes in by default (``conformance.conformance_scene``):
-    a sugar box and a potted meat can at the back corners, a foam brick at the front in the middle."""
-    from msmem_core.testing.conformance import conformance_scene
-
-    return conformance_scene()
-
-
 def skill_conformance(
     factory: Callable[[], Skill] | str,
     name: str | None = None,
@@ -284,7 +282,7 @@ def skill_conformance(
     through the plugin manager; ``name`` defaults to it). The context is ``decision_context(belief,
     step)`` (``workspace`` default ``default_workspace()``, ``ig`` default four viewpoints); ``belief``
     defaults to the exactly known ``scene`` (``belief_of_scene``; ``scene`` default
-    ``default_skill_scene()``). The skill must propose at least one action there.
+    ``conformance_scene()``). The skill must propose at least one action there.
 
     Checks: ``check_actions``; ``check_reproducible``; for a manipulation skill
     ``check_manipulation_gate``; then, unless ``simulator`` is None, the first ``execute`` actions
@@ -309,7 +307,7 @@ def skill_conformance(
               f"got {skill.category!r}")
     ws = workspace or (Workspace(belief.grid, default_workspace().shelf) if belief is not None else
                        default_workspace())
-    scene = scene or default_skill_scene()
+    scene = scene or conformance_scene()
     if belief is None:
         belief = belief_of_scene(scene, ws.grid)
     ig = ig or small_ig(ws)
@@ -442,7 +440,7 @@ def effect_model_conformance(
     ws = workspace or (Workspace(belief.grid, default_workspace().shelf) if belief is not None else
                        default_workspace())
     if belief is None:
-        belief = belief_of_scene(default_skill_scene(), ws.grid)
+        belief = belief_of_scene(conformance_scene(), ws.grid)
     ctx = decision_context(belief, step, workspace=ws, ig=small_ig(ws), seed=step)
     actions = list(actions_for(ctx))
     if not actions:
@@ -476,7 +474,6 @@ __all__ = [
     "check_outcome",
     "check_prediction",
     "check_reproducible",
-    "default_skill_scene",
     "describe",
     "effect_model_conformance",
     "skill_conformance",
