@@ -69,6 +69,7 @@ perf: setup
 docs: setup
 	$(VENV)/bin/msmem docs config > docs/config-reference.md
 	$(VENV)/bin/msmem docs cli > docs/cli.md
+	$(VENV)/bin/msmem docs api > docs/api.md
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache

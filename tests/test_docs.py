@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from msmem_core.cli import build_app
-from msmem_core.cli.docgen import cli_reference, config_reference
+from msmem_core.cli.docgen import api_reference, cli_reference, config_reference
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [*sorted((ROOT / "docs").glob("*.md")), ROOT / "README.md", ROOT / "examples" / "msmem-nudge" / "README.md"]
@@ -43,6 +43,10 @@ def test_config_reference_is_generated_from_the_models():
 
 def test_cli_reference_is_generated_from_the_commands():
     _same(ROOT / "docs" / "cli.md", cli_reference(build_app(builtin_only=True)), "msmem docs cli > docs/cli.md")
+
+
+def test_api_reference_is_generated_from_the_docstrings():
+    _same(ROOT / "docs" / "api.md", api_reference(), "msmem docs api > docs/api.md")
 
 
 def test_the_docs_have_runnable_blocks():

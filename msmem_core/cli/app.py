@@ -248,13 +248,20 @@ def docs_cli() -> None:
     typer.echo(cli_reference(build_app(builtin_only=True)), nl=False)
 
 
+def docs_api() -> None:
+    """Print the API reference for plugin authors (docs/api.md), generated from docstrings and signatures."""
+    from msmem_core.cli.docgen import api_reference
+
+    typer.echo(api_reference(), nl=False)
+
+
 # ------------------------------------------------------------------------------------ the app
 CORE_COMMANDS: dict[str | None, dict[str, Callable[..., Any]]] = {  # group (None: top level) -> name -> command
     None: {"plugins": plugins, "run": run, "bench": bench, "report": report_cmd},
     "config": {"show": config_show},
     "perf": {"ig": perf_ig, "step": perf_step},
     "scene": {"generate": scene_generate},
-    "docs": {"config": docs_config, "cli": docs_cli},
+    "docs": {"config": docs_config, "cli": docs_cli, "api": docs_api},
 }
 
 

@@ -3,10 +3,46 @@
 - ``msmem_core.testing.fixtures`` (auto-loaded as a pytest plugin): ``plugin_manager`` (a fresh,
   fully loaded manager per test), ``bare_plugin_manager`` (nothing loaded) and ``fake_simulator``.
 - ``FakeSimulator``: a tiny in-memory backend for unit tests of loops, never for a feature.
-- ``msmem_core.testing.conformance.simulator_conformance(factory)``: the suite a backend runs to
-  prove it implements the Simulator vocabulary and its conventions.
+- Builders (``msmem_core.testing.builders``): ``default_workspace``, ``belief_with_boxes``,
+  ``belief_of_scene``, ``small_ig``, ``decision_context`` and ``one_decision`` (one MSAS decision
+  with your skills, in a unit test).
+- Conformance suites (``msmem_core.testing.conformance``): ``simulator_conformance(factory)``,
+  ``skill_conformance(factory, name)`` and ``effect_model_conformance(factory, actions_for)``: what
+  a backend, a skill or an effect model runs to prove it follows its interface and its conventions.
 """
 
+from msmem_core.testing.builders import (
+    belief_of_scene,
+    belief_with_boxes,
+    decision_context,
+    default_objective,
+    default_workspace,
+    one_decision,
+    small_ig,
+    small_viewpoints,
+)
+from msmem_core.testing.conformance import simulator_conformance
 from msmem_core.testing.fake import FakeSimulator
+from msmem_core.testing.plugin_conformance import (
+    ConformanceError,
+    ConformanceUsageError,
+    effect_model_conformance,
+    skill_conformance,
+)
 
-__all__ = ["FakeSimulator"]
+__all__ = [
+    "ConformanceError",
+    "ConformanceUsageError",
+    "FakeSimulator",
+    "belief_of_scene",
+    "belief_with_boxes",
+    "decision_context",
+    "default_objective",
+    "default_workspace",
+    "effect_model_conformance",
+    "one_decision",
+    "simulator_conformance",
+    "skill_conformance",
+    "small_ig",
+    "small_viewpoints",
+]

@@ -7,6 +7,11 @@ Usage, inside a pytest test of the backend::
     def test_my_backend_conforms():
         simulator_conformance(lambda: MySimulator(label_noise=0.0), noise_free=True)
 
+The suites for skills and effect models (``skill_conformance``, ``effect_model_conformance``) live in
+``msmem_core.testing.plugin_conformance`` and are importable from here too. Every suite checks its
+argument first: handing it anything but a factory of what it tests raises ``ConformanceUsageError``
+in one line naming what it expected and what it got.
+
 Each ``check_*`` function is public, so a backend can also run the checks one by one. The checks use
 only the ``Simulator`` vocabulary and build their own small scenes; tolerances are those every
 backend should meet (1 cm placement after settling, 5 mm for depth back-projection and gripper
@@ -22,8 +27,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from msmem_core.interfaces import GRIPPER_ID, Simulator
+from msmem_core.testing.builders import conformance_scene
+from msmem_core.testing.plugin_conformance import (
+    ConformanceError,
+    ConformanceUsageError,
+    built,
+    effect_model_conformance,
+    skill_conformance,
+)
 from msmem_core.world.camera import CameraConfig, Observation
-from msmem_core.world.geometry import look_at, quat_to_matrix, rotation_angle_deg, yaw_quat
+from msmem_core.world.geometry import look_at, quat_to_matrix, rotation_angle_deg
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scene import ObjectSpec, SceneSpec, object_class
 
@@ -37,20 +50,6 @@ ROUND_TRIP_TOL = 1e-6
 
 
 # ------------------------------------------------------------------------------------------- scenes
-def conformance_scene() -> SceneSpec:
-    """Three well separated objects on the shelf floor: a tall box, a small box and a rotated box."""
-    return SceneSpec(
-        name="conformance",
-        objects=(
-            ObjectSpec(id=0, class_name="sugar_box", position_m=(-0.22, 0.22, 0.0)),
-            ObjectSpec(id=1, class_name="foam_brick", position_m=(0.0, 0.12, 0.0)),
-            ObjectSpec(
-                id=2, class_name="potted_meat_can", position_m=(0.22, 0.22, 0.0), quat_xyzw=tuple(yaw_quat(0.5))
-            ),
-        ),
-    )
-
-
 def single_object_scene(class_name: str, position_m: tuple[float, float, float], object_id: int = 7) -> SceneSpec:
     """One upright object (yaw 0) in the default shelf."""
     return SceneSpec(
@@ -344,25 +343,34 @@ def check_grasp(sim: Simulator, gripper: GripperSpec) -> None:
     assert sim.object_poses()[brick.id][2, 3] < 0.06, "released object did not fall"
 
 
+def _build_simulator(name: str) -> Simulator:
+    from msmem_core.sim.build import build_simulator
+
+    return build_simulator(name, label_noise=0.0)
+
+
 def simulator_conformance(
-    factory: Callable[[], Simulator],
+    factory: Callable[[], Simulator] | str,
     scene: SceneSpec | None = None,
     *,
     noise_free: bool = False,
     camera: CameraConfig | None = None,
     gripper: GripperSpec | None = None,
 ) -> None:
-    """Run every check on one simulator from ``factory`` (closed at the end).
+    """Run every check on one simulator from ``factory`` (closed at the end): a class or function
+    returning a fresh ``Simulator``, or a registered simulator name (built with ``label_noise=0``).
 
     ``scene`` (default ``conformance_scene()``, no overlaps) is used by the placement and observation
     checks; the others build their own. ``noise_free=True`` demands labels equal to the class; otherwise
     a whole object may carry its confusable class. ``camera`` and ``gripper`` are the backend's
     configuration (defaults: ``CameraConfig()``, ``GripperSpec()``).
     """
+    sim: Simulator = built(factory, Simulator, "simulator_conformance", "a factory returning a "
+                           "msmem_core.interfaces.Simulator (e.g. `lambda: MySimulator(...)`) or a registered "
+                           "simulator name", _build_simulator)
     scene = scene or conformance_scene()
     camera = camera or CameraConfig()
     gripper = gripper or GripperSpec()
-    sim = factory()
     try:
         check_reset(sim, scene)
         check_observation(sim, scene, camera, noise_free=noise_free)
@@ -377,6 +385,8 @@ def simulator_conformance(
 
 
 __all__ = [
+    "ConformanceError",
+    "ConformanceUsageError",
     "check_camera_convention",
     "check_grasp",
     "check_gripper",
@@ -386,10 +396,12 @@ __all__ = [
     "check_snapshot_restore",
     "check_z_depth",
     "conformance_scene",
+    "effect_model_conformance",
     "front_view",
     "gripper_pose",
     "push_along_y",
     "simulator_conformance",
     "single_object_scene",
+    "skill_conformance",
     "surface_distance",
 ]
