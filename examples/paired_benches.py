@@ -1,6 +1,7 @@
 """Paired per-scene differences between `msmem bench` folders run with different configs.
 
-    .venv/bin/python examples/paired_benches.py runs/map-bench/cnabu-map runs/map-bench/analytic runs/map-bench/column-fill
+    .venv/bin/python examples/paired_benches.py runs/map-bench/cnabu-map runs/map-bench/analytic \
+        runs/map-bench/column-fill
 
 The first folder is compared with each of the others on the scenes both finished (same method and
 scene index), metric by metric: mean of (first - other) and the half-width of its 95% t-interval
