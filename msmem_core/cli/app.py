@@ -138,6 +138,8 @@ def run(
             final = run_episode(ep, out_dir, progress=tick)
     keys = ("occupancy_iou", "observable_iou", "semantic_miou", "semantic_miou_bev", "position_change_m")
     typer.echo("final: " + ", ".join(f"{k} {final[k]:.3f}" for k in keys))
+    paper = ("occupancy_miou", "semantic_miou_2d", "occupancy_ece", "semantic_ece")
+    typer.echo("paper's metrics: " + ", ".join(f"{k} {final[k]:.3f}" for k in paper))
     typer.echo(f"actions: {final['actions']}  seconds/step: {final['seconds_per_step']:.2f}")
     if report:
         from msmem_core.run.report import write_report
