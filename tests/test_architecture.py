@@ -104,3 +104,11 @@ def test_plugins_do_not_build_backends(path: Path) -> None:
     text = path.read_text()
     for banned in ("msmem_pybullet", "msmem_sapien", "PyBulletSimulator", "SapienSimulator"):
         assert banned not in text, f"{path.relative_to(ROOT)} names {banned}: get the simulator from the plugin manager"
+
+
+@pytest.mark.parametrize("path", CORE_FILES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_core_text_names_no_plugin_package(path: Path) -> None:
+    """The issue's grep rule, on the whole text (docstrings and comments too): core is plugin-neutral."""
+    text = path.read_text()
+    for name in ("msmem_grasp", "msmem_push", "msmem_cnabu"):
+        assert name not in text, f"{path.relative_to(ROOT)} names the plugin package {name}"

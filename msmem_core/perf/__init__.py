@@ -1,2 +1,2 @@
-"""Speed benchmarks (`msmem perf ...`): IG sweep, one full MSAS decision. (`msmem perf push` is the push
-plugin's: `msmem_push.perf`.)"""
+"""Speed benchmarks (`msmem perf ...`): IG sweep, one full MSAS decision. (`msmem perf push` is registered by
+the push plugin, with its own module.)"""
