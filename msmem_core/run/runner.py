@@ -37,6 +37,7 @@ from msmem_core.run.metrics import (
     semantic_miou_bev,
 )
 from msmem_core.run.runfolder import save_ground_truth, save_snapshot
+from msmem_core.util.jsonable import jsonable
 from msmem_core.util.threads import configure_threads
 from msmem_core.util.trace import Tracer
 from msmem_core.world.scene import SceneSpec
@@ -116,18 +117,6 @@ def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | Non
     viewpoints = generate_viewpoints(cfg.viewpoints, scene.shelf)
     ig = IGService(cfg.grid_spec(scene.shelf), cfg.camera, viewpoints, scene.shelf, cfg.ig)
     return Episode(cfg, scene, sim, observe_model, skills, Objective(terms), ig, viewpoints)
-
-
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    return x
 
 
 class MetricTracker:
@@ -232,7 +221,7 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
         t_last = now
         ep.records.append(rec)
         if out_dir is not None:
-            steps_file.write(json.dumps(_jsonable(rec)) + "\n")
+            steps_file.write(json.dumps(jsonable(rec)) + "\n")
             steps_file.flush()
             if step in snapshot_steps:
                 save_snapshot(out_dir / f"belief_step{step}.npz", b, metrics.gt_occ, metrics.gt_cls)
@@ -257,7 +246,7 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
         "paper_counts": metrics.paper_counts,  # of the final belief; msmem bench sums them over scenes
     })
     if out_dir is not None:
-        (out_dir / "metrics.json").write_text(json.dumps(_jsonable(final), indent=2))
+        (out_dir / "metrics.json").write_text(json.dumps(jsonable(final), indent=2))
         belief.save(out_dir / "belief_final.npz")
         save_ground_truth(out_dir / "gt_final.npz", grid, metrics.gt_occ, metrics.gt_cls)
     return final

@@ -49,6 +49,7 @@ from msmem_core.testing.builders import (
     default_workspace,
     small_ig,
 )
+from msmem_core.util.jsonable import jsonable
 from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.world.scene import SceneSpec
 
@@ -201,18 +202,6 @@ def check_manipulation_gate(skill: Skill, name: str, ctx: DecisionContext) -> No
               "ctx.manipulation_allowed is false: return [] then")
 
 
-def _jsonable(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    return x
-
-
 def check_outcome(outcome: object, name: str, skill: Skill, action: Action, object_ids: set[int]) -> Outcome:
     """What ``execute`` returned directly (before MSAS measures it): an ``Outcome`` with a bool
     ``success``; a perception action's ``observation`` set, a manipulation's None; ``removed`` ids
@@ -242,7 +231,7 @@ def check_outcome(outcome: object, name: str, skill: Skill, action: Action, obje
     if not isinstance(outcome.info, dict):
         _fail(f"{who}: Outcome.info must be a dict, got {describe(outcome.info)}")
     try:
-        json.dumps(_jsonable(outcome.info))
+        json.dumps(jsonable(outcome.info))
     except (TypeError, ValueError) as e:
         _fail(f"{who}: Outcome.info must be JSON-serialisable (it is written to steps.jsonl): {e}")
     return outcome

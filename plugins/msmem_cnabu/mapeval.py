@@ -25,19 +25,7 @@ from msmem_cnabu.datagen import list_shards, load_shard
 from msmem_cnabu.evaluation import Calibration
 from msmem_cnabu.maptrain import sequence
 from msmem_core.map.belief import EvidentialMap
-from msmem_core.run.metrics import top_view_classes
-
-
-def _iou_counts(pred: NDArray[np.integer], gt: NDArray[np.integer], n: int) -> tuple[NDArray[np.int64], ...]:
-    inter = np.bincount(gt[pred == gt], minlength=n)[:n]
-    pc = np.bincount(pred, minlength=n)[:n]
-    gc = np.bincount(gt, minlength=n)[:n]
-    return inter.astype(np.int64), (pc + gc - inter).astype(np.int64)
-
-
-def _miou(inter: NDArray[np.int64], union: NDArray[np.int64]) -> float:
-    ok = union > 0
-    return float(np.mean(inter[ok] / union[ok])) if ok.any() else float("nan")
+from msmem_core.run.metrics import class_iou_counts, miou_from_counts, occupancy_iou_counts, top_view_classes
 
 
 class MapScore:
@@ -57,16 +45,16 @@ class MapScore:
         q = belief.class_probs()
         pred_occ = (p > 0.5) & valid
         gt = gt_occ & valid
-        oi, ou = _iou_counts(pred_occ[valid].astype(np.int64), gt[valid].astype(np.int64), 2)
+        oi, ou = occupancy_iou_counts(pred_occ, gt, valid)
         cls = np.where(pred_occ, np.argmax(q[1:], 0) + 1, 0)
         gcls = np.where(gt, gt_cls, 0)
         cols = valid.any(2)
-        si, su = _iou_counts(top_view_classes(cls)[cols].astype(np.int64),
-                             top_view_classes(gcls)[cols].astype(np.int64), self.c)
+        si, su = class_iou_counts(top_view_classes(cls), top_view_classes(gcls), self.c, cols)
         for acc, new in ((self.occ, (oi, ou)), (self.sem, (si, su))):
             acc[0] += new[0]
             acc[1] += new[1]
-        self.per_scene.append({"occupancy_miou": _miou(oi, ou), "semantic_miou_2d": _miou(si, su)})
+        self.per_scene.append({"occupancy_miou": miou_from_counts(oi, ou),
+                               "semantic_miou_2d": miou_from_counts(si, su)})
         i = np.flatnonzero(valid.reshape(-1))
         self.cal.add(p.reshape(-1)[i], gt_occ.reshape(-1)[i], q.reshape(self.c, -1)[:, i],
                      gt_cls.reshape(-1)[i].astype(np.int64))
@@ -75,7 +63,7 @@ class MapScore:
     def result(self) -> dict[str, Any]:
         scenes = {k: [s[k] for s in self.per_scene] for k in ("occupancy_miou", "semantic_miou_2d")}
         return {
-            "occupancy_miou": _miou(*self.occ), "semantic_miou_2d": _miou(*self.sem),
+            "occupancy_miou": miou_from_counts(*self.occ), "semantic_miou_2d": miou_from_counts(*self.sem),
             "occupancy_miou_scene_mean": float(np.mean(scenes["occupancy_miou"])),
             "semantic_miou_2d_scene_mean": float(np.nanmean(scenes["semantic_miou_2d"])),
             "per_scene": scenes, **self.cal.result(), "max_evidence_total": self.top,

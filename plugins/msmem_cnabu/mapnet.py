@@ -35,6 +35,7 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from torch import Tensor, nn
 
+from msmem_cnabu.network import unet, unet_layers
 from msmem_core.world.scene import NUM_CLASSES
 
 LOGIT_CLIP = 12.0
@@ -109,22 +110,6 @@ def bounded_evidence(occ_logit: Tensor, cls_logit: Tensor, s_max: float, t_max: 
     return p * s, (1 - p) * s, q * t, p, q
 
 
-def _norm(c: int) -> nn.GroupNorm:
-    return nn.GroupNorm(min(8, c), c)
-
-
-class _Block(nn.Module):
-    def __init__(self, cin: int, cout: int) -> None:
-        super().__init__()
-        self.net = nn.Sequential(
-            nn.Conv2d(cin, cout, 3, padding=1, bias=False), _norm(cout), nn.SiLU(),
-            nn.Conv2d(cout, cout, 3, padding=1, bias=False), _norm(cout), nn.SiLU(),
-        )
-
-    def forward(self, x: Tensor) -> Tensor:
-        return self.net(x)
-
-
 class MapNet(nn.Module):
     """One observation step over the whole map (module docstring)."""
 
@@ -135,19 +120,7 @@ class MapNet(nn.Module):
         self.embed = nn.Linear(cfg.features, cfg.embed)
         w = cfg.width
         self.stem = nn.Conv2d(z * cfg.embed, w, 2, stride=2)
-        widths = [w * 2**i for i in range(cfg.levels)]
-        self.down = nn.ModuleList()
-        self.enc = nn.ModuleList()
-        cin = w
-        for i, c in enumerate(widths):
-            self.down.append(nn.Identity() if i == 0 else nn.Conv2d(cin, c, 2, stride=2))
-            self.enc.append(_Block(c if i else cin, c))
-            cin = c
-        self.up = nn.ModuleList()
-        self.dec = nn.ModuleList()
-        for c_hi, c_lo in zip(widths[::-1][:-1], widths[::-1][1:], strict=True):
-            self.up.append(nn.ConvTranspose2d(c_hi, c_lo, 2, stride=2))
-            self.dec.append(_Block(2 * c_lo, c_lo))
+        self.down, self.enc, self.up, self.dec = unet_layers(w, cfg.levels)
         self.full = nn.ConvTranspose2d(w, w, 2, stride=2)
         self.column = nn.Conv2d(w, z * cfg.context, 1)
         last = nn.Linear(cfg.hidden, 1 + cfg.num_classes)
@@ -183,13 +156,7 @@ class MapNet(nn.Module):
         emb = torch.matmul(self.embed.weight, feats.reshape(bsz, f, -1)) + self.embed.bias[:, None]
         m = emb.reshape(bsz, -1, x, y, z).permute(0, 4, 1, 2, 3).reshape(bsz, z * cfg.embed, x, y)
         px, py = cfg.padded_xy
-        h = F.silu(self.stem(F.pad(m, (0, py - y, 0, px - x))))
-        skips = []
-        for down, enc in zip(self.down, self.enc, strict=True):
-            h = enc(down(h))
-            skips.append(h)
-        for up, dec, skip in zip(self.up, self.dec, skips[::-1][1:], strict=True):
-            h = dec(torch.cat([up(h), skip], 1))
+        h = unet(F.silu(self.stem(F.pad(m, (0, py - y, 0, px - x)))), self.down, self.enc, self.up, self.dec)
         h = self.column(F.silu(self.full(h)))[:, :, :x, :y]
         return h.reshape(bsz, z, cfg.context, x, y).permute(0, 3, 4, 1, 2)
 

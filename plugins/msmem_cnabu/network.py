@@ -142,6 +142,33 @@ class _Block(nn.Module):
         return self.net(x)
 
 
+def unet_layers(width: int, levels: int) -> tuple[nn.ModuleList, nn.ModuleList, nn.ModuleList, nn.ModuleList]:
+    """The U-Net's (down, enc, up, dec) layers on a ``width``-channel map: ``levels`` resolutions, the
+    channels doubled per level, two 3 x 3 conv blocks each (shared by the CNABU and the map networks)."""
+    widths = [width * 2**i for i in range(levels)]
+    down, enc, up, dec = nn.ModuleList(), nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
+    cin = width
+    for i, c in enumerate(widths):
+        down.append(nn.Identity() if i == 0 else nn.Conv2d(cin, c, 2, stride=2))
+        enc.append(_Block(c if i else cin, c))
+        cin = c
+    for c_hi, c_lo in zip(widths[::-1][:-1], widths[::-1][1:], strict=True):
+        up.append(nn.ConvTranspose2d(c_hi, c_lo, 2, stride=2))
+        dec.append(_Block(2 * c_lo, c_lo))
+    return down, enc, up, dec
+
+
+def unet(h: Tensor, down: nn.ModuleList, enc: nn.ModuleList, up: nn.ModuleList, dec: nn.ModuleList) -> Tensor:
+    """The U-Net of ``unet_layers`` on ``h`` [B, width, X, Y]: encoder, then decoder with skip connections."""
+    skips = []
+    for d, e in zip(down, enc, strict=True):
+        h = e(d(h))
+        skips.append(h)
+    for u, d, skip in zip(up, dec, skips[::-1][1:], strict=True):
+        h = d(torch.cat([u(h), skip], 1))
+    return h
+
+
 class CNABUNet(nn.Module):
     def __init__(self, config: CNABUNetConfig) -> None:
         super().__init__()
@@ -153,19 +180,7 @@ class CNABUNet(nn.Module):
         self.stem_belief = nn.Conv2d(z * cfg.embed, w, 2, stride=2)
         self.stem_action = nn.Conv2d(z * cfg.action_embed, w, 2, stride=2, bias=False)
         self.stem_scalars = nn.Linear(cfg.action_scalars, w, bias=False) if cfg.action_scalars else None
-        widths = [w * 2**i for i in range(cfg.levels)]
-        self.down = nn.ModuleList()
-        self.enc = nn.ModuleList()
-        cin = w
-        for i, c in enumerate(widths):
-            self.down.append(nn.Identity() if i == 0 else nn.Conv2d(cin, c, 2, stride=2))
-            self.enc.append(_Block(c if i else cin, c))
-            cin = c
-        self.up = nn.ModuleList()
-        self.dec = nn.ModuleList()
-        for c_hi, c_lo in zip(widths[::-1][:-1], widths[::-1][1:], strict=True):
-            self.up.append(nn.ConvTranspose2d(c_hi, c_lo, 2, stride=2))
-            self.dec.append(_Block(2 * c_lo, c_lo))
+        self.down, self.enc, self.up, self.dec = unet_layers(w, cfg.levels)
         self.full = nn.ConvTranspose2d(w, w, 2, stride=2)
         self.column = nn.Conv2d(w, z * cfg.context, 1)
         per_voxel = cfg.context + cfg.in_voxel + cfg.action_voxel
@@ -246,14 +261,7 @@ class CNABUNet(nn.Module):
 
     def _decode(self, stem: Tensor) -> Tensor:
         """The U-Net up to its last transposed conv: [B, width, X'/2, Y'/2]."""
-        h = F.silu(stem)
-        skips = []
-        for down, enc in zip(self.down, self.enc, strict=True):
-            h = enc(down(h))
-            skips.append(h)
-        for up, dec, skip in zip(self.up, self.dec, skips[::-1][1:], strict=True):
-            h = dec(torch.cat([up(h), skip], 1))
-        return h
+        return unet(F.silu(stem), self.down, self.enc, self.up, self.dec)
 
     def _trunk_rows(self, stem: Tensor) -> Tensor:
         """``trunk`` as per-pixel rows [B * X' * Y', width] in (b, x, y) order: the last transposed conv
