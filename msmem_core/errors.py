@@ -7,3 +7,14 @@ class UserError(Exception):
 
 class PluginError(UserError):
     """A plugin is missing, broken, duplicated or misconfigured."""
+
+
+def validation_summary(error: Exception, limit: int = 5) -> str:
+    """One line from a pydantic ``ValidationError`` (``field a.b: message; ...``), or ``str(error)``."""
+    errors = getattr(error, "errors", None)
+    if errors is None:
+        return str(error)
+    items = errors()
+    parts = [f"field {'.'.join(str(x) for x in e['loc']) or '<root>'}: {e['msg']}" for e in items[:limit]]
+    more = f" (+{len(items) - limit} more)" if len(items) > limit else ""
+    return "; ".join(parts) + more

@@ -211,3 +211,107 @@ def test_column_fill_never_changes_observed_voxels(shard):
     assert np.array_equal(a.beta[observed], f.beta[observed])
     assert np.array_equal(a.eta[:, observed], f.eta[:, observed])
     assert fill.filled(f).sum() > 100  # something was filled in a real scene
+
+
+# ------------------------------------------------------------------------------ v2 options
+def test_nearest_known_class_is_the_class_of_a_nearest_known_voxel():
+    """Against brute force: the distance is the least distance to a known voxel, and the class
+    distribution is that of a known voxel at that distance."""
+    from msmem_cnabu.mapnet import nearest_known_class
+
+    rng = np.random.default_rng(3)
+    shape = (7, 5, 6)
+    logit = torch.from_numpy(rng.normal(size=(2, *shape)).astype(np.float32))
+    obj = torch.softmax(torch.from_numpy(rng.normal(size=(2, 4, *shape)).astype(np.float32) * 3), 1)
+    valid = torch.from_numpy(rng.random(shape) > 0.2)
+    out = nearest_known_class(logit, obj, valid, scale=100.0)
+    known = (logit > 0) & (obj.amax(1) > 0.5) & valid
+    idx = np.argwhere(np.ones(shape, bool))
+    for i in range(2):
+        ks = np.argwhere(known[i].numpy())
+        assert len(ks)
+        d = np.sqrt(((idx[:, None, :] - ks[None]) ** 2).sum(-1))  # [voxels, known]
+        dmin = d.min(1)
+        np.testing.assert_allclose(out[i, -1].numpy().ravel(), dmin / 100.0, atol=1e-5)
+        got = out[i, :-1].numpy().reshape(4, -1).T
+        for v in range(len(idx)):
+            near = ks[np.isclose(d[v], dmin[v])]
+            cands = obj[i][:, near[:, 0], near[:, 1], near[:, 2]].numpy().T
+            assert np.isclose(cands, got[v], atol=1e-6).all(1).any()
+
+
+def test_nearest_known_class_without_known_voxels_is_uniform_and_far():
+    from msmem_cnabu.mapnet import nearest_known_class
+
+    out = nearest_known_class(-torch.ones(1, 3, 3, 3), torch.full((1, 4, 3, 3, 3), 0.25), torch.ones(3, 3, 3, dtype=bool),
+                              10.0)
+    assert torch.allclose(out[0, :-1], torch.full((4, 3, 3, 3), 0.25))
+    assert torch.allclose(out[0, -1], torch.ones(3, 3, 3))
+
+
+def _small(**kw):
+    return MapNetConfig(grid_shape=(16, 8, 6), width=8, embed=2, context=2, hidden=8, levels=2, **kw)
+
+
+def _random_inputs(cfg, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    shape, c = cfg.grid_shape, cfg.num_classes
+    a = 1 + 5 * torch.rand(1, *shape, generator=g)
+    b = 1 + 5 * torch.rand(1, *shape, generator=g)
+    e = 1 + 5 * torch.rand(1, c, *shape, generator=g)
+    free = torch.rand(1, *shape, generator=g) > 0.7
+    occ = ~free & (torch.rand(1, *shape, generator=g) > 0.8)
+    seen = torch.zeros(1, c, *shape, dtype=bool)
+    seen[:, 3] = occ
+    return a, b, e, free, occ, seen, torch.ones(shape, dtype=bool)
+
+
+def test_the_object_class_head_ties_the_free_class_to_the_occupancy():
+    torch.manual_seed(0)
+    net = MapNet(_small(class_head="object")).eval()
+    torch.nn.init.normal_(net.head[-1].weight, std=0.5)
+    o, c = net(*_random_inputs(net.config))
+    q = torch.softmax(c, 1)
+    assert torch.allclose(q[:, 0], torch.sigmoid(-o), atol=1e-5)
+    assert torch.allclose(q.sum(1), torch.ones_like(o), atol=1e-5)
+
+
+def test_the_object_head_class_loss_ignores_free_voxels():
+    from msmem_cnabu.mapnet import map_loss
+
+    occ = torch.zeros(1, 4, 1, 1, dtype=bool)
+    occ[0, :2] = True
+    cls = torch.where(occ, 2, 0).long()
+    o = torch.zeros(1, 4, 1, 1)
+    c1 = torch.zeros(1, 5, 4, 1, 1)
+    c2 = c1.clone()
+    c2[0, 0, 2:] = 9.0  # only free voxels' class logits change
+    valid = torch.ones(4, 1, 1, dtype=bool)
+    l1 = map_loss(o, c1, occ, cls, valid, 100.0, 300.0, occupied_only=True)[1]
+    l2 = map_loss(o, c2, occ, cls, valid, 100.0, 300.0, occupied_only=True)[1]
+    assert torch.isclose(l1, l2)
+    assert not torch.isclose(map_loss(o, c1, occ, cls, valid, 100.0, 300.0)[1],
+                             map_loss(o, c2, occ, cls, valid, 100.0, 300.0)[1])
+
+
+def test_a_widened_network_starts_as_the_old_one():
+    """--init from weights without the nearest-class features: the new inputs get zero weights, so
+    the widened network computes what the old one did."""
+    from msmem_cnabu.maptrain import load_widened
+
+    torch.manual_seed(1)
+    old = MapNet(_small()).eval()
+    torch.nn.init.normal_(old.head[-1].weight, std=0.5)
+    new = MapNet(_small(nearest_class=True)).eval()
+    load_widened(new, old.state_dict(), "old.pt")
+    x = _random_inputs(old.config, seed=2)
+    for u, v in zip(old(*x), new(*x), strict=True):
+        assert torch.allclose(u, v, atol=1e-5)
+
+
+def test_bad_network_settings_name_the_field(tmp_path):
+    from msmem_core.errors import UserError
+
+    with pytest.raises(UserError, match="field class_head"):
+        train_map(HELDOUT, tmp_path / "m.pt", MapTrainConfig(batches=1, batch=1), arch={"class_head": "rainbow"},
+                  log=lambda _: None)

@@ -163,14 +163,18 @@ def train_cnabu_map(
     init: Annotated[Path | None, typer.Option("--init", help="Start from these weights (same architecture).")] = None,
     occupied_class_weight: Annotated[float, typer.Option(
         "--occupied-class-weight", help="Weight of truly occupied voxels in the class NLL.")] = 1.0,
+    arch: Annotated[Path | None, typer.Option(
+        "--arch", help="YAML file of network settings (MapNetConfig fields, e.g. class_head: object).")] = None,
 ) -> None:
     """Train the whole-map observation network (cnabu-map) through rollouts of recorded views."""
     from msmem_cnabu.maptrain import MapTrainConfig, train_map
+    from msmem_core.config import read_config_file
 
     cfg = MapTrainConfig(epochs=epochs, batches=batches, batch=batch, lr=lr, seed=seed, threads=threads,
                          time_limit_s=None if max_minutes is None else 60 * max_minutes,
                          occupied_class_weight=occupied_class_weight)
-    side = train_map(data, out, cfg, heldout_dir=heldout, log=typer.echo, init=init)
+    side = train_map(data, out, cfg, heldout_dir=heldout, log=typer.echo, init=init,
+                     arch=None if arch is None else read_config_file(arch))
     typer.echo(f"{side['data']['scenes']} scenes, {side['seconds'] / 60:.1f} min, stopped by {side['stopped']}, "
                f"{side['bytes'] / 1e6:.2f} MB -> {out} (sha256 {side['sha256'][:12]}...)")
 

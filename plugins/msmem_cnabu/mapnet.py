@@ -30,6 +30,9 @@ Training unrolls sequences of views, each step fed the network's own previous ou
 
 from __future__ import annotations
 
+from typing import Literal
+
+import numpy as np
 import torch
 import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -65,6 +68,13 @@ class MapNetConfig(BaseModel):
     """Largest occupancy evidence total alpha + beta (p is kept in [1/s_max, 1 - 1/s_max])."""
     t_max: float = Field(300.0, gt=0.0)
     """Largest class evidence total sum(eta) (every q_c >= 1/t_max)."""
+    class_head: Literal["joint", "object"] = "joint"
+    """``joint``: a residual on all C class logits. ``object``: the class distribution is tied to the
+    occupancy, ``q = [1 - p, p r]``, and the head predicts only ``r``, the object class of an occupied
+    voxel (a residual on A's object-class distribution); its loss is taken on occupied voxels."""
+    nearest_class: bool = False
+    """Add, per voxel, the object-class distribution of the nearest voxel whose class A already knows
+    (occupied, top object class above 1/2) and the distance to it (``nearest_known_class``)."""
 
     @model_validator(mode="after")
     def _check(self) -> MapNetConfig:
@@ -77,7 +87,7 @@ class MapNetConfig(BaseModel):
 
     @property
     def features(self) -> int:
-        return 3 + self.num_classes + 5
+        return 3 + self.num_classes + 5 + (self.num_classes if self.nearest_class else 0)
 
     @property
     def padded_xy(self) -> tuple[int, int]:
@@ -94,6 +104,27 @@ def analytic_update(alpha: Tensor, beta: Tensor, eta: Tensor, free: Tensor, occ:
     eta = eta + w * s
     eta = torch.cat([eta[:, :1] + w * f[:, None], eta[:, 1:]], 1)
     return alpha + w * o, beta + w * f, eta
+
+
+def nearest_known_class(occ_logit: Tensor, obj: Tensor, valid: Tensor, scale: float) -> Tensor:
+    """[B, C, X, Y, Z]: per voxel the object-class distribution ``obj`` [B, C - 1, ...] of the nearest
+    voxel whose class is known (``valid``, believed occupied and its top object class above 1/2;
+    Euclidean distance in voxels), and that distance divided by ``scale``. A batch element with no
+    known voxel gets a uniform distribution at distance 1."""
+    from scipy import ndimage
+
+    known = ((occ_logit > 0) & (obj.amax(1) > 0.5) & valid).numpy()
+    out = torch.empty(obj.shape[0], obj.shape[1] + 1, *obj.shape[2:], dtype=obj.dtype)
+    for i, k in enumerate(known):
+        if not k.any():
+            out[i, :-1] = 1.0 / obj.shape[1]
+            out[i, -1] = 1.0
+            continue
+        dist, idx = ndimage.distance_transform_edt(~k, return_indices=True)
+        flat = torch.from_numpy(np.ravel_multi_index(tuple(idx), k.shape).ravel())
+        out[i, :-1] = obj[i].reshape(obj.shape[1], -1)[:, flat].reshape(obj.shape[1:])
+        out[i, -1] = torch.from_numpy(np.minimum(dist / scale, 1.0).astype(np.float32))
+    return out
 
 
 def bounded_evidence(occ_logit: Tensor, cls_logit: Tensor, s_max: float, t_max: float
@@ -143,11 +174,13 @@ class MapNet(nn.Module):
         top = torch.where((logit > 0) & valid, height, -1).amax(-1, keepdim=True)  # [B, X, Y, 1]: -1 if none
         below = (height < top).to(dt)  # under the column's highest believed-occupied interior voxel
         depth = (top - height).clamp(min=0).to(dt) / z
-        feats = torch.cat([
+        parts = [
             (logit / 4)[:, None], (torch.log(s) / 4)[:, None], (torch.log(t) / 4)[:, None], logq.exp(),
             free.to(dt)[:, None], occ.to(dt)[:, None], seen.any(1).to(dt)[:, None], below[:, None], depth[:, None],
-        ], 1)
-        return feats, logit, logq
+        ]
+        if self.config.nearest_class:
+            parts.append(nearest_known_class(logit, torch.softmax(logq[:, 1:], 1), valid, float(z)))
+        return torch.cat(parts, 1), logit, logq
 
     def _trunk(self, feats: Tensor) -> Tensor:
         """Per-voxel column context [B, X, Y, Z, context] from the features."""
@@ -169,7 +202,12 @@ class MapNet(nn.Module):
         ctx = self._trunk(feats)
         h = torch.cat([ctx, feats.permute(0, 2, 3, 4, 1)], -1)
         d = self.head(h).permute(0, 4, 1, 2, 3) * valid.to(h.dtype)  # [B, 1 + C, X, Y, Z]
-        return logit + d[:, 0], logq + d[:, 1:]
+        o = logit + d[:, 0]
+        if self.config.class_head == "joint":
+            return o, logq + d[:, 1:]
+        # object head: log q = [log(1 - p), log p + log r], r from A's object classes plus the residual
+        r = torch.log_softmax(logq[:, 1:] + d[:, 2:], 1)
+        return o, torch.cat([F.logsigmoid(-o)[:, None], F.logsigmoid(o)[:, None] + r], 1)
 
     def step(self, alpha: Tensor, beta: Tensor, eta: Tensor, free: Tensor, occ: Tensor, seen: Tensor,
              valid: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -180,11 +218,14 @@ class MapNet(nn.Module):
 
 
 def map_loss(occ_logit: Tensor, cls_logit: Tensor, gt_occ: Tensor, gt_cls: Tensor, valid: Tensor,
-             s_max: float, t_max: float, occupied_class_weight: float = 1.0) -> tuple[Tensor, Tensor]:
+             s_max: float, t_max: float, occupied_class_weight: float = 1.0, occupied_only: bool = False
+             ) -> tuple[Tensor, Tensor]:
     """(occupancy NLL, class NLL), means over the valid voxels, of the bounded expected probabilities
     (exactly what the belief reports) against the ground truth (class 0 = free). The class NLL of
     voxels that are occupied in truth counts ``occupied_class_weight`` times (object voxels are a few
-    percent of the shelf: without a weight the class head learns mostly "free")."""
+    percent of the shelf: without a weight the class head learns mostly "free"); with
+    ``occupied_only`` (the ``object`` class head, whose free class is the occupancy's) it is taken on
+    those voxels alone."""
     _, _, _, p, q = bounded_evidence(occ_logit, cls_logit, s_max, t_max)
     m = valid.expand_as(gt_occ)
     y = gt_occ.to(p.dtype)
@@ -192,7 +233,7 @@ def map_loss(occ_logit: Tensor, cls_logit: Tensor, gt_occ: Tensor, gt_cls: Tenso
     qy = torch.gather(q, 1, gt_cls.long()[:, None])[:, 0]
     cls_nll = -torch.log(qy)
     n = m.sum().clamp(min=1)
-    w = 1.0 + (occupied_class_weight - 1.0) * y
+    w = y if occupied_only else 1.0 + (occupied_class_weight - 1.0) * y
     return occ_nll[m].sum() / n, (w * cls_nll)[m].sum() / w[m].sum().clamp(min=1)
 
 

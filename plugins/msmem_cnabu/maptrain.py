@@ -27,12 +27,12 @@ from typing import Any
 import numpy as np
 import torch
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard
 from msmem_cnabu.features import wall_mask
 from msmem_cnabu.mapnet import MapNet, MapNetConfig, bounded_evidence, map_loss, parameter_count
-from msmem_core.errors import UserError
+from msmem_core.errors import UserError, validation_summary
 from msmem_core.util.artifacts import atomic_save, write_sidecar
 
 WEIGHTS_FORMAT = "msmem-cnabu-map"
@@ -143,7 +143,7 @@ def rollout_loss(net: MapNet, batch: dict[str, torch.Tensor], valid: torch.Tenso
         with torch.set_grad_enabled(opt is not None):
             o, c = net(a, b, e, batch["free"][:, t], batch["occ"][:, t], batch["seen"][:, t], valid)
             lo, lc = map_loss(o, c, batch["gt_occ"], batch["gt_cls"], valid, cfg.s_max, cfg.t_max,
-                              occupied_class_weight)
+                              occupied_class_weight, occupied_only=cfg.class_head == "object")
         if opt is not None:
             opt.zero_grad(set_to_none=True)
             (lo + sem_weight * lc).backward()
@@ -157,6 +157,25 @@ def rollout_loss(net: MapNet, batch: dict[str, torch.Tensor], valid: torch.Tenso
     return out
 
 
+def load_widened(net: MapNet, state: dict[str, torch.Tensor], source: str) -> None:
+    """Load ``state`` into ``net``; a weight matrix whose input grew (features appended at the end of
+    the per-voxel inputs, e.g. ``nearest_class``) keeps its old columns and gets zeros for the new
+    ones, so the widened network starts as the old one's function of the old features."""
+    own = net.state_dict()
+    for k, v in state.items():
+        if k not in own:
+            raise UserError(f"--init {source}: parameter {k} is not in this network")
+        o = own[k]
+        if o.shape == v.shape:
+            own[k] = v
+        elif v.dim() == 2 and o.dim() == 2 and o.shape[0] == v.shape[0] and o.shape[1] > v.shape[1]:
+            own[k] = torch.cat([v, torch.zeros(o.shape[0], o.shape[1] - v.shape[1], dtype=v.dtype)], 1)
+        else:
+            raise UserError(f"--init {source}: parameter {k} has shape {tuple(v.shape)}, this network's "
+                            f"{tuple(o.shape)}")
+    net.load_state_dict(own)
+
+
 def write_weights(net: MapNet, out: Path, record: dict[str, Any]) -> dict[str, Any]:
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_save(net.state_dict(), out)
@@ -166,8 +185,10 @@ def write_weights(net: MapNet, out: Path, record: dict[str, Any]) -> dict[str, A
 
 def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_cfg: MapNetConfig | None = None,
               heldout_dir: str | Path | None = None, log: Callable[[str], None] = print,
-              init: str | Path | None = None) -> dict[str, Any]:
-    """Train on the observe shards of ``data_dir`` (see the module docstring); returns the sidecar."""
+              init: str | Path | None = None, arch: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Train on the observe shards of ``data_dir`` (see the module docstring); returns the sidecar.
+    ``arch``: network settings (``MapNetConfig`` fields) when ``model_cfg`` is not given; the grid and
+    the class count come from the data."""
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     rng = np.random.default_rng(cfg.seed)
@@ -176,12 +197,16 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
         paths = paths[: cfg.max_scenes]
     first = sequence(load_shard(paths[0]))
     shape = first.gt_occ.shape
-    model_cfg = model_cfg or MapNetConfig(grid_shape=shape, num_classes=first.seen.shape[1])
+    if model_cfg is None:
+        try:
+            model_cfg = MapNetConfig(grid_shape=shape, num_classes=first.seen.shape[1], **(arch or {}))
+        except (ValidationError, TypeError) as e:
+            raise UserError(f"network settings (--arch): {validation_summary(e)}") from e
     if tuple(model_cfg.grid_shape) != tuple(shape):
         raise UserError(f"the data's grid is {shape}, the network's {tuple(model_cfg.grid_shape)}")
     net = MapNet(model_cfg)
     if init is not None:
-        net.load_state_dict(torch.load(init, map_location="cpu", weights_only=True))
+        load_widened(net, torch.load(init, map_location="cpu", weights_only=True), str(init))
     valid = torch.from_numpy(first.valid)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     total_batches = cfg.batches or max(1, int(cfg.epochs * len(paths) / cfg.batch))
