@@ -350,7 +350,8 @@ def run_msas(
             prediction = decision.batch.prediction
             just_manipulated = prediction is not None
             if outcome.observation is not None:
-                belief = observe_model.update(belief, outcome.observation)
+                with span("observe", decision.skill.name, ctx=ctx):
+                    belief = observe_model.update(belief, outcome.observation)
                 if isinstance(decision.action, PerceptionAction):
                     visited.add(decision.action.view)
             elif prediction is not None:

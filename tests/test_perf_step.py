@@ -63,3 +63,10 @@ def test_references_and_approximation_check_are_reported(small):
     assert 0 <= a["same_as_unscreened"] <= 1
     assert 0 <= a["same_as_exact"] <= 1
     assert any("approximations" in line for line in lines)
+
+
+def test_the_observation_update_is_timed_and_reported(small):
+    res, lines = small
+    assert res["observe_s"] > 0
+    assert 0 <= res["observe_view"] < 27
+    assert any(line.strip().startswith("observation update (analytic-observation)") for line in lines)

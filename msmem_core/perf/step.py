@@ -198,6 +198,7 @@ def perf_step(
         "decision": decision, "candidates": dict(decision.candidates), "setup_s": setup_s,
     }
     last = per_repeat[-1]
+    res |= _time_observation_update(ep, state, decision, max(1, repeats))
 
     refs: dict[str, tuple[float, str]] = {}  # stage path -> (reference seconds, what it is)
     if reference:
@@ -239,6 +240,9 @@ def perf_step(
             ref_s, _ = refs[key]
             line += f" {ref_s:10.2f} {ref_s / max(cpu[key] / max(calls[key], 1), 1e-12):7.0f}x"
         report(line)
+    report(f"  {'observation update (' + cfg.observation_model.name + ')':{width}} {1:5d} {res['observe_s']:7.3f} "
+           f"{res['observe_cpu_s']:7.3f}   (after the decision, outside decide(): the view {res['observe_view']}, "
+           f"already rendered)")
     for key, (_, what) in refs.items():
         report(f"  reference for {key.split(' / ')[-1]!r} ({key.split(' / ')[0]}): {what}")
     if "reference/decide_s" in res:
@@ -263,6 +267,24 @@ def perf_step(
             f"differs from the exact best push in {a['push_best_differs']}/{a['push_batches']}"
         )
     return res
+
+
+def _time_observation_update(ep: Episode, state: EpisodeState, decision: Decision, repeats: int) -> dict[str, Any]:
+    """Median wall and CPU seconds of the episode's observation update of one rendered view: the view
+    the decision chose, or the first unvisited one when it chose a manipulation."""
+    if isinstance(decision.action, PerceptionAction):
+        view = decision.action.view
+    else:
+        view = next(v for v in range(len(ep.viewpoints)) if v not in state.visited)
+    obs = ep.sim.observe(ep.viewpoints[view])
+    walls, cpus = [], []
+    for r in range(repeats + 1):  # the first run warms up
+        t, c = time.perf_counter(), time.process_time()
+        ep.observe_model.update(state.belief, obs)
+        if r > 0:
+            walls.append(time.perf_counter() - t)
+            cpus.append(time.process_time() - c)
+    return {"observe_s": statistics.median(walls), "observe_cpu_s": statistics.median(cpus), "observe_view": view}
 
 
 def _references(ep: Episode, state: EpisodeState, timed: Decision, probe: StageTimer, stages: dict[str, float],
