@@ -18,7 +18,8 @@ from pathlib import Path
 
 from msmem_core.run.bench import mean_ci
 
-METRICS = ("occupancy_miou", "semantic_miou_2d", "observable_iou", "occupancy_iou", "semantic_miou",
+METRICS = ("occupancy_miou", "semantic_miou_2d", "observable_iou", "occupancy_iou", "semantic_miou", "occupancy_nll",
+           "semantic_nll",
            "occupancy_ece", "semantic_ece")
 
 

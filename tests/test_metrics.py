@@ -300,3 +300,28 @@ def test_shelf_interior_is_the_closed_interior_box_between_the_walls_and_the_ope
     assert np.array_equal(interior | walls | front, np.ones(grid.shape, bool))
     extent = np.ptp(np.argwhere(interior), axis=0) + 1
     assert extent.tolist() == np.round((shelf.interior_upper - shelf.interior_lower) / 0.01).astype(int).tolist()
+
+
+def test_belief_nll_against_scipy_and_by_hand():
+    from scipy import stats
+
+    from msmem_core.run.metrics import belief_nll
+
+    rng = np.random.default_rng(5)
+    shape = (4, 3, 2)
+    p = rng.random(shape)
+    probs = rng.dirichlet(np.ones(3), size=shape).transpose(3, 0, 1, 2)
+    gt_occ = rng.random(shape) > 0.5
+    gt_cls = np.where(gt_occ, rng.integers(1, 3, size=shape), 0)
+    inside = np.ones(shape, bool)
+    inside[0] = False
+    r = belief_nll(p, probs, gt_occ, gt_cls, inside)
+    want_o = -np.mean(stats.bernoulli.logpmf(gt_occ[inside].astype(int), p[inside]))
+    q = np.array([probs[c, i, j, k] for (i, j, k), c in np.ndenumerate(gt_cls) if inside[i, j, k]])
+    assert r["occupancy_nll"] == pytest.approx(want_o, rel=1e-9)
+    assert r["semantic_nll"] == pytest.approx(-np.mean(np.log(q)), rel=1e-9)
+    # a certain, wrong voxel costs -log(floor), not infinity
+    one = belief_nll(np.ones((1, 1, 1)), np.array([[[[1.0]]], [[[0.0]]]]), np.zeros((1, 1, 1), bool),
+                     np.ones((1, 1, 1), int), np.ones((1, 1, 1), bool))
+    assert one["occupancy_nll"] == pytest.approx(-np.log(1e-6))
+    assert one["semantic_nll"] == pytest.approx(-np.log(1e-6))

@@ -33,6 +33,8 @@ TABLE_METRICS = (
     ("semantic_miou_2d", "semantic mIoU 2-D (paper)", "higher"),
     ("occupancy_ece", "occupancy ECE", "lower"),
     ("semantic_ece", "semantic ECE", "lower"),
+    ("occupancy_nll", "occupancy NLL", "lower"),
+    ("semantic_nll", "semantic NLL", "lower"),
     ("views", "views", None),
     ("pushes", "pushes", None),
     ("grasps", "grasps", None),
@@ -47,7 +49,7 @@ COUNT_METRICS = (
 )
 """Table II: final object counts (``metrics.object_counts``) plus objects no longer in the shelf."""
 PAIRED_METRICS = ("occupancy_iou", "semantic_miou", "position_change_m", "observable_iou", "semantic_miou_bev",
-                  "occupancy_miou", "semantic_miou_2d")
+                  "occupancy_miou", "semantic_miou_2d", "occupancy_nll", "semantic_nll")
 """The metrics whose per-scene differences between methods ``table.md`` reports."""
 CURVE_METRICS = ("occupancy_iou", "semantic_miou", "observable_iou", "position_change_m", "occupancy_miou",
                  "semantic_miou_2d")

@@ -205,6 +205,27 @@ def ece_from_bins(count: ArrayLike, confidence_sum: ArrayLike, correct_sum: Arra
     return float(gap.sum() / total)
 
 
+def belief_nll(
+    expected_occupancy: NDArray[np.floating], class_probs: NDArray[np.floating], gt_occ: NDArray[np.bool_],
+    gt_cls: NDArray[np.integer], interior: NDArray[np.bool_], floor: float = 1e-6,
+) -> dict[str, float]:
+    """Mean negative log-likelihood of the ground truth under a belief's expected probabilities, over
+    the ``interior`` voxels: ``occupancy_nll`` = mean of ``-log p`` (occupied) or ``-log(1 - p)``
+    (free); ``semantic_nll`` = mean of ``-log class_probs[gt_cls]`` (class 0 on free voxels).
+    Probabilities are clipped to ``[floor, 1 - floor]``, so a confidently wrong voxel costs at most
+    ``-log floor`` (13.8) instead of infinity."""
+    inside = np.asarray(interior, dtype=bool)
+    if not inside.any():
+        return {"occupancy_nll": float("nan"), "semantic_nll": float("nan")}
+    p = np.clip(np.asarray(expected_occupancy, dtype=np.float64)[inside], floor, 1.0 - floor)
+    y = np.asarray(gt_occ, dtype=bool)[inside]
+    probs = np.asarray(class_probs)
+    lab = np.asarray(gt_cls).astype(np.intp)[inside]
+    q = np.take_along_axis(probs[:, inside], lab[None], 0)[0].astype(np.float64)
+    return {"occupancy_nll": float(-np.mean(np.where(y, np.log(p), np.log1p(-p)))),
+            "semantic_nll": float(-np.mean(np.log(np.clip(q, floor, 1.0))))}
+
+
 def top_label(
     probs: NDArray[np.floating], labels: NDArray[np.integer]
 ) -> tuple[NDArray[np.floating], NDArray[np.bool_]]:

@@ -26,6 +26,7 @@ from msmem_core.map.ig import IGService, shelf_interior_mask, shelf_wall_mask
 from msmem_core.msas import BoundSkill, Decision, Objective, run_msas
 from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager
 from msmem_core.run.metrics import (
+    belief_nll,
     object_counts,
     observable_iou,
     occupancy_iou,
@@ -177,6 +178,7 @@ class MetricTracker:
             "semantic_miou": semantic_miou(pred_cls, self.gt_cls),
             "semantic_miou_bev": semantic_miou_bev(pred_cls, self.gt_cls),
             **paper_metrics_from_counts(self.paper_counts),
+            **belief_nll(p, probs, self.gt_occ, self.gt_cls, self.interior),
             "position_change_m": position_change_m(self.initial, poses),
             **object_counts(pred_occ, pred_cls, self.gt_inst, self.present_classes),
             "removed": len(self.objects) - len(self.present_classes),
