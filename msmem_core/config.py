@@ -81,7 +81,13 @@ class MSASConfig(_Strict):
     IG looks there again; 2 resets them to the prior (unknown). None: the belief is the prediction as
     is, the paper's rule (the push-only preset sets 4, measured in docs/results.md)."""
     disturbed_margin_voxels: int = Field(2, ge=0, le=10)
-    """Dilation (voxels) of the changed mask for ``disturbed_evidence_cap``."""
+    """Dilation (voxels) of the changed mask for ``disturbed_evidence_cap`` and ``failed_manipulation_cap``."""
+    failed_manipulation_cap: float = Field(4.0, ge=2.0)
+    """A manipulation that reports failure (a grasp that lifted nothing, a push stopped short) does not
+    write its prediction, which is that of the action succeeding: the belief stays the one before the
+    action, with the evidence of the voxels the prediction would have changed (dilated by
+    ``disturbed_margin_voxels``) shrunk until alpha + beta <= this, so the following views decide
+    what really happened (2: back to the prior)."""
     fall_tilt_deg: float = Field(FALL_TILT_DEG, gt=0.0, lt=90.0)
     """An object whose up axis a manipulation tilted more than this has fallen over; once an object
     fell or left the shelf, manipulation stops for the episode ([MEM])."""

@@ -314,7 +314,9 @@ def run_msas(
     ``seed``), the action is executed (``execute_measured``, span ``execute``: info ``ctx``, ``sim``
     and ``decision``; result: the ``Outcome``), and ``on_step`` sees the step. A view is integrated
     by the observation model and counted as visited. After a manipulation the belief becomes the
-    effect model's prediction (capped where it changed by ``cfg.disturbed_evidence_cap``), visited
+    effect model's prediction (capped where it changed by ``cfg.disturbed_evidence_cap``); after one that
+    reports failure it stays as it was, capped where the prediction would have changed it
+    (``cfg.failed_manipulation_cap``). Either way visited
     views are cleared, and the next step may only choose a view, the manipulation's associated best
     view (both count towards T_max). Manipulation is allowed in ``cfg.manipulation_window``, not once
     ``cfg.mapped_fraction`` of the BEV cells are mapped (``mapped_fraction``), and never again after
@@ -355,11 +357,14 @@ def run_msas(
                 if isinstance(decision.action, PerceptionAction):
                     visited.add(decision.action.view)
             elif prediction is not None:
-                belief = prediction.belief(decision.index)
-                if cfg.disturbed_evidence_cap is not None:
+                if outcome.success:
+                    belief, cap = prediction.belief(decision.index), cfg.disturbed_evidence_cap
+                else:  # the prediction is that of success: keep the belief, doubt where it would have changed
+                    cap = cfg.failed_manipulation_cap
+                if cap is not None:
                     changed = np.zeros(workspace.grid.size, dtype=bool)
                     changed[prediction.changes[decision.index].idx] = True
-                    belief = cap_evidence(belief, changed.reshape(workspace.grid.shape), cfg.disturbed_evidence_cap,
+                    belief = cap_evidence(belief, changed.reshape(workspace.grid.shape), cap,
                                           cfg.disturbed_margin_voxels)
                 visited.clear()
                 last_manipulation = step

@@ -199,3 +199,50 @@ def test_an_effect_model_must_predict_from_the_belief_it_was_given(ig):
     objective = Objective([("constant", 1.0, Constant())])
     with pytest.raises(PluginError, match="effect model of skill 'topple'"):
         decide(ctx, [BoundSkill("topple", ToppleSkill(), Elsewhere())], objective)
+
+
+class Flaky(ToppleSkill):
+    """Does nothing in the world and reports ``success`` as told."""
+
+    def __init__(self, success: bool) -> None:
+        self.success = success
+
+    def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
+        return Outcome(success=self.success)
+
+
+class Stamp(EffectModel):
+    """Predicts the first 10 voxels certainly free (what a successful grasp of an object there would do)."""
+
+    def predict(self, belief: EvidentialMap, actions: Sequence[Action], workspace: Workspace) -> Prediction:
+        idx = np.arange(10, dtype=np.int64)
+        n = belief.num_classes
+        delta = BeliefDelta(idx, np.ones(10, np.float32), np.full(10, 60.0, np.float32), np.ones((n, 10), np.float32))
+        return Prediction(belief, [delta for _ in actions])
+
+
+class Sure(ObservationModel):
+    """Every view makes every voxel confidently occupied (alpha 30, beta 2)."""
+
+    def update(self, belief: EvidentialMap, observation: Observation) -> EvidentialMap:
+        return EvidentialMap(belief.grid, np.full_like(belief.alpha, 30.0), np.full_like(belief.beta, 2.0),
+                             belief.eta.copy())
+
+
+@pytest.mark.parametrize("success", [True, False])
+def test_a_failed_manipulation_does_not_write_the_prediction_of_success(ig, success):
+    sim = FakeSimulator(CAMERA)
+    sim.reset(SCENE)
+    beliefs: list[EvidentialMap] = []
+    cfg = MSASConfig(manipulation_window=(0, 10), mapped_fraction=1.0, disturbed_margin_voxels=0)
+    run_msas(sim, Sure(), [BoundSkill("view", ViewSkill()), BoundSkill("flaky", Flaky(success), Stamp())],
+             Objective([("constant", 1.0, Constant())]), ig, WORKSPACE, cfg, 1, start_view=0, seed=0,
+             on_step=lambda step, d, o, b: beliefs.append(b))
+    after = beliefs[0]
+    a, b = after.alpha.ravel(), after.beta.ravel()
+    if success:  # the prediction, as is (no disturbed cap configured)
+        assert np.all(b[:10] == 60.0) and np.all(a[:10] == 1.0)
+    else:  # the belief before, its evidence shrunk to alpha + beta <= 4 where the prediction would have changed it
+        assert np.allclose(a[:10] + b[:10], cfg.failed_manipulation_cap)
+        assert np.all(a[:10] > b[:10]), "still believed occupied: only the confidence is gone"
+        assert np.all(a[10:] == 30.0) and np.all(b[10:] == 2.0)
