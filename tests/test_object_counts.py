@@ -252,6 +252,10 @@ def test_the_tracker_counts_present_objects_and_reports_removed_ones():
     assert m["removed"] == 2
     assert (m["correctly_found"], m["misclassified"], m["not_found"]) == (1, 0, 0)
     assert m["hallucinated"] == 2, "the belief still shows the two objects that are gone"
+    assert m["position_change_m"] == 0.0, "objects no longer in the shelf count as removed, not as moved"
+    ep.sim.poses[0] = ep.sim.poses[0].copy()
+    ep.sim.poses[0][0, 3] += 0.03  # a push within the shelf
+    assert tracker(stale)["position_change_m"] == pytest.approx(0.03)
 
 
 def test_episode_final_metrics_hold_the_counts():

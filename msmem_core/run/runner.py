@@ -179,7 +179,8 @@ class MetricTracker:
             "semantic_miou_bev": semantic_miou_bev(pred_cls, self.gt_cls),
             **paper_metrics_from_counts(self.paper_counts),
             **belief_nll(p, probs, self.gt_occ, self.gt_cls, self.interior),
-            "position_change_m": position_change_m(self.initial, poses),
+            # objects still in the shelf (as the object counts; knocked-out ones count as removed)
+            "position_change_m": position_change_m(self.initial, {i: poses[i] for i in self.present_classes}),
             **object_counts(pred_occ, pred_cls, self.gt_inst, self.present_classes),
             "removed": len(self.objects) - len(self.present_classes),
         }
