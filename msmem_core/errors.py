@@ -7,3 +7,13 @@ class UserError(Exception):
 
 class PluginError(UserError):
     """A plugin is missing, broken, duplicated or misconfigured."""
+
+
+class IncompleteError(Exception):
+    """A command ran but could not deliver all it planned (e.g. a bench episode without a result);
+    the CLI reports it as one line with exit code 1."""
+
+
+class Interrupted(BaseException):  # noqa: N818 - not an Exception: `except Exception` must not swallow it
+    """Ctrl-C, caught where msmem knows what to tell (``interrupted at step N; partial run in DIR``);
+    the CLI prints the message and exits 130."""

@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 import warnings
@@ -15,7 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from msmem_core.errors import UserError
+from msmem_core.errors import IncompleteError, Interrupted, UserError
 
 if TYPE_CHECKING:
     from msmem_core.plugins.manager import MsmemPluginManager
@@ -159,8 +160,16 @@ def bench(
     threads: Annotated[int, typer.Option("--threads", help="Threads per episode (numba, torch).")] = 1,
     address: Annotated[str | None, typer.Option("--address", help="Ray cluster address (executor ray).")] = None,
     out: Annotated[Path, typer.Option("--out", help="Results folder (rerun to resume).")] = Path("runs/bench"),
+    retry_crashed: Annotated[bool, typer.Option("--retry-crashed/--no-retry-crashed",
+                                                help="Rerun episodes that crashed in an earlier run.")] = True,
+    rerun_mismatched: Annotated[bool, typer.Option(
+        "--rerun-mismatched", help="Rerun episodes whose files were made with another method, suite, scene, "
+                                   "steps, config or plugin versions (default: stop with an error).")] = False,
 ) -> None:
-    """Run methods x scenes episodes; writes episodes/*.json, table.md, results.json and curves.png."""
+    """Run methods x scenes episodes; writes episodes/*.json, table.md, results.json and curves.png.
+
+    Rerun into the same --out to resume: finished episodes are reused only if their fingerprint matches
+    (docs/reliability.md); crashed ones are retried."""
     import os
 
     from msmem_core.config import preset
@@ -177,8 +186,13 @@ def bench(
         over["simulator"] = {"name": sim, "params": {}}
     if address:
         os.environ["RAY_ADDRESS"] = address
-    summary = run_bench(method_list, suite_list, parse_range(scenes, len(suite_list)), out, over,
-                        str(config) if config else None, executor, workers, threads)
+    try:
+        summary = run_bench(method_list, suite_list, parse_range(scenes, len(suite_list)), out, over,
+                            str(config) if config else None, executor, workers, threads, suite=suite,
+                            retry_crashed=retry_crashed, rerun_mismatched=rerun_mismatched)
+    except KeyboardInterrupt as e:
+        raise Interrupted(f"interrupted; finished episodes are kept in {out / 'episodes'}: rerun the same "
+                          "command to resume") from e
     typer.echo((out / "table.md").read_text())
     if summary["errors"]:
         typer.echo(f"{len(summary['errors'])} episode(s) crashed; see {out / 'results.json'}", err=True)
@@ -284,11 +298,11 @@ def build_app(pm: MsmemPluginManager | None = None, builtin_only: bool = False) 
     app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help=HELP)
     app.callback()(_root)
     for name, fn in CORE_COMMANDS[None].items():
-        app.command(name)(fn)
+        app.command(name)(interruptible(fn))
     groups = {name: typer.Typer(no_args_is_help=True, help=text) for name, text in GROUPS.items()}
     for name, group in groups.items():
         for cmd, fn in CORE_COMMANDS.get(name, {}).items():
-            group.command(cmd)(fn)
+            group.command(cmd)(interruptible(fn))
         app.add_typer(group, name=name)
     if pm is None:
         try:
@@ -337,7 +351,7 @@ def add_plugin_commands(app: typer.Typer, groups: dict[str, typer.Typer], pm: Ms
         if isinstance(spec.action, typer.Typer):
             target.add_typer(spec.action, name=spec.name, short_help=spec.summary)
         else:
-            target.command(spec.name, short_help=spec.summary)(spec.action)
+            target.command(spec.name, short_help=spec.summary)(interruptible(spec.action))
         taken[spec.group].add(spec.name)
 
 
@@ -355,6 +369,20 @@ def _show_warning(message: Warning | str, category: type[Warning], filename: str
 _default_show_warning = warnings.showwarning
 
 
+def interruptible(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` with Ctrl-C raised as :class:`Interrupted`. Typer ends a ``KeyboardInterrupt`` as a
+    silent exit 130 (``typer.core._main``) before ``main`` could say anything; ``Interrupted`` is not a
+    ``KeyboardInterrupt`` and reaches ``main``, which prints its message."""
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except KeyboardInterrupt as e:
+            raise Interrupted("interrupted") from e
+
+    return wrapper
+
+
 def main() -> None:
     from msmem_core.util.malloc import keep_large_allocations
     from msmem_core.util.threads import configure_threads
@@ -365,11 +393,20 @@ def main() -> None:
     warnings.showwarning = _show_warning
     try:
         build_app()()
-    except UserError as e:
+    except (UserError, IncompleteError, OSError, MemoryError) as e:
         if debug:
             raise
-        typer.echo(f"msmem: error: {e}", err=True)
-        sys.exit(2)
+        if isinstance(e, MemoryError):
+            message = f"out of memory: {e}" if str(e) else "out of memory"
+        elif isinstance(e, OSError):
+            message = f"{e.strerror or type(e).__name__}: {e.filename}" if e.filename else f"{type(e).__name__}: {e}"
+        else:
+            message = str(e)
+        typer.echo(f"msmem: error: {message}", err=True)
+        sys.exit(1 if isinstance(e, IncompleteError) else 2)
+    except Interrupted as e:
+        typer.echo(f"msmem: {e}", err=True)
+        sys.exit(130)
     except KeyboardInterrupt:
         typer.echo("msmem: interrupted", err=True)
         sys.exit(130)
