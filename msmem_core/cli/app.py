@@ -99,10 +99,18 @@ def run(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
     report: Annotated[bool, typer.Option("--report/--no-report",
                                          help="Write report.html and PNGs to the run folder.")] = True,
+    overwrite: Annotated[bool, typer.Option("--overwrite",
+                                            help="Replace an existing non-empty --out folder whole.")] = False,
 ) -> None:
-    """Run one mapping episode and write config.json, steps.jsonl, metrics.json and the report to the run folder."""
+    """Run one mapping episode and write config.json, steps.jsonl, metrics.json and the report to the run folder.
+
+    The run is written into OUT.partial-XXXX beside --out and renamed to --out when complete; Ctrl-C
+    leaves the partial folder and names it (docs/reliability.md)."""
+    import shutil
+
     from msmem_core.config import load_config
-    from msmem_core.run.runner import build_episode, run_episode
+    from msmem_core.run.runfolder import commit_run_dir, stage_run_dir
+    from msmem_core.run.runner import build_episode, resolve_scene, run_episode
 
     if scene is not None and scene_seed is not None:
         raise UserError("give either --scene or --scene-seed, not both")
@@ -118,12 +126,20 @@ def run(
     if seed is not None:
         over["seed"] = seed
     cfg = load_config(method, config, over)
-    ep = build_episode(cfg, _pm())
-    out_dir = out or Path("runs") / f"{cfg.method}-{ep.scene.name}-seed{cfg.seed}"
+    staged = stage_run_dir(out, overwrite) if out is not None else None  # checked before any work
+    try:
+        spec = resolve_scene(cfg)
+        out_dir = out or Path("runs") / f"{cfg.method}-{spec.name}-seed{cfg.seed}"
+        staged = staged or stage_run_dir(out_dir, overwrite)
+        ep = build_episode(cfg, _pm(), scene=spec)
+    except BaseException:
+        if staged is not None:
+            shutil.rmtree(staged, ignore_errors=True)
+        raise
     typer.echo(f"msmem run: method {cfg.method}, scene {ep.scene.name} ({len(ep.scene.objects)} objects, "
                f"{ep.scene.hidden_objects} hidden), simulator {cfg.simulator.name}, {cfg.steps} steps -> {out_dir}")
     if quiet:
-        final = run_episode(ep, out_dir)
+        final = run_episode(ep, staged)
     else:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -136,16 +152,20 @@ def run(
                         f"occ IoU {rec['metrics']['occupancy_iou']:.3f}")
                 bar.update(task, advance=1, info=info)
 
-            final = run_episode(ep, out_dir, progress=tick)
+            final = run_episode(ep, staged, progress=tick)
+    report_file = None
+    if report:
+        from msmem_core.run.report import write_report
+
+        report_file = out_dir / write_report(staged)[0].name
+    commit_run_dir(staged, out_dir)
     keys = ("occupancy_iou", "observable_iou", "semantic_miou", "semantic_miou_bev", "position_change_m")
     typer.echo("final: " + ", ".join(f"{k} {final[k]:.3f}" for k in keys))
     paper = ("occupancy_miou", "semantic_miou_2d", "occupancy_ece", "semantic_ece")
     typer.echo("paper's metrics: " + ", ".join(f"{k} {final[k]:.3f}" for k in paper))
     typer.echo(f"actions: {final['actions']}  seconds/step: {final['seconds_per_step']:.2f}")
-    if report:
-        from msmem_core.run.report import write_report
-
-        typer.echo(f"report: {write_report(out_dir)[0]}")
+    if report_file is not None:
+        typer.echo(f"report: {report_file}")
 
 
 def bench(
@@ -190,7 +210,7 @@ def bench(
         summary = run_bench(method_list, suite_list, parse_range(scenes, len(suite_list)), out, over,
                             str(config) if config else None, executor, workers, threads, suite=suite,
                             retry_crashed=retry_crashed, rerun_mismatched=rerun_mismatched)
-    except KeyboardInterrupt as e:
+    except (KeyboardInterrupt, Interrupted) as e:
         raise Interrupted(f"interrupted; finished episodes are kept in {out / 'episodes'}: rerun the same "
                           "command to resume") from e
     typer.echo((out / "table.md").read_text())

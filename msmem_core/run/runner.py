@@ -20,7 +20,7 @@ import numpy as np
 from msmem_core.config import RunConfig
 from pydantic import ValidationError
 
-from msmem_core.errors import PluginError
+from msmem_core.errors import Interrupted, PluginError
 from msmem_core.interfaces import EffectModel, ObservationModel, Outcome, Simulator, Workspace
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.map.ig import IGService, shelf_interior_mask, shelf_wall_mask
@@ -272,6 +272,9 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
     try:
         belief = run_msas(ep.sim, ep.observe_model, ep.skills, ep.objective, ep.ig, ep.workspace, cfg.msas, cfg.steps,
                           ep.start_view, cfg.seed, on_step, on_start, tracer)
+    except KeyboardInterrupt as e:  # step N: the one underway (steps.jsonl holds steps 0 to N-1)
+        where = f"; partial run in {out_dir}" if out_dir is not None else ""
+        raise Interrupted(f"interrupted at step {len(ep.records)}{where}") from e
     finally:
         if out_dir is not None:
             steps_file.close()
