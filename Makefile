@@ -33,7 +33,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 demo: setup
-	$(VENV)/bin/msmem run --out runs/demo
+	$(VENV)/bin/msmem run --out runs/demo --overwrite
 
 # Two workers (pytest-xdist), a test file per worker: each file's module fixtures are built once.
 test: setup

@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 import warnings
@@ -15,7 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from msmem_core.errors import UserError
+from msmem_core.errors import IncompleteError, Interrupted, UserError
 
 if TYPE_CHECKING:
     from msmem_core.plugins.manager import MsmemPluginManager
@@ -98,10 +99,18 @@ def run(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
     report: Annotated[bool, typer.Option("--report/--no-report",
                                          help="Write report.html and PNGs to the run folder.")] = True,
+    overwrite: Annotated[bool, typer.Option("--overwrite",
+                                            help="Replace an existing non-empty --out folder whole.")] = False,
 ) -> None:
-    """Run one mapping episode and write config.json, steps.jsonl, metrics.json and the report to the run folder."""
+    """Run one mapping episode and write config.json, steps.jsonl, metrics.json and the report to the run folder.
+
+    The run is written into OUT.partial-XXXX beside --out and renamed to --out when complete; Ctrl-C
+    leaves the partial folder and names it (docs/reliability.md)."""
+    import shutil
+
     from msmem_core.config import load_config
-    from msmem_core.run.runner import build_episode, run_episode
+    from msmem_core.run.runfolder import commit_run_dir, stage_run_dir
+    from msmem_core.run.runner import build_episode, resolve_scene, run_episode
 
     if scene is not None and scene_seed is not None:
         raise UserError("give either --scene or --scene-seed, not both")
@@ -117,12 +126,20 @@ def run(
     if seed is not None:
         over["seed"] = seed
     cfg = load_config(method, config, over)
-    ep = build_episode(cfg, _pm())
-    out_dir = out or Path("runs") / f"{cfg.method}-{ep.scene.name}-seed{cfg.seed}"
+    staged = stage_run_dir(out, overwrite) if out is not None else None  # checked before any work
+    try:
+        spec = resolve_scene(cfg)
+        out_dir = out or Path("runs") / f"{cfg.method}-{spec.name}-seed{cfg.seed}"
+        staged = staged or stage_run_dir(out_dir, overwrite)
+        ep = build_episode(cfg, _pm(), scene=spec)
+    except BaseException:
+        if staged is not None:
+            shutil.rmtree(staged, ignore_errors=True)
+        raise
     typer.echo(f"msmem run: method {cfg.method}, scene {ep.scene.name} ({len(ep.scene.objects)} objects, "
                f"{ep.scene.hidden_objects} hidden), simulator {cfg.simulator.name}, {cfg.steps} steps -> {out_dir}")
     if quiet:
-        final = run_episode(ep, out_dir)
+        final = run_episode(ep, staged)
     else:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -135,16 +152,20 @@ def run(
                         f"occ IoU {rec['metrics']['occupancy_iou']:.3f}")
                 bar.update(task, advance=1, info=info)
 
-            final = run_episode(ep, out_dir, progress=tick)
+            final = run_episode(ep, staged, progress=tick)
+    report_file = None
+    if report:
+        from msmem_core.run.report import write_report
+
+        report_file = out_dir / write_report(staged)[0].name
+    commit_run_dir(staged, out_dir)
     keys = ("occupancy_iou", "observable_iou", "semantic_miou", "semantic_miou_bev", "position_change_m")
     typer.echo("final: " + ", ".join(f"{k} {final[k]:.3f}" for k in keys))
     paper = ("occupancy_miou", "semantic_miou_2d", "occupancy_ece", "semantic_ece")
     typer.echo("paper's metrics: " + ", ".join(f"{k} {final[k]:.3f}" for k in paper))
     typer.echo(f"actions: {final['actions']}  seconds/step: {final['seconds_per_step']:.2f}")
-    if report:
-        from msmem_core.run.report import write_report
-
-        typer.echo(f"report: {write_report(out_dir)[0]}")
+    if report_file is not None:
+        typer.echo(f"report: {report_file}")
 
 
 def bench(
@@ -159,8 +180,16 @@ def bench(
     threads: Annotated[int, typer.Option("--threads", help="Threads per episode (numba, torch).")] = 1,
     address: Annotated[str | None, typer.Option("--address", help="Ray cluster address (executor ray).")] = None,
     out: Annotated[Path, typer.Option("--out", help="Results folder (rerun to resume).")] = Path("runs/bench"),
+    retry_crashed: Annotated[bool, typer.Option("--retry-crashed/--no-retry-crashed",
+                                                help="Rerun episodes that crashed in an earlier run.")] = True,
+    rerun_mismatched: Annotated[bool, typer.Option(
+        "--rerun-mismatched", help="Rerun episodes whose files were made with another method, suite, scene, "
+                                   "steps, config or plugin versions (default: stop with an error).")] = False,
 ) -> None:
-    """Run methods x scenes episodes; writes episodes/*.json, table.md, results.json and curves.png."""
+    """Run methods x scenes episodes; writes episodes/*.json, table.md, results.json and curves.png.
+
+    Rerun into the same --out to resume: finished episodes are reused only if their fingerprint matches
+    (docs/reliability.md); crashed ones are retried."""
     import os
 
     from msmem_core.config import preset
@@ -177,8 +206,13 @@ def bench(
         over["simulator"] = {"name": sim, "params": {}}
     if address:
         os.environ["RAY_ADDRESS"] = address
-    summary = run_bench(method_list, suite_list, parse_range(scenes, len(suite_list)), out, over,
-                        str(config) if config else None, executor, workers, threads)
+    try:
+        summary = run_bench(method_list, suite_list, parse_range(scenes, len(suite_list)), out, over,
+                            str(config) if config else None, executor, workers, threads, suite=suite,
+                            retry_crashed=retry_crashed, rerun_mismatched=rerun_mismatched)
+    except (KeyboardInterrupt, Interrupted) as e:
+        raise Interrupted(f"interrupted; finished episodes are kept in {out / 'episodes'}: rerun the same "
+                          "command to resume") from e
     typer.echo((out / "table.md").read_text())
     if summary["errors"]:
         typer.echo(f"{len(summary['errors'])} episode(s) crashed; see {out / 'results.json'}", err=True)
@@ -284,11 +318,11 @@ def build_app(pm: MsmemPluginManager | None = None, builtin_only: bool = False) 
     app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help=HELP)
     app.callback()(_root)
     for name, fn in CORE_COMMANDS[None].items():
-        app.command(name)(fn)
+        app.command(name)(interruptible(fn))
     groups = {name: typer.Typer(no_args_is_help=True, help=text) for name, text in GROUPS.items()}
     for name, group in groups.items():
         for cmd, fn in CORE_COMMANDS.get(name, {}).items():
-            group.command(cmd)(fn)
+            group.command(cmd)(interruptible(fn))
         app.add_typer(group, name=name)
     if pm is None:
         try:
@@ -337,7 +371,7 @@ def add_plugin_commands(app: typer.Typer, groups: dict[str, typer.Typer], pm: Ms
         if isinstance(spec.action, typer.Typer):
             target.add_typer(spec.action, name=spec.name, short_help=spec.summary)
         else:
-            target.command(spec.name, short_help=spec.summary)(spec.action)
+            target.command(spec.name, short_help=spec.summary)(interruptible(spec.action))
         taken[spec.group].add(spec.name)
 
 
@@ -355,6 +389,20 @@ def _show_warning(message: Warning | str, category: type[Warning], filename: str
 _default_show_warning = warnings.showwarning
 
 
+def interruptible(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` with Ctrl-C raised as :class:`Interrupted`. Typer ends a ``KeyboardInterrupt`` as a
+    silent exit 130 (``typer.core._main``) before ``main`` could say anything; ``Interrupted`` is not a
+    ``KeyboardInterrupt`` and reaches ``main``, which prints its message."""
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except KeyboardInterrupt as e:
+            raise Interrupted("interrupted") from e
+
+    return wrapper
+
+
 def main() -> None:
     from msmem_core.util.malloc import keep_large_allocations
     from msmem_core.util.threads import configure_threads
@@ -365,11 +413,20 @@ def main() -> None:
     warnings.showwarning = _show_warning
     try:
         build_app()()
-    except UserError as e:
+    except (UserError, IncompleteError, OSError, MemoryError) as e:
         if debug:
             raise
-        typer.echo(f"msmem: error: {e}", err=True)
-        sys.exit(2)
+        if isinstance(e, MemoryError):
+            message = f"out of memory: {e}" if str(e) else "out of memory"
+        elif isinstance(e, OSError):
+            message = f"{e.strerror or type(e).__name__}: {e.filename}" if e.filename else f"{type(e).__name__}: {e}"
+        else:
+            message = str(e)
+        typer.echo(f"msmem: error: {message}", err=True)
+        sys.exit(1 if isinstance(e, IncompleteError) else 2)
+    except Interrupted as e:
+        typer.echo(f"msmem: {e}", err=True)
+        sys.exit(130)
     except KeyboardInterrupt:
         typer.echo("msmem: interrupted", err=True)
         sys.exit(130)

@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from msmem_core.map import raycast
 from msmem_core.map.belief import BeliefDelta, EvidentialMap, bernoulli_entropy
+from msmem_core.util.interrupt import deferred_interrupt
 from msmem_core.util.trace import span
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
@@ -208,7 +209,8 @@ class IGService:
             if f is field and step == ray_step and e == eps:
                 return ig, t_stop
         rays = self.coarse_rays(ray_step)
-        ig, t_stop = raycast.ig_views_stop(field.p, field.H, *rays.args(), self._g0, self._s, self._n, eps)
+        with deferred_interrupt():
+            ig, t_stop = raycast.ig_views_stop(field.p, field.H, *rays.args(), self._g0, self._s, self._n, eps)
         self._sweeps = [(field, ray_step, eps, ig, t_stop), *self._sweeps[:3]]
         return ig, t_stop
 
@@ -259,7 +261,7 @@ class IGService:
         box_lo = self._g0 + ijk.min(axis=0) * self._s - pad
         box_hi = self._g0 + (ijk.max(axis=0) + 1) * self._s + pad
         rays = self.coarse_rays(ray_step)
-        with numba.parallel_chunksize(4):  # views differ in work (rays skipped): schedule them dynamically
+        with deferred_interrupt(), numba.parallel_chunksize(4):  # views differ in work (rays skipped): schedule them dynamically
             change = raycast.ig_views_delta(
                 base.p, base.H, stop, slot, pu, hu, cand_ptr, cand_k, *rays.args(), t_stop, box_lo, box_hi,
                 self._g0, self._s, self._n, eps,
@@ -273,7 +275,7 @@ class IGService:
         """
         eps = 0.0 if exact else self.config.early_exit
         args = (*self.rays.args(), self._g0, self._s, self._n, eps)
-        with span("ig.sweep"):
+        with span("ig.sweep"), deferred_interrupt():
             if isinstance(fields, IGField):
                 return raycast.ig_views(fields.p, fields.H, *args)
             if len(fields) == 0:
@@ -290,7 +292,7 @@ class IGService:
 
     def after_view(self, field: IGField, view: int) -> IGField:
         """Expected field after observing ``view``: H = 0 on its rays up to each first p == 1 voxel."""
-        with span("ig.after_view"):
+        with span("ig.after_view"), deferred_interrupt():
             h = raycast.zero_entropy_along_view(
                 field.p, field.H, self.origins[view], self.dirs[view], self._g0, self._s, self._n, self.t_min,
                 self.t_max)

@@ -1,25 +1,42 @@
 """Benchmark: methods x scenes episodes on an executor, resumable, summarised as the paper's Tables I and II.
 
-One result file per (method, scene) is written atomically under ``OUT/episodes/``; rerunning skips
-finished episodes, and a crashed episode is recorded with its error while the rest go on.
+One result file per (method, scene) is written atomically under ``OUT/episodes/``, with the
+fingerprint of what produced it (:func:`fingerprint`). A rerun into the same folder (docs/reliability.md):
+
+- reuses a finished episode only if its fingerprint matches this run's; any mismatch stops the run
+  before anything starts (:class:`FingerprintMismatch`, one line naming the file and what differs),
+  unless ``rerun_mismatched`` (``--rerun-mismatched``), which reruns those episodes;
+- reruns crashed episodes (``retry_crashed``, the default), keeping the old errors in ``history``;
+- moves a corrupt or truncated episode file aside (``NAME.corrupt``), naming it, and reruns it.
+
+The config and the plugins it names are checked once, before any episode starts. A crashed episode
+(a worker that died included) is recorded with its error while the rest go on; the table is built
+from exactly the planned episodes, and a planned episode left without a result file raises
+:class:`~msmem_core.errors.IncompleteError` naming it.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
-from dataclasses import dataclass
+import sys
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import stats
 
-from msmem_core.errors import UserError
+from msmem_core.errors import IncompleteError, UserError
 from msmem_core.run.metrics import PAPER_COUNT_KEYS, PAPER_METRIC_KEYS, paper_metrics_from_counts, sum_paper_counts
+from msmem_core.util.jsonable import dumps, nan_from_null
 from msmem_core.world.scene import SceneSpec
+
+if TYPE_CHECKING:
+    from msmem_core.config import RunConfig
 
 SUITES = ("hard25", "tune10")
 """hard25: the benchmark (seeds 25000-25024); tune10: for tuning defaults (seeds 30000-30009), never hard25."""
@@ -82,6 +99,35 @@ def parse_range(text: str | None, n: int) -> list[int]:
     return sorted(set(out))
 
 
+FINGERPRINT_KEYS = ("method", "suite", "scene_sha256", "steps", "config_sha256", "plugins")
+"""What an episode file records about what produced it; resume reuses a file only if all are equal."""
+
+
+def sha256_text(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def fingerprint(cfg: RunConfig, suite: str, scene: SceneSpec, plugins: dict[str, str]) -> dict[str, Any]:
+    """What produced an episode: method, suite, scene (hash of its JSON), steps, the resolved config
+    (hash; ``threads`` left out, results do not depend on it) and the versions of the distributions
+    providing the components it uses."""
+    config = json.dumps(cfg.model_dump(mode="json", exclude={"threads"}), sort_keys=True)
+    return {"method": cfg.method, "suite": suite, "scene_sha256": sha256_text(scene.model_dump_json()),
+            "steps": cfg.steps, "config_sha256": sha256_text(config), "plugins": plugins}
+
+
+def fingerprint_diff(old: Any, new: dict[str, Any]) -> str:
+    """'' if ``old`` equals ``new``, else what differs, e.g. "steps 6 (now 2), suite hard25 (now tune10)"."""
+    if not isinstance(old, dict):
+        return "no fingerprint (written by an older msmem)"
+    return ", ".join(f"{k} {old.get(k)} (now {new[k]})" for k in FINGERPRINT_KEYS if old.get(k) != new[k])
+
+
+class FingerprintMismatch(UserError):
+    """Episode files in the results folder were made by another method, suite, scene, steps, config
+    or plugin versions than this run's."""
+
+
 @dataclass(frozen=True)
 class BenchTask:
     method: str
@@ -90,12 +136,42 @@ class BenchTask:
     overrides: dict[str, Any]
     config_file: str | None
     out_file: str
+    fingerprint: dict[str, Any] = field(default_factory=dict)
+    history: tuple[dict[str, Any], ...] = ()
+    """Earlier crashes of this episode (error, traceback), kept in its new record."""
 
 
 def write_atomic(path: Path, data: Any) -> None:
+    """Strict JSON (``null`` for NaN), written to a temporary file and renamed into place."""
+    write_text_atomic(path, dumps(data, indent=1))
+
+
+def write_text_atomic(path: Path, text: str) -> None:
     tmp = path.with_suffix(path.suffix + f".tmp{os.getpid()}")
-    tmp.write_text(json.dumps(data, indent=1))
+    tmp.write_text(text)
     os.replace(tmp, path)
+
+
+def read_episode(path: Path) -> dict[str, Any]:
+    """An episode file; ``ValueError`` if it is corrupt or truncated. Metrics written as ``null``
+    (non-finite) come back as NaN."""
+    try:
+        rec = json.loads(path.read_bytes())
+    except (UnicodeDecodeError, json.JSONDecodeError, IsADirectoryError) as e:
+        raise ValueError(f"not valid JSON ({type(e).__name__}: {e})") from e
+    if not isinstance(rec, dict) or rec.get("status") not in ("ok", "error") or (
+            rec["status"] == "ok" and not isinstance(rec.get("metrics"), dict)):
+        raise ValueError("not an episode record")
+    if rec["status"] == "ok":
+        rec["metrics"] = nan_from_null(rec["metrics"])
+        rec["curves"] = {k: [math.nan if v is None else v for v in c] for k, c in rec.get("curves", {}).items()}
+    return rec
+
+
+def crash_record(task: BenchTask, error: str, trace: str, seconds: float | None = None) -> dict[str, Any]:
+    return {"method": task.method, "scene_index": task.scene_index, "status": "error", "error": error,
+            "traceback": trace, "seconds": seconds, "fingerprint": task.fingerprint,
+            **({"history": list(task.history)} if task.history else {})}
 
 
 def run_bench_task(task: BenchTask) -> dict[str, Any]:
@@ -107,7 +183,9 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
     from msmem_core.run.runner import build_episode, run_episode
 
     t0 = time.perf_counter()
-    record: dict[str, Any] = {"method": task.method, "scene_index": task.scene_index}
+    record: dict[str, Any] = {"method": task.method, "scene_index": task.scene_index,
+                              "fingerprint": task.fingerprint, **({"history": list(task.history)} if task.history
+                                                                  else {})}
     try:
         cfg = load_config(task.method, task.config_file, task.overrides)
         ep = build_episode(cfg, get_plugin_manager(), scene=SceneSpec.model_validate_json(task.scene_json))
@@ -129,8 +207,7 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
     except Exception as e:  # isolate the crash: the table reports it, the other episodes go on
         import traceback
 
-        record.update({"status": "error", "error": f"{type(e).__name__}: {e}", "traceback": traceback.format_exc(),
-                       "seconds": time.perf_counter() - t0})
+        record = crash_record(task, f"{type(e).__name__}: {e}", traceback.format_exc(), time.perf_counter() - t0)
     write_atomic(Path(task.out_file), record)
     return record
 
@@ -268,41 +345,139 @@ def plot_curves(results: list[dict[str, Any]], methods: list[str], out: Path) ->
             if not curves:
                 continue
             n = min(len(c) for c in curves)
-            arr = np.array([c[:n] for c in curves])
+            arr = np.array([c[:n] for c in curves], dtype=float)
             x = np.arange(1, n + 1)
             ax.plot(x, arr.mean(0), label=m)
             ax.fill_between(x, arr.mean(0) - arr.std(0), arr.mean(0) + arr.std(0), alpha=0.15)
         ax.set_xlabel("step")
         ax.set_title(k)
-    axes[0].legend()
+    if axes[0].get_legend_handles_labels()[0]:  # no curve when every episode crashed
+        axes[0].legend()
     fig.tight_layout()
     fig.savefig(out, dpi=120)
     plt.close(fig)
 
 
+@dataclass
+class BenchPlan:
+    """The episodes of a bench run: every planned result file in order, and the tasks to run."""
+
+    files: list[Path]
+    tasks: list[BenchTask]
+    reused: int = 0
+    notes: list[str] = field(default_factory=list)
+    corrupt: list[Path] = field(default_factory=list)
+
+
+def plan_bench(methods: list[str], scenes: list[SceneSpec], scene_indices: list[int], out: Path,
+               overrides: dict[str, Any], config_file: str | None, threads: int, suite: str,
+               retry_crashed: bool = True, rerun_mismatched: bool = False) -> BenchPlan:
+    """Check the config and plugins of every method (``UserError`` before anything is written) and
+    decide, per planned episode, whether its file is reused or the episode (re)runs."""
+    from msmem_core.config import load_config
+    from msmem_core.plugins import get_plugin_manager
+    from msmem_core.run.runner import check_components
+
+    pm = get_plugin_manager()
+    plan = BenchPlan([], [])
+    mismatched: list[tuple[Path, str]] = []
+    for m in methods:
+        over = {**overrides, "threads": threads}
+        cfg = load_config(m, config_file, over)
+        versions = check_components(cfg, pm)
+        for i in scene_indices:
+            fp = fingerprint(cfg, suite, scenes[i], versions)
+            f = out / "episodes" / f"{m}__scene{i:02d}.json"
+            plan.files.append(f)
+            history: tuple[dict[str, Any], ...] = ()
+            if f.exists():
+                try:
+                    rec = read_episode(f)
+                except ValueError as e:
+                    plan.corrupt.append(f)
+                    plan.notes.append(f"{f} is corrupt ({e}): moved to {f.name}.corrupt, rerunning it")
+                else:
+                    if diff := fingerprint_diff(rec.get("fingerprint"), fp):
+                        if not rerun_mismatched:
+                            mismatched.append((f, diff))
+                            continue
+                        plan.notes.append(f"{f} was made with {diff}: rerunning it (--rerun-mismatched)")
+                    elif rec["status"] == "error" and retry_crashed:
+                        history = (*rec.get("history", []), {k: rec.get(k) for k in ("error", "traceback", "seconds")})
+                        plan.notes.append(f"{f} crashed last time ({rec.get('error')}): retrying it")
+                    else:
+                        plan.reused += 1
+                        continue
+            plan.tasks.append(BenchTask(m, i, scenes[i].model_dump_json(), over, config_file, str(f), fp, history))
+    if mismatched:
+        f, diff = mismatched[0]
+        more = f" (and {len(mismatched) - 1} more episode files)" if len(mismatched) > 1 else ""
+        raise FingerprintMismatch(f"{f} was made with {diff}{more}; rerun them with --rerun-mismatched, "
+                                  "or use another --out")
+    return plan
+
+
+def _move_aside(f: Path) -> None:
+    aside, n = f.with_name(f.name + ".corrupt"), 1
+    while aside.exists():
+        aside, n = f.with_name(f"{f.name}.corrupt{n}"), n + 1
+    os.replace(f, aside)
+
+
+def _prepare_folder(folder: Path) -> None:
+    """Create the episodes folder and check it is writable (``UserError`` naming it otherwise)."""
+    probe = folder / f".write-check-{os.getpid()}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise UserError(f"cannot write bench results to {folder}: {e.strerror or e}") from e
+
+
 def run_bench(methods: list[str], scenes: list[SceneSpec], scene_indices: list[int], out: Path,
               overrides: dict[str, Any], config_file: str | None, executor: str, workers: int,
-              threads: int, progress: bool = True) -> dict[str, Any]:
-    from msmem_core.run.executors import run_tasks
+              threads: int, progress: bool = True, suite: str = "custom", retry_crashed: bool = True,
+              rerun_mismatched: bool = False) -> dict[str, Any]:
+    """Plan (:func:`plan_bench`), run the episodes to run, and write ``table.md``, ``results.json`` and
+    ``curves.png`` from exactly the planned episodes. ``suite`` names the scenes in the fingerprints."""
+    from msmem_core.run.executors import TaskFailure, run_tasks
 
-    (out / "episodes").mkdir(parents=True, exist_ok=True)
-    tasks, done = [], []
-    for m in methods:
-        for i in scene_indices:
-            f = out / "episodes" / f"{m}__scene{i:02d}.json"
-            if f.exists():
-                done.append(json.loads(f.read_text()))
-                continue
-            tasks.append(BenchTask(m, i, scenes[i].model_dump_json(), {**overrides, "threads": threads}, config_file,
-                                   str(f)))
-    if tasks:
-        run_tasks(run_bench_task, tasks, executor=executor, workers=workers, threads=threads, progress=progress,
-                  description="episodes")
-    results = [json.loads(f.read_text()) for f in sorted((out / "episodes").glob("*.json"))
-               if f.name.split("__")[0] in methods]
+    if workers < 1 or threads < 1:
+        raise UserError(f"--workers and --threads must be >= 1 (got {workers} and {threads})")
+    plan = plan_bench(methods, scenes, scene_indices, out, overrides, config_file, threads, suite, retry_crashed,
+                      rerun_mismatched)
+    _prepare_folder(out / "episodes")
+    for f in plan.corrupt:
+        _move_aside(f)
+    for note in plan.notes:
+        print(f"msmem bench: {note}", file=sys.stderr)
+    lost: dict[Path, str] = {}
+
+    def on_result(index: int, res: Any) -> None:
+        if isinstance(res, TaskFailure):  # e.g. a dead worker, or the episode file could not be written
+            task = plan.tasks[index]
+            try:
+                write_atomic(Path(task.out_file), crash_record(task, res.error, res.traceback))
+            except OSError as e:
+                lost[Path(task.out_file)] = f"{res.error}; writing its crash record failed too: {e}"
+
+    if plan.tasks:
+        run_tasks(run_bench_task, plan.tasks, executor=executor, workers=workers, threads=threads,
+                  progress=progress, description="episodes", on_result=on_result)
+    results, missing = [], []
+    for f in plan.files:
+        try:
+            results.append(read_episode(f))
+        except (OSError, ValueError) as e:
+            missing.append(f"{f} ({lost.get(f) or e})")
+    if missing:
+        raise IncompleteError(f"{len(missing)} of {len(plan.files)} planned episodes have no result: "
+                              + "; ".join(missing))
     summary = summarise(results, methods)
-    summary["skipped_finished"] = len(done)
-    (out / "table.md").write_text(table_markdown(summary))
+    summary["skipped_finished"] = plan.reused
+    summary["ran"] = len(plan.tasks)
+    write_text_atomic(out / "table.md", table_markdown(summary))
     write_atomic(out / "results.json", {"summary": summary, "episodes": results})
     plot_curves(results, methods, out / "curves.png")
     return summary

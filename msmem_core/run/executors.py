@@ -13,15 +13,25 @@ Every worker applies ``configure_threads`` (the OpenMP settings, ``msmem_core.ut
 torch / numba / OpenMP to ``threads`` threads before it runs a task, so results do not depend on where a
 task ran (DESIGN.md, "Scale and speed"). A task that raises does not stop the others: it comes back as
 a :class:`TaskFailure` (or, with ``on_error="raise"``, the first one raises).
+
+Local workers are robust: a worker process that dies (killed by the out-of-memory killer, a segfault
+in native code) becomes a :class:`TaskFailure` of the task it ran, and the other tasks go on in a new
+pool (the tasks that were in flight with it are rerun one at a time, so the failure is pinned on the
+task that really killed its worker). Workers exit when the process that started them dies
+(``PR_SET_PDEATHSIG`` on Linux, elsewhere a thread watching the parent), so no orphan keeps its memory.
 """
 
 from __future__ import annotations
 
 import os
+import signal
+import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing import get_context
@@ -93,13 +103,45 @@ def _call(fn: Callable[[Any], Any], index: int, task: Any, threads: int | None) 
         return TaskFailure(index, task, f"{type(e).__name__}: {e}", traceback.format_exc())
 
 
-def _worker_init(threads: int | None) -> None:
+def exit_with_parent(parent: int) -> None:
+    """End this process when ``parent`` (the process that started it) dies: ``PR_SET_PDEATHSIG`` on
+    Linux, elsewhere a daemon thread that checks ``os.getppid()`` every second."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):
+            pass
+        else:
+            if os.getppid() != parent:  # the parent died before prctl took effect
+                os._exit(1)
+            return
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="msmem-parent-watch", daemon=True).start()
+
+
+def _worker_init(threads: int | None, parent: int | None = None) -> None:
     from msmem_core.util.malloc import keep_large_allocations
 
+    if parent is not None:
+        exit_with_parent(parent)
     configure_threads()  # before a task imports torch or numba (also inherited from the parent, if it called it)
     keep_large_allocations()
     if threads is not None:  # before any task imports numba/torch, so the env vars take effect too
         limit_threads(threads)
+
+
+def _dead_worker(index: int, task: Any, error: BaseException) -> TaskFailure:
+    return TaskFailure(index, task, f"worker process died while running this task (killed, e.g. by the "
+                       f"out-of-memory killer, or crashed in native code): {type(error).__name__}: {error}",
+                       "".join(traceback.format_exception(error)))
 
 
 def _iter_local(
@@ -109,16 +151,36 @@ def _iter_local(
         for i, t in enumerate(tasks):
             yield i, _call(fn, i, t, threads)
         return
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn"),
-                               initializer=_worker_init, initargs=(threads,))
-    try:
-        pending: dict[Future[Any], int] = {pool.submit(_call, fn, i, t, None): i for i, t in enumerate(tasks)}
-        while pending:
-            done, _ = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in done:
-                yield pending.pop(fut), fut.result()
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+    queue = list(range(len(tasks)))[::-1]  # popped from the end: task order
+    suspects: list[int] = []  # in flight when a worker died: rerun alone, to find which task killed it
+    while queue or suspects:
+        solo = bool(suspects)
+        source, limit = (suspects, 1) if solo else (queue, workers)
+        pool = ProcessPoolExecutor(max_workers=limit, mp_context=get_context("spawn"),
+                                   initializer=_worker_init, initargs=(threads, os.getpid()))
+        try:
+            pending: dict[Future[Any], int] = {}
+            broken = False
+            while (source or pending) and not broken:
+                while source and len(pending) < limit:  # a bounded number in flight: a dead worker costs few
+                    i = source.pop()
+                    pending[pool.submit(_call, fn, i, tasks[i], None)] = i
+                done, _ = wait(pending, return_when=FIRST_COMPLETED)
+                if any(isinstance(f.exception(), BrokenProcessPool) for f in done):
+                    broken = True
+                    done = set(wait(pending).done)  # the pool is broken: every future ends now
+                for fut in done:
+                    i = pending.pop(fut)
+                    err = fut.exception()
+                    if isinstance(err, BrokenProcessPool):
+                        if solo:
+                            yield i, _dead_worker(i, tasks[i], err)
+                        else:
+                            suspects.insert(0, i)
+                        continue
+                    yield i, fut.result()
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _iter_ray(

@@ -4,11 +4,19 @@ The runner writes ``belief_step{N}.npz`` (``save_snapshot``: float16 belief and 
 step) and ``gt_final.npz`` (``save_ground_truth``); ``load_run`` reads a run folder (``config.json``,
 ``scene.json``, ``steps.jsonl``, ``metrics.json``, the snapshots, ``belief_final.npz`` and
 ``gt_final.npz``) into a :class:`RunData` for the report (``msmem_core.run.report``) or your own analysis.
+
+``msmem run`` writes a run folder atomically: into a temporary sibling (``stage_run_dir``, named
+``OUT.partial-XXXX``) that ``commit_run_dir`` renames into place once the run and its report are
+complete, so ``--out`` holds one whole run or nothing new. An interrupted or failed run leaves the
+partial folder where the error message says.
 """
 
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -16,12 +24,42 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from msmem_core.errors import UserError
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.util.jsonable import nan_from_null
 from msmem_core.world.grid import GridSpec
 
 if TYPE_CHECKING:
     from msmem_core.config import RunConfig
     from msmem_core.world.scene import SceneSpec
+
+
+def stage_run_dir(out: Path, overwrite: bool = False) -> Path:
+    """Check ``out`` (not a file; empty or absent unless ``overwrite``; its parent writable) and create
+    the temporary sibling folder the run writes into. ``UserError`` naming the path otherwise."""
+    if out.exists() or out.is_symlink():
+        if not out.is_dir():
+            raise UserError(f"--out {out} is a file, not a folder")
+        if any(out.iterdir()) and not overwrite:
+            raise UserError(f"--out {out} exists and is not empty; give --overwrite to replace it whole, "
+                            "or another --out")
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        return Path(tempfile.mkdtemp(prefix=f"{out.name}.partial-", dir=out.parent))
+    except OSError as e:
+        raise UserError(f"cannot write the run folder {out}: {e.strerror or e}"
+                        + (f": {e.filename}" if e.filename else "")) from e
+
+
+def commit_run_dir(staged: Path, out: Path) -> None:
+    """Rename the complete ``staged`` folder to ``out``; an existing ``out`` is replaced whole."""
+    old = None
+    if out.exists():
+        old = out.with_name(f"{out.name}.old-{os.getpid()}")
+        os.replace(out, old)
+    os.replace(staged, out)
+    if old is not None:
+        shutil.rmtree(old)
 
 
 def save_snapshot(
@@ -81,7 +119,6 @@ class RunData:
 def load_run(run_dir: str | Path) -> RunData:
     """Read a run folder; a missing snapshot falls back to the final belief and ground truth."""
     from msmem_core.config import RunConfig
-    from msmem_core.errors import UserError
     from msmem_core.world.scene import SceneSpec
 
     d = Path(run_dir)
@@ -91,7 +128,10 @@ def load_run(run_dir: str | Path) -> RunData:
     config = RunConfig.model_validate_json((d / "config.json").read_text())
     scene = SceneSpec.from_json(d / "scene.json")
     steps = [json.loads(line) for line in (d / "steps.jsonl").read_text().splitlines() if line.strip()]
+    for rec in steps:  # metrics written as null (non-finite) back to NaN
+        rec["metrics"] = nan_from_null(rec.get("metrics", {}))
     metrics = json.loads((d / "metrics.json").read_text()) if (d / "metrics.json").is_file() else {}
+    metrics = nan_from_null(metrics) | ({"initial": nan_from_null(metrics["initial"])} if "initial" in metrics else {})
     snaps: list[Snapshot] = []
     for p in sorted(d.glob("belief_step*.npz"), key=lambda q: int(q.stem.removeprefix("belief_step"))):
         step = int(p.stem.removeprefix("belief_step"))

@@ -8,7 +8,6 @@ Run folder: ``config.json`` (resolved), ``scene.json``, ``steps.jsonl`` (one rec
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from collections import Counter
@@ -19,7 +18,9 @@ from typing import Any
 import numpy as np
 
 from msmem_core.config import RunConfig
-from msmem_core.errors import PluginError
+from pydantic import ValidationError
+
+from msmem_core.errors import Interrupted, PluginError
 from msmem_core.interfaces import EffectModel, ObservationModel, Outcome, Simulator, Workspace
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.map.ig import IGService, shelf_interior_mask, shelf_wall_mask
@@ -38,7 +39,7 @@ from msmem_core.run.metrics import (
     semantic_miou_bev,
 )
 from msmem_core.run.runfolder import save_ground_truth, save_snapshot
-from msmem_core.util.jsonable import jsonable
+from msmem_core.util.jsonable import dumps
 from msmem_core.util.threads import configure_threads
 from msmem_core.util.trace import Tracer
 from msmem_core.world.scene import SceneSpec
@@ -89,6 +90,46 @@ class Episode:
         """The viewpoint of the episode's first observation."""
         start = self.cfg.msas.start_view
         return start if start is not None else default_start_view(self.cfg.viewpoints)
+
+
+def component_refs(cfg: RunConfig, pm: MsmemPluginManager) -> list[tuple[str, ComponentRef, str]]:
+    """Every component the config names, as (kind, reference, where in the config), effect models included."""
+    refs = [("belief-model", cfg.observation_model, "observation_model"), ("simulator", cfg.simulator, "simulator")]
+    for i, ref in enumerate(cfg.skills):
+        refs.append(("skill", ref, f"skills.{i}"))
+        default = getattr(pm.skills().get(ref.name), "effect_model", None)
+        eref = ref.effect_model or (ComponentRef(name=default) if default else None)
+        if eref is not None:
+            refs.append(("belief-model", eref, f"skills.{i}.effect_model"))
+    refs += [("objective-term", t, f"objective.{i}") for i, t in enumerate(cfg.objective)]
+    return refs
+
+
+def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
+    """Check, without building anything, that every component the config names is registered and
+    accepts its params (``PluginError`` naming it otherwise); returns ``{distribution: version}`` of
+    the distributions that provide them."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    common = {"camera": cfg.camera, "gripper": cfg.gripper, "seed": cfg.seed}  # as build_episode gives them
+    dists = set()
+    for kind, ref, where in component_refs(cfg, pm):
+        spec = pm.spec(kind, ref.name)
+        fields = spec.config_model.model_fields
+        try:
+            spec.config_model.model_validate({k: v for k, v in common.items() if k in fields} | dict(ref.params))
+        except ValidationError as e:
+            err = e.errors()[0]
+            raise PluginError(f"{kind} {ref.name!r}: {where}.params.{'.'.join(map(str, err['loc']))}: "
+                              f"{err['msg']}") from e
+        dists.add(pm.registered(kind)[ref.name].distribution)
+    out = {}
+    for d in sorted(dists):
+        try:
+            out[d] = version(d)
+        except (PackageNotFoundError, ValueError):
+            out[d] = "unknown"
+    return out
 
 
 def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | None = None) -> Episode:
@@ -224,7 +265,7 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
         t_last = now
         ep.records.append(rec)
         if out_dir is not None:
-            steps_file.write(json.dumps(jsonable(rec)) + "\n")
+            steps_file.write(dumps(rec) + "\n")
             steps_file.flush()
             if step in snapshot_steps:
                 save_snapshot(out_dir / f"belief_step{step}.npz", b, metrics.gt_occ, metrics.gt_cls)
@@ -234,6 +275,9 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
     try:
         belief = run_msas(ep.sim, ep.observe_model, ep.skills, ep.objective, ep.ig, ep.workspace, cfg.msas, cfg.steps,
                           ep.start_view, cfg.seed, on_step, on_start, tracer)
+    except KeyboardInterrupt as e:  # step N: the one underway (steps.jsonl holds steps 0 to N-1)
+        where = f"; partial run in {out_dir}" if out_dir is not None else ""
+        raise Interrupted(f"interrupted at step {len(ep.records)}{where}") from e
     finally:
         if out_dir is not None:
             steps_file.close()
@@ -249,7 +293,7 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
         "paper_counts": metrics.paper_counts,  # of the final belief; msmem bench sums them over scenes
     })
     if out_dir is not None:
-        (out_dir / "metrics.json").write_text(json.dumps(jsonable(final), indent=2))
+        (out_dir / "metrics.json").write_text(dumps(final, indent=2))
         belief.save(out_dir / "belief_final.npz")
         save_ground_truth(out_dir / "gt_final.npz", grid, metrics.gt_occ, metrics.gt_cls)
     return final
