@@ -7,6 +7,7 @@ trained on seeds 100000 and up, below 900000; see ``plugins/msmem_cnabu/weights/
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -315,3 +316,64 @@ def test_bad_network_settings_name_the_field(tmp_path):
     with pytest.raises(UserError, match="field class_head"):
         train_map(HELDOUT, tmp_path / "m.pt", MapTrainConfig(batches=1, batch=1), arch={"class_head": "rainbow"},
                   log=lambda _: None)
+
+
+# ------------------------------------------------------------------------------ post-manipulation sequences
+POSTMANIP = dict(kind="observe", min_views=0, max_views=0, observe_samples=4, manipulate_after=2)
+"""``msmem datagen cnabu --kind observe --samples 4 --min-views 0 --max-views 0 --manipulate-after 2``
+(about 8 s per scene on a loaded machine)."""
+
+
+@pytest.fixture(scope="module")
+def postmanip_dir(tmp_path_factory):
+    from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset
+
+    out = tmp_path_factory.mktemp("postmanip")
+    summary = generate_dataset(out, [900000], CNABUDataConfig(**POSTMANIP), progress=False, log=lambda _: None)
+    summary.raise_if_failed()
+    return out
+
+
+@pytest.fixture(scope="module")
+def postmanip(postmanip_dir):
+    return load_shard(postmanip_dir / "scene_900000.npz")
+
+
+def test_a_post_manipulation_shard_records_a_real_push_that_moved_objects(postmanip):
+    info = postmanip.info["manipulation"]
+    assert info["executed"] and info["skill"] == "push" and info["candidates"] > 0
+    k = info["sample"]
+    assert k == 2  # after the two views recorded before it
+    kinds = [postmanip.manipulation(i) is not None for i in range(len(postmanip))]
+    assert kinds == [False, False, True, False, False]  # 4 views, the push after the second
+    assert type(postmanip.manipulation(k)).__name__ == "PushAction"
+    assert not postmanip.act_vox[k].any()  # a manipulation has no ray masks
+    assert info["displacement_m"] and max(info["displacement_m"].values()) > 0.02
+    before, after = postmanip.gt_occ[k - 1], postmanip.gt_occ[k]
+    assert (before != after).sum() == info["voxels_changed"] > 100  # the world really changed
+    assert np.array_equal(postmanip.gt_occ_before[postmanip.state[k]], before)
+    for i in range(k, len(postmanip)):  # every later view sees the moved world
+        assert np.array_equal(postmanip.gt_occ[i], after)
+
+
+def test_post_manipulation_shards_are_deterministic_and_resumable(postmanip_dir, postmanip):
+    from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset, make_shard
+
+    again = make_shard(900000, CNABUDataConfig(**POSTMANIP)).arrays()
+    for key, value in postmanip.arrays().items():
+        if key != "info":
+            assert np.array_equal(np.asarray(again[key]), np.asarray(value)), key
+    info = json.loads(str(again["info"]))
+    assert info.pop("sim_execute_s") > 0  # the one field that is a measurement, not data
+    assert info == {k: v for k, v in postmanip.info.items() if k != "sim_execute_s"}
+    summary = generate_dataset(postmanip_dir, [900000], CNABUDataConfig(**POSTMANIP), progress=False,
+                               log=lambda _: None)
+    assert not summary.generated  # the finished shard is kept
+
+
+def test_manipulate_after_must_leave_views_to_follow():
+    from msmem_cnabu.datagen import CNABUDataConfig
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="views must follow"):
+        CNABUDataConfig(**{**POSTMANIP, "manipulate_after": 4})
