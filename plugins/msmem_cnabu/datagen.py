@@ -222,13 +222,13 @@ class CNABUShard:
 _NAMES = [f.name for f in fields(CNABUShard)]
 
 
-def _push_action() -> type:
+def _push_action() -> Any:
     from msmem_push.skill import PushAction
 
     return PushAction
 
 
-_ACTIONS: dict[str, Callable[[], type]] = {"push": _push_action}
+_ACTIONS: dict[str, Callable[[], Any]] = {"push": _push_action}
 """The action model of each skill ``manipulate_after`` can execute."""
 
 
@@ -483,9 +483,9 @@ def _manipulate(skill_name: str, belief: Any, sim: Any, scene: Any, grid: GridSp
     gt = _ground_truth(sim, scene, grid)
     shape = tuple(grid.shape)
     empty = np.zeros(shape, bool)
+    record = json.dumps({"manipulation": skill_name, "action": a.model_dump(mode="json")})
     rec.sample(s, observe_channels(empty, empty, np.zeros((belief.num_classes, *shape), bool)),
-               np.zeros(0, np.float32), gt, json.dumps({"manipulation": skill_name, "action": a.model_dump(mode="json")}),
-               bool(out.success), len(out.info.get("moved", [])))
+               np.zeros(0, np.float32), gt, record, bool(out.success), len(out.info.get("moved", [])))
     moved = {str(i): round(d, 4) for i, d in out.displacement_m.items() if d > MOVED_M}
     info |= {"executed": True, "sample": len(rec.samples) - 1, "success": bool(out.success),
              "displacement_m": moved, "fell_or_left": list(out.fell_or_left),
