@@ -7,6 +7,7 @@ trained on seeds 100000 and up, below 900000; see ``plugins/msmem_cnabu/weights/
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -315,3 +316,201 @@ def test_bad_network_settings_name_the_field(tmp_path):
     with pytest.raises(UserError, match="field class_head"):
         train_map(HELDOUT, tmp_path / "m.pt", MapTrainConfig(batches=1, batch=1), arch={"class_head": "rainbow"},
                   log=lambda _: None)
+
+
+# ------------------------------------------------------------------------------ post-manipulation sequences
+POSTMANIP = dict(kind="observe", min_views=0, max_views=0, observe_samples=4, manipulate_after=2)
+"""``msmem datagen cnabu --kind observe --samples 4 --min-views 0 --max-views 0 --manipulate-after 2``
+(about 8 s per scene on a loaded machine)."""
+
+
+@pytest.fixture(scope="module")
+def postmanip_dir(tmp_path_factory):
+    from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset
+
+    out = tmp_path_factory.mktemp("postmanip")
+    summary = generate_dataset(out, [900000], CNABUDataConfig(**POSTMANIP), progress=False, log=lambda _: None)
+    summary.raise_if_failed()
+    return out
+
+
+@pytest.fixture(scope="module")
+def postmanip(postmanip_dir):
+    return load_shard(postmanip_dir / "scene_900000.npz")
+
+
+def test_a_post_manipulation_shard_records_a_real_push_that_moved_objects(postmanip):
+    info = postmanip.info["manipulation"]
+    assert info["executed"]
+    assert info["skill"] == "push"
+    assert info["candidates"] > 0
+    k = info["sample"]
+    assert k == 2  # after the two views recorded before it
+    kinds = [postmanip.manipulation(i) is not None for i in range(len(postmanip))]
+    assert kinds == [False, False, True, False, False]  # 4 views, the push after the second
+    assert type(postmanip.manipulation(k)).__name__ == "PushAction"
+    assert not postmanip.act_vox[k].any()  # a manipulation has no ray masks
+    assert info["displacement_m"]
+    assert max(info["displacement_m"].values()) > 0.02
+    before, after = postmanip.gt_occ[k - 1], postmanip.gt_occ[k]
+    assert (before != after).sum() == info["voxels_changed"] > 100  # the world really changed
+    assert np.array_equal(postmanip.gt_occ_before[postmanip.state[k]], before)
+    for i in range(k, len(postmanip)):  # every later view sees the moved world
+        assert np.array_equal(postmanip.gt_occ[i], after)
+
+
+def test_post_manipulation_shards_are_deterministic_and_resumable(postmanip_dir, postmanip):
+    from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset, make_shard
+
+    again = make_shard(900000, CNABUDataConfig(**POSTMANIP)).arrays()
+    for key, value in postmanip.arrays().items():
+        if key != "info":
+            assert np.array_equal(np.asarray(again[key]), np.asarray(value)), key
+    info = json.loads(str(again["info"]))
+    assert info.pop("sim_execute_s") > 0  # the one field that is a measurement, not data
+    assert info == {k: v for k, v in postmanip.info.items() if k != "sim_execute_s"}
+    summary = generate_dataset(postmanip_dir, [900000], CNABUDataConfig(**POSTMANIP), progress=False,
+                               log=lambda _: None)
+    assert not summary.generated  # the finished shard is kept
+
+
+def test_manipulate_after_must_leave_views_to_follow():
+    from msmem_cnabu.datagen import CNABUDataConfig
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="views must follow"):
+        CNABUDataConfig(**{**POSTMANIP, "manipulate_after": 4})
+
+
+def test_the_sequence_exposes_the_push_and_the_ground_truth_of_every_view(postmanip):
+    seq = sequence(postmanip)
+    assert len(seq) == 5  # the start view and the 4 recorded views
+    assert list(seq.manipulations) == [3]  # after the start view and two recorded views
+    assert seq.manipulations[3] == postmanip.manipulation(2)
+    assert not seq.mirror_ok  # the push is not mirrored
+    k = 2
+    for t in range(3):
+        assert np.array_equal(seq.step_gt_occ[t], postmanip.gt_occ[k - 1])  # before the push
+    for t in (3, 4):
+        assert np.array_equal(seq.step_gt_occ[t], postmanip.gt_occ[k])  # after it
+        assert np.array_equal(seq.step_gt_cls[t], postmanip.gt_cls[k])
+    assert np.array_equal(seq.gt_occ, postmanip.gt_occ[-1])
+    assert np.array_equal(seq.free[3], postmanip.masks(3)[0])  # the first view after the push
+
+
+def test_a_rollout_applies_the_push_and_scores_later_views_against_the_moved_world(postmanip):
+    """The loss after each view is against the ground truth after that view: after the push the
+    post-push truth (with the pre-push truth the losses would differ), and at the push the network's
+    belief becomes the push-analytic prediction of its own output, bounded, without gradient."""
+    from msmem_cnabu.datagen import predicted_belief
+    from msmem_cnabu.mapnet import map_loss
+    from msmem_cnabu.maptrain import Effects, _batch, bounded_map
+    from msmem_push.effect import AnalyticPushEffect
+
+    torch.manual_seed(0)
+    seq = sequence(postmanip)
+    net = MapNet(MapNetConfig(grid_shape=seq.step_gt_occ.shape[1:], width=8, embed=2, context=2, hidden=8,
+                              levels=2)).eval()
+    torch.nn.init.normal_(net.head[-1].weight, std=0.05)  # not the plain analytic update
+    batch = _batch([seq], [False])
+    valid = torch.from_numpy(seq.valid)
+    trace: list = []
+    effects = Effects()
+    assert effects.record() == {"push": {"name": "push-analytic", "params": {}}}
+    losses = rollout_loss(net, batch, valid, effects=effects, trace=trace)
+    assert len(losses) == len(trace) == 5
+    cfg = net.config
+    pre = postmanip.gt_occ[1], postmanip.gt_cls[1]
+    post = postmanip.gt_occ[2], postmanip.gt_cls[2]
+
+    def loss(t, gt):
+        o, c = trace[t]
+        lo, lc = map_loss(o, c, torch.from_numpy(gt[0])[None], torch.from_numpy(gt[1].astype(np.int64))[None], valid,
+                          cfg.s_max, cfg.t_max)
+        return lo.item(), lc.item()
+
+    for t in range(5):
+        want = loss(t, pre if t < 3 else post)
+        assert np.allclose(losses[t], want, rtol=1e-5), t
+    for t in (3, 4):
+        assert not np.allclose(losses[t][0], loss(t, pre)[0], rtol=1e-3)  # the planted bug would show
+    # the input of view 3 is the bounded push-analytic prediction of the output after view 2
+    from msmem_cnabu.mapnet import bounded_evidence
+
+    a, b, e, _, _ = bounded_evidence(*trace[2], cfg.s_max, cfg.t_max)
+    before = EvidentialMap(postmanip.grid, a[0].numpy(), b[0].numpy(), e[0].numpy())
+    pushed = bounded_map(predicted_belief(AnalyticPushEffect(), before, seq.manipulations[3], seq.workspace),
+                         cfg.s_max, cfg.t_max)
+    assert (pushed.expected_occupancy() != before.expected_occupancy()).sum() > 100  # the push moved evidence
+    t_ = torch.from_numpy
+    with torch.no_grad():
+        o3, _ = net(t_(pushed.alpha)[None], t_(pushed.beta)[None], t_(pushed.eta)[None], t_(seq.free[3])[None],
+                    t_(seq.occ[3])[None], t_(seq.seen[3])[None], valid)
+    assert torch.allclose(o3, trace[3][0], atol=1e-4)
+    for x in (pushed.alpha, pushed.beta):
+        assert x.min() >= 1 - 1e-4
+    assert (pushed.alpha + pushed.beta).max() <= cfg.s_max * (1 + 1e-5)
+    assert pushed.eta.sum(0).max() <= cfg.t_max * (1 + 1e-5)
+
+
+def test_bounded_map_keeps_the_networks_form_and_bounds_anything_else():
+    from msmem_cnabu.maptrain import bounded_map
+
+    grid = _grid()
+    a, b, e, _, _ = bounded_evidence(torch.randn(1, *grid.shape) * 5, torch.randn(1, 15, *grid.shape) * 5, 100.0, 300.0)
+    own = EvidentialMap(grid, a[0].numpy(), b[0].numpy(), e[0].numpy())
+    again = bounded_map(own, 100.0, 300.0)
+    for x, y in ((own.alpha, again.alpha), (own.beta, again.beta), (own.eta, again.eta)):
+        np.testing.assert_allclose(x, y, rtol=1e-4)
+    rng = np.random.default_rng(0)
+    wild = EvidentialMap(grid, rng.uniform(1, 1e4, grid.shape).astype(np.float32),
+                         rng.uniform(1, 3, grid.shape).astype(np.float32),
+                         rng.uniform(1, 1e4, (15, *grid.shape)).astype(np.float32))
+    out = bounded_map(wild, 100.0, 300.0)
+    assert out.alpha.min() >= 1 - 1e-4
+    assert out.beta.min() >= 1 - 1e-4
+    assert out.eta.min() >= 1 - 1e-4
+    assert (out.alpha + out.beta).max() <= 100 * (1 + 1e-5)
+    assert out.eta.sum(0).max() <= 300 * (1 + 1e-5)
+    assert np.array_equal(np.argmax(out.eta, 0), np.argmax(wild.eta, 0))
+
+
+def test_the_twins_go_through_the_same_push_with_the_same_effect_model(postmanip_dir, postmanip):
+    """Every model's belief before the view after the push is the push-analytic prediction of its belief
+    after the view before it; the learned model and both twins are scored."""
+    from msmem_cnabu.datagen import predicted_belief
+    from msmem_cnabu.mapeval import twins
+    from msmem_push.effect import AnalyticPushEffect
+
+    calls: dict[str, list] = {}
+
+    def recording(name, fn):
+        def step(b, f, o, s):
+            out = fn(b, f, o, s)
+            calls.setdefault(name, []).append((b, out))
+            return out
+        return step
+
+    models = {m: recording(m, fn) for m, fn in twins().items()}
+    net = MapNet(MapNetConfig(grid_shape=tuple(postmanip.grid.shape), width=8, embed=2, context=2, hidden=8,
+                              levels=2)).eval()
+    r = evaluate_rollouts(net, postmanip_dir, models=models, log=lambda _: None)
+    assert set(r["final"]) == {"cnabu-map", "analytic-observation", "column-fill"}
+    assert r["post_manipulation_scenes"] == 1
+    assert r["effect_models"] == {"push": {"name": "push-analytic", "params": {}}}
+    action, ws = postmanip.manipulation(2), postmanip.workspace
+    for m in models:
+        (_, out2), (in3, _) = calls[m][2], calls[m][3]
+        want = predicted_belief(AnalyticPushEffect(), out2, action, ws)
+        assert np.array_equal(in3.alpha, want.alpha), m
+        assert np.array_equal(in3.eta, want.eta), m
+        assert not np.array_equal(in3.alpha, out2.alpha), m  # the push changed the belief
+
+
+def test_train_map_on_post_manipulation_data_records_the_effect_model(postmanip_dir, tmp_path):
+    side = train_map(postmanip_dir, tmp_path / "m.pt", MapTrainConfig(batches=1, batch=1),
+                     MapNetConfig(grid_shape=(78, 40, 30), width=8, embed=2, context=2, hidden=8, levels=2),
+                     log=lambda _: None)
+    assert side["post_manipulation_scenes"] == 1
+    assert side["effect_models"] == {"push": {"name": "push-analytic", "params": {}}}
+    assert side["train"]["effect_models"] == side["effect_models"]

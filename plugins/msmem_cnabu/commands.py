@@ -39,6 +39,9 @@ def datagen_cnabu(
     samples: Annotated[int, typer.Option("--samples", help="observe: views recorded per scene.")] = 6,
     min_views: Annotated[int, typer.Option("--min-views", help="Random views before the first sample (min).")] = 1,
     max_views: Annotated[int, typer.Option("--max-views", help="Random views before the first sample (max).")] = 6,
+    manipulate_after: Annotated[int | None, typer.Option(
+        "--manipulate-after", help="observe: after this many recorded views, execute one push for real "
+                                   "(post-manipulation sequences).")] = None,
     sim: SimOpt = "pybullet",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
@@ -54,6 +57,7 @@ def datagen_cnabu(
     try:
         cfg = CNABUDataConfig(kind=kind, voxel_m=voxel, states=states, actions_per_state=actions,
                               observe_samples=samples, min_views=min_views, max_views=max_views,
+                              manipulate_after=manipulate_after,
                               simulator=ComponentRef(name=sim))
     except ValidationError as e:
         err = e.errors()[0]

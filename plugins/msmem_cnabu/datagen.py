@@ -8,7 +8,15 @@ episode's start view and ``min_views``-``max_views`` random views into an analyt
 
 - ``observe``: ``observe_samples`` times: a random unvisited view is rendered; its ray masks
   (free / occupied / class seen, ``AnalyticObservationModel.masks``) are the action; the belief
-  before and the ground truth (objects do not move) are recorded; the view is integrated.
+  before and the ground truth (objects do not move) are recorded; the view is integrated. With
+  ``manipulate_after`` K (post-manipulation sequences), after K recorded views the push skill
+  proposes candidates from the belief (UPS) and one, drawn at random, is executed for real
+  (``execute_measured``): a sample whose action JSON is ``{"manipulation": "push", "action": ...}``,
+  whose masks are empty and whose ground truth is the world after the push
+  (``CNABUShard.manipulation``); the belief becomes the ``push-analytic`` prediction, as in an
+  episode, and the remaining views (and their ground truth) see the moved world.
+  ``info["manipulation"]`` records the candidates, the displacements and the voxels the push changed
+  in the ground truth, or that the skill proposed nothing (then the scene is a plain sequence).
 - ``push`` / ``grasp``: ``states`` belief states; in each the skill proposes candidates from the
   belief (UPS sampler of ``msmem_push``; UGS of ``msmem_grasp`` with its FE-UMGF buffer, FE-vMF
   weights if installed, else its geometric fallback) and ``actions_per_state`` of them, drawn at
@@ -44,7 +52,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,7 +63,7 @@ from msmem_core.errors import UserError
 from msmem_core.interfaces import Workspace
 from msmem_core.learn import datagen
 from msmem_core.learn.datagen import DatagenSummary, ShardTask, read_manifest, read_npz, save_npz, shard_path
-from msmem_core.msas import execute_measured
+from msmem_core.msas import MOVED_M, execute_measured
 from msmem_core.plugins import ComponentRef
 from msmem_core.world.grid import GridSpec
 
@@ -77,6 +85,16 @@ class CNABUDataConfig(BaseModel):
     """Random views integrated (after the start view) before the first sample."""
     observe_samples: int = Field(6, ge=1)
     """observe: consecutive views recorded per scene."""
+    manipulate_after: int | None = Field(None, ge=0)
+    """observe: after this many recorded views (0: right after the views before the first sample), the
+    ``manipulate_skill`` proposes candidates from the analytic belief and one of them, drawn at random,
+    is executed for real; it is recorded as a manipulation sample (its action's JSON under
+    ``"manipulation"``, empty masks, the ground truth after it) and the belief becomes the effect model's
+    prediction (``push-analytic``), as in an episode. The remaining views see the moved world. When the
+    skill proposes nothing the scene stays a plain observe sequence (``info["manipulation"]`` says so).
+    None: no manipulation."""
+    manipulate_skill: Literal["push"] = "push"
+    """observe: the skill ``manipulate_after`` executes."""
     states: int = Field(2, ge=1)
     """push/grasp: belief states per scene."""
     actions_per_state: int = Field(4, ge=1)
@@ -96,6 +114,9 @@ class CNABUDataConfig(BaseModel):
     def _views(self) -> CNABUDataConfig:
         if self.min_views > self.max_views:
             raise ValueError(f"min_views {self.min_views} > max_views {self.max_views}")
+        if self.manipulate_after is not None and self.manipulate_after >= self.observe_samples:
+            raise ValueError(f"manipulate_after {self.manipulate_after} must be below observe_samples "
+                             f"{self.observe_samples} (views must follow the manipulation)")
         lo, hi = self.views_between
         if lo < 0 or hi < lo:
             raise ValueError("views_between must be (lo, hi) with 0 <= lo <= hi")
@@ -173,6 +194,16 @@ class CNABUShard:
             return GraspAction.model_validate(data)
         return data
 
+    def manipulation(self, i: int) -> Any | None:
+        """observe: sample ``i``'s manipulation (the skill's pydantic action) if it is one
+        (``CNABUDataConfig.manipulate_after``), else None (a view)."""
+        if self.kind != "observe":
+            return None
+        data = json.loads(str(self.actions[i]))
+        if "manipulation" not in data:
+            return None
+        return _ACTIONS[data["manipulation"]]().model_validate(data["action"])
+
     def masks(self, i: int) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_]]:
         """observe: (free, occ, seen [C, ...]) of sample ``i``."""
         v = self.act_vox[i]
@@ -189,6 +220,23 @@ class CNABUShard:
 
 
 _NAMES = [f.name for f in fields(CNABUShard)]
+
+
+def _push_action() -> Any:
+    from msmem_push.skill import PushAction
+
+    return PushAction
+
+
+_ACTIONS: dict[str, Callable[[], Any]] = {"push": _push_action}
+"""The action model of each skill ``manipulate_after`` can execute."""
+
+
+def predicted_belief(effect: Any, belief: Any, action: Any, workspace: Workspace) -> Any:
+    """The belief after a manipulation: the effect model's prediction for ``action``, applied as the
+    MSAS loop applies it (``msmem_core.msas.run_msas`` with its default ``disturbed_evidence_cap``
+    None: the prediction as is)."""
+    return effect.predict(belief, [action], workspace).belief(0)
 
 
 def _fail(path: Path, what: str, kind: str = "KIND") -> ShardError:
@@ -336,6 +384,7 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
     rec = _Recorder()
     visited: list[int] = []
     t_sim = 0.0
+    manip: dict[str, Any] | None = None
 
     def fresh_views(k: int) -> list[int]:
         free = np.setdiff1d(np.arange(len(viewpoints)), visited)
@@ -355,7 +404,12 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
             gt = _ground_truth(sim, scene, grid)
             from msmem_cnabu.features import observe_channels
 
-            for v in fresh_views(cfg.observe_samples):
+            for k, v in enumerate(fresh_views(cfg.observe_samples)):
+                if k == cfg.manipulate_after:
+                    t0 = time.perf_counter()
+                    belief, gt, manip = _manipulate(cfg.manipulate_skill, belief, sim, scene, grid, rng, rec,
+                                                    visited[-1], observe_channels)
+                    t_sim += time.perf_counter() - t0
                 obs = sim.observe(viewpoints[v])
                 free, occ, seen = model.masks(belief, obs)
                 s = rec.state(belief, gt, visited[-1])
@@ -402,7 +456,41 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
         sim.close()
     info = {"scene": scene.name, "objects": len(scene.objects), "views": visited, "sim_execute_s": t_sim,
             "config": cfg.model_dump(mode="json")}
+    if manip is not None:
+        info["manipulation"] = manip
     return rec.shard(cfg.kind, seed, grid, interior, info)
+
+
+def _manipulate(skill_name: str, belief: Any, sim: Any, scene: Any, grid: GridSpec, rng: np.random.Generator,
+                rec: _Recorder, view: int, observe_channels: Callable[..., NDArray[np.bool_]]
+                ) -> tuple[Any, tuple[NDArray[np.bool_], NDArray[np.int16]], dict[str, Any]]:
+    """observe with ``manipulate_after``: one candidate of the skill, drawn at random, executed for real and
+    recorded as a manipulation sample; returns (the belief the effect model predicts, the ground truth
+    after, what ``info["manipulation"]`` records). Without candidates: the belief and ground truth as
+    they were."""
+    from msmem_push.effect import AnalyticPushEffect
+
+    skill = _skill(skill_name, 0)
+    workspace = Workspace(grid, scene.shelf)
+    gt0 = _ground_truth(sim, scene, grid)
+    actions = list(skill.sample(belief, scene.shelf, rng))
+    info: dict[str, Any] = {"skill": skill_name, "effect_model": "push-analytic", "candidates": len(actions)}
+    if not actions:
+        return belief, gt0, {**info, "executed": False, "reason": f"the {skill_name} skill proposed no candidate"}
+    a = actions[int(rng.integers(len(actions)))]
+    s = rec.state(belief, gt0, view)
+    out = execute_measured(skill, sim, a, SimpleNamespace(shelf=scene.shelf))
+    gt = _ground_truth(sim, scene, grid)
+    shape = tuple(grid.shape)
+    empty = np.zeros(shape, bool)
+    record = json.dumps({"manipulation": skill_name, "action": a.model_dump(mode="json")})
+    rec.sample(s, observe_channels(empty, empty, np.zeros((belief.num_classes, *shape), bool)),
+               np.zeros(0, np.float32), gt, record, bool(out.success), len(out.info.get("moved", [])))
+    moved = {str(i): round(d, 4) for i, d in out.displacement_m.items() if d > MOVED_M}
+    info |= {"executed": True, "sample": len(rec.samples) - 1, "success": bool(out.success),
+             "displacement_m": moved, "fell_or_left": list(out.fell_or_left),
+             "voxels_changed": int((gt[0] != gt0[0]).sum())}
+    return predicted_belief(AnalyticPushEffect(), belief, a, workspace), gt, info
 
 
 def _skill(kind: str, seed: int) -> Any:

@@ -1,7 +1,10 @@
 """Held-out rollouts of observation models on recorded view sequences (``cnabu-map`` against its twins).
 
 Every model integrates a scene's start view and recorded views in order, each on its own output,
-from the empty map, exactly as in a view-only episode with those views. The final beliefs are scored
+from the empty map, exactly as in a view-only episode with those views. In a post-manipulation
+sequence every model's belief goes through the same recorded push with the same effect model
+(``maptrain.Effects``; ``cnabu-map``'s bounded like its output, ``maptrain.manipulate``) before the
+view that follows it, and a belief is scored against the ground truth after its last view. The final beliefs are scored
 against the ground truth on every voxel but the shelf's boards, pooled over scenes:
 
 - the paper's ``occupancy_miou`` (mean of free and occupied IoU, occupied iff p > 0.5) and
@@ -23,7 +26,7 @@ from numpy.typing import NDArray
 
 from msmem_cnabu.datagen import list_shards, load_shard
 from msmem_cnabu.evaluation import Calibration
-from msmem_cnabu.maptrain import sequence
+from msmem_cnabu.maptrain import Effects, manipulate, sequence
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.run.metrics import class_iou_counts, miou_from_counts, occupancy_iou_counts, top_view_classes
 
@@ -81,13 +84,16 @@ def twins() -> dict[str, Any]:
 
 def evaluate_rollouts(net: Any, data_dir: str | Path, models: dict[str, Callable[..., EvidentialMap]] | None = None,
                       max_scenes: int | None = None, log: Callable[[str], None] = print,
-                      steps: Sequence[int] | None = None) -> dict[str, Any]:
+                      steps: Sequence[int] | None = None, effects: Effects | None = None) -> dict[str, Any]:
     """Roll out ``cnabu-map`` (``net``: a ``MapNet``, or None to score only ``models``) and the twins on
-    every held-out sequence; the scores of the final beliefs (and of the beliefs after ``steps`` views)."""
+    every held-out sequence; the scores of the final beliefs (and of the beliefs after ``steps`` views).
+    ``effects``: the effect models of post-manipulation sequences (default ``Effects()``, built when a
+    sequence needs it)."""
     import torch
 
     paths = list_shards(data_dir, "observe")[:max_scenes]
     fns: dict[str, Callable[..., EvidentialMap]] = dict(models or twins())
+    after: dict[str, Callable[[Effects, EvidentialMap, Any, Any], EvidentialMap]] = {m: Effects.apply for m in fns}
     if net is not None:
         def learned(b: EvidentialMap, f: Any, o: Any, s: Any) -> EvidentialMap:
             t = torch.from_numpy
@@ -96,26 +102,41 @@ def evaluate_rollouts(net: Any, data_dir: str | Path, models: dict[str, Callable
                                     t(s)[None], valid_t)
             return EvidentialMap(b.grid, a[0].numpy(), bb[0].numpy(), e[0].numpy())
 
+        def learned_after(effects: Effects, b: EvidentialMap, action: Any, workspace: Any) -> EvidentialMap:
+            a, bb, e = (torch.from_numpy(x.copy())[None] for x in (b.alpha, b.beta, b.eta))
+            manipulate(net, a, bb, e, 0, action, workspace, effects)
+            return EvidentialMap(b.grid, a[0].numpy(), bb[0].numpy(), e[0].numpy())
+
         fns = {"cnabu-map": learned, **fns}
+        after["cnabu-map"] = learned_after
     scores: dict[str, dict[int, MapScore]] = {m: {} for m in fns}
-    views = 0
+    views = manipulated = 0
     for path in paths:
         shard = load_shard(path)
         seq = sequence(shard)
         valid_t = torch.from_numpy(seq.valid)
         n = len(seq)
         marks = sorted({n, *(k for k in (steps or ()) if 0 < k <= n)})
+        if seq.manipulations:
+            effects = effects or Effects()
+            manipulated += 1
+        fx = effects
         for m, fn in fns.items():
             b = EvidentialMap.empty(shard.grid, seq.seen.shape[1])
             for t in range(n):
+                if t in seq.manipulations and fx is not None:
+                    b = after[m](fx, b, seq.manipulations[t], seq.workspace)
                 b = fn(b, seq.free[t], seq.occ[t], seq.seen[t])
                 if t + 1 in marks:
-                    scores[m].setdefault(t + 1, MapScore(b.num_classes)).add(b, seq.gt_occ, seq.gt_cls, seq.valid)
+                    scores[m].setdefault(t + 1, MapScore(b.num_classes)).add(b, seq.step_gt_occ[t], seq.step_gt_cls[t],
+                                                                              seq.valid)
         views += n
-    out = {"scenes": len(paths), "views": views,
-           "final": {m: s[max(s)].result() for m, s in scores.items()},
-           "by_views": {m: {k: {kk: v for kk, v in sc.result().items() if kk != "per_scene"} for k, sc in s.items()}
-                        for m, s in scores.items()}}
+    out: dict[str, Any] = {
+        "scenes": len(paths), "views": views, "post_manipulation_scenes": manipulated,
+        "effect_models": effects.record() if effects is not None else None,
+        "final": {m: s[max(s)].result() for m, s in scores.items()},
+        "by_views": {m: {k: {kk: v for kk, v in sc.result().items() if kk != "per_scene"} for k, sc in s.items()}
+                     for m, s in scores.items()}}
     for m, r in out["final"].items():
         log(f"{m:22s} occ mIoU {r['occupancy_miou']:.3f} sem mIoU 2-D {r['semantic_miou_2d']:.3f} "
             f"occ NLL {r['occ_nll']:.4f} sem NLL {r['sem_nll']:.4f} occ ECE {r['occ_ece']:.3f} "

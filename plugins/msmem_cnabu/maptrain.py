@@ -12,7 +12,16 @@ next belief from its own previous output (detached: truncated backpropagation of
 (``mapnet.map_loss``: NLL of the bounded expected occupancy and class probabilities over every voxel
 but the boards) is taken against the ground truth after every step, and the optimiser steps once per
 view. Scenes are mirrored left-right at random (the shelf, the grid and the viewpoint sets are
-symmetric). The weights are written (atomically, with their sidecar) after every epoch and at the
+symmetric), except post-manipulation sequences (their actions are not mirrored).
+
+Post-manipulation sequences (``msmem datagen cnabu --kind observe ... --manipulate-after K``): after
+K recorded views a real push was executed. At that step of a rollout the belief (the network's
+current output, or a twin's belief in ``mapeval``) becomes the effect model's prediction for the
+recorded push (``Effects``, ``MapTrainConfig.effect_models``, default ``push-analytic``; applied as the
+MSAS loop applies it), for the network bounded like its own output (``bounded_map``) and without
+gradient; the next views' masks then show what really happened, and the loss after each view is
+taken against the ground truth after that view (``Sequence_.step_gt_occ``: after the push for every
+later view). The weights are written (atomically, with their sidecar) after every epoch and at the
 end, so a stopped run leaves its last checkpoint.
 """
 
@@ -29,10 +38,13 @@ import torch
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard
+from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard, predicted_belief
 from msmem_cnabu.features import wall_mask
 from msmem_cnabu.mapnet import MapNet, MapNetConfig, bounded_evidence, map_loss, parameter_count
 from msmem_core.errors import UserError, validation_summary
+from msmem_core.interfaces import Workspace
+from msmem_core.map.belief import EvidentialMap
+from msmem_core.plugins import ComponentRef
 from msmem_core.util.artifacts import atomic_save, write_sidecar
 
 WEIGHTS_FORMAT = "msmem-cnabu-map"
@@ -63,23 +75,40 @@ class MapTrainConfig(BaseModel):
     batches: int | None = Field(None, ge=1)
     """Train exactly this many batches instead of ``epochs``, listing the data folder again at every pass
     (so a folder still being generated contributes its new shards; the sidecar lists the seeds used)."""
+    effect_models: dict[str, ComponentRef] = Field(
+        default_factory=lambda: {"push": ComponentRef(name="push-analytic")})
+    """The effect model (a belief-model plugin with the role ``effect``) applied at a post-manipulation
+    sequence's manipulation steps, by skill."""
 
 
 @dataclass
 class Sequence_:
-    """One scene's views as ray masks, with its ground truth."""
+    """One scene's views as ray masks, with its ground truth, and the manipulations executed between
+    them (post-manipulation sequences)."""
 
     seed: int
     free: NDArray[np.bool_]  # [T, X, Y, Z]
     occ: NDArray[np.bool_]  # [T, X, Y, Z]
     seen: NDArray[np.bool_]  # [T, C, X, Y, Z]
-    gt_occ: NDArray[np.bool_]
-    gt_cls: NDArray[np.int8]
+    step_gt_occ: NDArray[np.bool_]  # [T, X, Y, Z]: the ground truth when view t was taken
+    step_gt_cls: NDArray[np.int8]  # [T, X, Y, Z]
     valid: NDArray[np.bool_]
     mirror_ok: bool
+    workspace: Workspace
+    manipulations: dict[int, Any]
+    """View index t -> the action executed (for real) right before view t."""
 
     def __len__(self) -> int:
         return len(self.free)
+
+    @property
+    def gt_occ(self) -> NDArray[np.bool_]:
+        """The ground truth at the end (what a final belief is scored against)."""
+        return self.step_gt_occ[-1]
+
+    @property
+    def gt_cls(self) -> NDArray[np.int8]:
+        return self.step_gt_cls[-1]
 
 
 def start_masks(shard: CNABUShard, w: float = 10.0) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_]]:
@@ -100,29 +129,88 @@ def start_masks(shard: CNABUShard, w: float = 10.0) -> tuple[NDArray[np.bool_], 
 
 
 def sequence(shard: CNABUShard) -> Sequence_:
-    """The start view and the recorded views of an observe shard, in order."""
+    """The start view and the recorded views of an observe shard, in order, each with the ground truth
+    when it was taken, and the manipulations between them."""
     from msmem_cnabu.training import mirror_ok
 
     f0, o0, s0 = start_masks(shard)
+    s = int(shard.state[0])
     frees, occs, seens = [f0], [o0], [s0]
+    gts, gcs = [shard.gt_occ_before[s]], [shard.gt_cls_before[s]]
+    manipulations: dict[int, Any] = {}
     for i in range(len(shard)):
-        f, o, s = shard.masks(i)
+        action = shard.manipulation(i)
+        if action is not None:  # before the next view
+            manipulations[len(frees)] = action
+            continue
+        f, o, seen = shard.masks(i)
         frees.append(f)
         occs.append(o)
-        seens.append(s)
-    return Sequence_(shard.seed, np.stack(frees), np.stack(occs), np.stack(seens), shard.gt_occ[0], shard.gt_cls[0],
-                     ~wall_mask(shard.grid, shard.interior), mirror_ok(shard))
+        seens.append(seen)
+        gts.append(shard.gt_occ[i])
+        gcs.append(shard.gt_cls[i])
+    return Sequence_(shard.seed, np.stack(frees), np.stack(occs), np.stack(seens), np.stack(gts), np.stack(gcs),
+                     ~wall_mask(shard.grid, shard.interior), mirror_ok(shard) and not manipulations,
+                     shard.workspace, manipulations)
 
 
-def _batch(seqs: Sequence[Sequence_], flips: Sequence[bool]) -> dict[str, torch.Tensor]:
+class Effects:
+    """The effect models a rollout applies at manipulation steps, by skill (``MapTrainConfig.effect_models``),
+    built by the plugin manager."""
+
+    def __init__(self, refs: dict[str, ComponentRef] | None = None) -> None:
+        from msmem_core.plugins.manager import get_plugin_manager
+
+        self.refs = dict(refs if refs is not None else MapTrainConfig().effect_models)
+        pm = get_plugin_manager()
+        self.models = {k: pm.build("belief-model", r, where=f"effect_models.{k}") for k, r in self.refs.items()}
+
+    def record(self) -> dict[str, Any]:
+        """What the sidecar records."""
+        return {k: r.model_dump() for k, r in self.refs.items()}
+
+    def apply(self, belief: EvidentialMap, action: Any, workspace: Workspace) -> EvidentialMap:
+        """The belief after ``action``: its skill's effect model's prediction (``datagen.predicted_belief``)."""
+        if action.kind not in self.models:
+            raise UserError(f"a post-manipulation sequence holds a {action.kind!r} action and no effect model is "
+                            f"set for it (effect_models has {sorted(self.models)})")
+        return predicted_belief(self.models[action.kind], belief, action, workspace)
+
+
+def bounded_map(belief: EvidentialMap, s_max: float, t_max: float) -> EvidentialMap:
+    """``belief`` in the form of the network's output (``mapnet.bounded_evidence``): expected occupancy
+    clipped to ``[1/s_max, 1 - 1/s_max]``, class probabilities mixed with the uniform just enough that
+    every ``q_c >= 1/t_max``, and the least committal evidence with those means. A voxel already in that
+    form (the network's own output, and what the analytic push effect makes of it: moved, reset to the
+    prior or shrunk towards it) keeps its evidence up to rounding."""
+    a, b, e = (x.astype(np.float64) for x in (belief.alpha, belief.beta, belief.eta))
+    c = e.shape[0]
+    p = np.clip(a / (a + b), 1.0 / s_max, 1.0 - 1.0 / s_max)
+    q = e / e.sum(0, keepdims=True)
+    qmin = q.min(0)
+    lam = np.clip((1.0 / t_max - qmin) / np.maximum(1.0 / c - qmin, 1e-12), 0.0, 1.0)
+    q = (1 - lam) * q + lam / c
+    big_s = 1.0 / np.minimum(p, 1 - p)
+    big_t = 1.0 / q.min(0)
+    return EvidentialMap(belief.grid, (p * big_s).astype(np.float32), ((1 - p) * big_s).astype(np.float32),
+                         (q * big_t).astype(np.float32))
+
+
+def _batch(seqs: Sequence[Sequence_], flips: Sequence[bool]) -> dict[str, Any]:
+    """Tensors [B, T, ...] of the sequences (``flips``: mirrored in x), and per sequence its manipulations
+    (``manipulations``) and ``workspace``."""
+    if any(f and s.manipulations for s, f in zip(seqs, flips, strict=True)):
+        raise ValueError("post-manipulation sequences are not mirrored (their actions are not)")
+
     def st(get: Callable[[Sequence_], NDArray[Any]], axis: int) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(np.stack(
             [np.flip(get(s), axis) if f else get(s) for s, f in zip(seqs, flips, strict=True)])))
 
-    # flip x: axis 1 of [T, X, Y, Z], 2 of [T, C, X, Y, Z], 0 of [X, Y, Z]
+    # flip x: axis 1 of [T, X, Y, Z], 2 of [T, C, X, Y, Z]
     return {
         "free": st(lambda s: s.free, 1), "occ": st(lambda s: s.occ, 1), "seen": st(lambda s: s.seen, 2),
-        "gt_occ": st(lambda s: s.gt_occ, 0), "gt_cls": st(lambda s: s.gt_cls.astype(np.int64), 0),
+        "gt_occ": st(lambda s: s.step_gt_occ, 1), "gt_cls": st(lambda s: s.step_gt_cls.astype(np.int64), 1),
+        "manipulations": [s.manipulations for s in seqs], "workspace": [s.workspace for s in seqs],
     }
 
 
@@ -130,20 +218,40 @@ def empty_evidence(bsz: int, shape: Sequence[int], num_classes: int) -> tuple[to
     return (torch.ones(bsz, *shape), torch.ones(bsz, *shape), torch.ones(bsz, num_classes, *shape))
 
 
-def rollout_loss(net: MapNet, batch: dict[str, torch.Tensor], valid: torch.Tensor, sem_weight: float = 1.0,
-                 opt: torch.optim.Optimizer | None = None, sched: Any = None, occupied_class_weight: float = 1.0
+def manipulate(net: MapNet, a: torch.Tensor, b: torch.Tensor, e: torch.Tensor, i: int, action: Any,
+               workspace: Workspace, effects: Effects) -> None:
+    """Batch element ``i`` of the network's belief (a, b, e) becomes the effect model's prediction for
+    ``action``, bounded like the network's output (``bounded_map``); in place, without gradient."""
+    with torch.no_grad():
+        belief = EvidentialMap(workspace.grid, a[i].numpy(), b[i].numpy(), e[i].numpy())
+        out = bounded_map(effects.apply(belief, action, workspace), net.config.s_max, net.config.t_max)
+        a[i], b[i], e[i] = torch.from_numpy(out.alpha), torch.from_numpy(out.beta), torch.from_numpy(out.eta)
+
+
+def rollout_loss(net: MapNet, batch: dict[str, Any], valid: torch.Tensor, sem_weight: float = 1.0,
+                 opt: torch.optim.Optimizer | None = None, sched: Any = None, occupied_class_weight: float = 1.0,
+                 effects: Effects | None = None, trace: list[tuple[torch.Tensor, torch.Tensor]] | None = None
                  ) -> list[tuple[float, float]]:
     """Unroll the batch's views from the empty map, each step on the network's own (detached) output;
-    with ``opt``, one optimiser step (and ``sched`` step) per view. Per view: (occupancy NLL, class NLL)."""
+    with ``opt``, one optimiser step (and ``sched`` step) per view. Before a view that follows a
+    manipulation, the belief becomes ``effects``' prediction for it (``manipulate``; default effect
+    models if None). Per view: (occupancy NLL, class NLL) against the ground truth after that view;
+    ``trace`` collects each view's (detached) output logits."""
     cfg = net.config
     bsz = batch["free"].shape[0]
     a, b, e = empty_evidence(bsz, batch["free"].shape[2:], cfg.num_classes)
     out = []
     for t in range(batch["free"].shape[1]):
+        for i, manips in enumerate(batch.get("manipulations", [{}] * bsz)):
+            if t in manips:
+                effects = effects or Effects()
+                manipulate(net, a, b, e, i, manips[t], batch["workspace"][i], effects)
         with torch.set_grad_enabled(opt is not None):
             o, c = net(a, b, e, batch["free"][:, t], batch["occ"][:, t], batch["seen"][:, t], valid)
-            lo, lc = map_loss(o, c, batch["gt_occ"], batch["gt_cls"], valid, cfg.s_max, cfg.t_max,
+            lo, lc = map_loss(o, c, batch["gt_occ"][:, t], batch["gt_cls"][:, t], valid, cfg.s_max, cfg.t_max,
                               occupied_class_weight, occupied_only=cfg.class_head == "object")
+        if trace is not None:
+            trace.append((o.detach(), c.detach()))
         if opt is not None:
             opt.zero_grad(set_to_none=True)
             (lo + sem_weight * lc).backward()
@@ -211,8 +319,10 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     total_batches = cfg.batches or max(1, int(cfg.epochs * len(paths) / cfg.batch))
     used: set[Path] = set()
+    manipulated: set[int] = set()
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=total_batches * len(first) + 1,
                                                 pct_start=0.05)
+    effects = Effects(cfg.effect_models)
     history: list[dict[str, Any]] = []
     t0 = time.perf_counter()
     done = 0
@@ -229,9 +339,10 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
             used.update(paths[i] for i in order[s:s + cfg.batch])
             seqs = [sequence(load_shard(paths[i])) for i in order[s:s + cfg.batch]]
             flips = [bool(rng.integers(2)) and q.mirror_ok for q in seqs]
+            manipulated.update(q.seed for q in seqs if q.manipulations)
             batch = _batch(seqs, flips)
             net.train()
-            losses = rollout_loss(net, batch, valid, cfg.sem_weight, opt, sched, cfg.occupied_class_weight)
+            losses = rollout_loss(net, batch, valid, cfg.sem_weight, opt, sched, cfg.occupied_class_weight, effects)
             done += 1
             rec = {"batch": done, "seconds": time.perf_counter() - t0, "occ_nll_last": losses[-1][0],
                    "sem_nll_last": losses[-1][1], "occ_nll_mean": float(np.mean([x[0] for x in losses])),
@@ -242,7 +353,7 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
                     f"(last view {rec['occ_nll_last']:.4f}) sem {rec['sem_nll_mean']:.4f} "
                     f"(last {rec['sem_nll_last']:.4f})")
             if done % 25 == 0:
-                rec = _record(cfg, sorted(used), history, time.perf_counter() - t0, "checkpoint")
+                rec = _record(cfg, sorted(used), history, time.perf_counter() - t0, "checkpoint", manipulated)
                 write_weights(net.eval(), out, rec)
             if cfg.time_limit_s is not None and time.perf_counter() - t0 > cfg.time_limit_s:
                 stopped = "time limit"
@@ -251,19 +362,21 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
                 break
         if stopped == "time limit":
             break
-    record = _record(cfg, sorted(used), history, time.perf_counter() - t0, stopped)
+    record = _record(cfg, sorted(used), history, time.perf_counter() - t0, stopped, manipulated)
     net.eval()
     if heldout_dir is not None:
         from msmem_cnabu.mapeval import evaluate_rollouts
 
-        record["heldout"] = evaluate_rollouts(net, heldout_dir, log=log)
+        record["heldout"] = evaluate_rollouts(net, heldout_dir, log=log, effects=effects)
     return write_weights(net, out, record)
 
 
 def _record(cfg: MapTrainConfig, paths: Sequence[Path], history: list[dict[str, Any]], seconds: float,
-            stopped: str) -> dict[str, Any]:
+            stopped: str, manipulated: set[int]) -> dict[str, Any]:
     seeds = sorted(int(p.stem.split("_")[1]) for p in paths)
-    return {"train": cfg.model_dump(), "data": {"scenes": len(paths), "seed_min": seeds[0], "seed_max": seeds[-1],
+    return {"effect_models": {k: r.model_dump() for k, r in cfg.effect_models.items()},
+            "post_manipulation_scenes": len(manipulated),
+            "train": cfg.model_dump(), "data": {"scenes": len(paths), "seed_min": seeds[0], "seed_max": seeds[-1],
                                                 "folder": str(Path(paths[0]).parent)},
             "seeds": seeds, "seconds": seconds, "stopped": stopped, "history": history[-2000:]}
 

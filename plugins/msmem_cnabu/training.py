@@ -128,7 +128,8 @@ def stream_batches(paths: Sequence[Path], batch_size: int, rng: np.random.Genera
     order = list(rng.permutation(len(paths))) if rng is not None else list(range(len(paths)))
     for c in range(0, len(order), buffer_shards):
         shards = [load_shard(paths[i]) for i in order[c:c + buffer_shards]]
-        items = [(si, i) for si, sh in enumerate(shards) for i in range(len(sh))]
+        items = [(si, i) for si, sh in enumerate(shards) for i in range(len(sh))
+                 if sh.manipulation(i) is None]  # a post-manipulation shard's push is no view to learn
         if rng is not None:
             items = [items[j] for j in rng.permutation(len(items))]
         for b in range(0, len(items), batch_size):
