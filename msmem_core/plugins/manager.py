@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import pluggy
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, Field, ValidationError
 
 from msmem_core.errors import PluginError
 from msmem_core.plugins.hookspec import PROJECT, MsmemSpecs
@@ -24,6 +24,7 @@ from msmem_core.plugins.types import (
     SkillSpec,
     _Spec,
 )
+from msmem_core.util.validation import MODEL_CONFIG, loose_scalar, non_finite
 
 ENTRY_POINT_GROUP = "msmem"
 BUILTIN_DISTRIBUTION = "msmem"
@@ -43,7 +44,7 @@ class PluginLoadWarning(UserWarning):
 class ComponentRef(BaseModel):
     """A reference to a plugin component in config: its registered name and its parameters."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = MODEL_CONFIG
 
     name: str = Field(min_length=1)
     """Registered name of the component (``msmem plugins`` lists them)."""
@@ -296,13 +297,20 @@ class MsmemPluginManager(pluggy.PluginManager):
         spec = self.spec(kind, ref.name)
         fields = spec.config_model.model_fields
         params = {k: v for k, v in extra.items() if k in fields} | dict(ref.params)
+        at = f"{where}.params" if where else "params"
+        # whatever the plugin's config model allows: no NaN or infinity, no bool for an int or an int for a bool
+        for loc in non_finite(ref.params):
+            raise PluginError(f"{kind} {ref.name!r}: {at}.{loc}: Input should be a finite number")
+        for name, value in ref.params.items():
+            why = loose_scalar(value, fields[name].annotation) if name in fields else None
+            if why:
+                raise PluginError(f"{kind} {ref.name!r}: {at}.{name}: {why}")
         try:
             config = spec.config_model.model_validate(params)
         except ValidationError as e:
             err = e.errors()[0]
             loc = ".".join(str(x) for x in err["loc"])
-            at = f"{where}.params.{loc}" if where else f"params.{loc}"
-            raise PluginError(f"{kind} {ref.name!r}: {at}: {err['msg']}") from e
+            raise PluginError(f"{kind} {ref.name!r}: {at}.{loc}: {err['msg']}") from e
         return spec.factory(config)
 
     def listing(self) -> list[dict[str, Any]]:
