@@ -103,6 +103,9 @@ def test_duplicate_yaml_key_is_refused_naming_key_and_line(tmp_path):
     with pytest.raises(UserError, match=r"c\.yaml is not valid YAML: duplicate key 'steps' at line 4 \(first at line "
                                         r"1\)"):
         load_config(config_file=_yaml(tmp_path, text))
+    with pytest.raises(UserError) as e:
+        load_config(config_file=_yaml(tmp_path, text))
+    assert "\n" not in str(e.value)
     nested = "msas:\n  tau_chi: 0.4\n  tau_chi: 0.6\n"
     with pytest.raises(UserError, match=r"duplicate key 'tau_chi' at line 3"):
         load_config(config_file=_yaml(tmp_path, nested))

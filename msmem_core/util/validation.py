@@ -73,6 +73,10 @@ def loose_scalar(value: Any, annotation: Any) -> str | None:
 
 
 # ------------------------------------------------------------------------------ YAML and JSON
+class DuplicateKeyError(yaml.YAMLError):
+    """A YAML mapping holds the same key twice; the message (one line) names the key and both lines."""
+
+
 class UniqueKeyLoader(yaml.SafeLoader):
     """``yaml.SafeLoader`` that refuses a mapping with the same key twice (PyYAML keeps the last)."""
 
@@ -82,9 +86,7 @@ class UniqueKeyLoader(yaml.SafeLoader):
             key = self.construct_object(key_node, deep=deep)
             line = key_node.start_mark.line + 1
             if key in seen:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key {key!r} at line {line} (first at line {seen[key]})",
-                    key_node.start_mark)
+                raise DuplicateKeyError(f"duplicate key {key!r} at line {line} (first at line {seen[key]})")
             seen[key] = line
         return super().construct_mapping(node, deep=deep)
 
