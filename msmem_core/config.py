@@ -6,17 +6,18 @@ are rejected with the dotted path of the field at fault.
 
 from __future__ import annotations
 
-import json
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, Field, ValidationError, model_validator
 
 from msmem_core.errors import UserError
+from msmem_core.map.belief import check_grid_memory
 from msmem_core.map.ig import IGConfig
 from msmem_core.plugins.manager import ComponentRef
+from msmem_core.util.validation import MODEL_CONFIG, Int, error_lines, load_json, load_yaml
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
@@ -28,20 +29,20 @@ DEFAULT_METHOD = "ours"
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = MODEL_CONFIG
 
 
 class GridConfig(_Strict):
     voxel_m: float = Field(0.01, gt=0.001, le=0.05)
     """Voxel edge; the grid covers the shelf interior plus ``margin_voxels`` on every side."""
-    margin_voxels: int = Field(1, ge=1, le=10)
+    margin_voxels: Int = Field(1, ge=1, le=10)
     """Voxels of margin around the shelf interior (they hold the boards the cameras see)."""
 
 
 class SceneConfig(_Strict):
     file: Path | None = None
     """A SceneSpec JSON file; when unset the generator builds one from ``seed``."""
-    seed: int = 0
+    seed: Int = 0
     """Seed of the generated scene (ignored when ``file`` is set)."""
     generator: SceneGenConfig = SceneGenConfig()
 
@@ -66,13 +67,13 @@ FALL_TILT_DEG = 30.0
 class MSASConfig(_Strict):
     tau_chi: float = Field(0.5, gt=0.0, le=1.0)
     """Semantic vacuity below which a voxel's class counts as known (paper: tau_chi)."""
-    manipulation_window: tuple[int, int] = (3, 38)
+    manipulation_window: tuple[Int, Int] = (3, 38)
     """Steps (inclusive) in which manipulation may be chosen ([MEM]: 3 to 38; the push-only preset: 3 to 25)."""
     conf_cutoff: float = Field(0.85, gt=0.0, lt=1.0)
     """A BEV cell counts as mapped when its max class probability (MEM's p^1.8 scaling) exceeds this."""
     mapped_fraction: float = Field(0.99, gt=0.0, le=1.0)
     """Manipulation is disabled once this fraction of BEV cells is mapped ([MEM])."""
-    start_view: int | None = None
+    start_view: Int | None = Field(None, ge=0)
     """Viewpoint of the initial observation (None: the centre of the middle grid)."""
     disturbed_evidence_cap: float | None = Field(None, ge=2.0)
     """After a manipulation, occupancy and class evidence in the voxels its prediction changed (dilated
@@ -80,7 +81,7 @@ class MSASConfig(_Strict):
     which side of 0.5 each expected occupancy is on, so later views can overturn a wrong prediction and
     IG looks there again; 2 resets them to the prior (unknown). None: the belief is the prediction as
     is, the paper's rule (the push-only preset sets 4, measured in docs/results.md)."""
-    disturbed_margin_voxels: int = Field(2, ge=0, le=10)
+    disturbed_margin_voxels: Int = Field(2, ge=0, le=10)
     """Dilation (voxels) of the changed mask for ``disturbed_evidence_cap`` and ``failed_manipulation_cap``."""
     failed_manipulation_cap: float = Field(4.0, ge=2.0)
     """A manipulation that reports failure (a grasp that lifted nothing, a push stopped short) does not
@@ -105,11 +106,11 @@ class RunConfig(_Strict):
 
     method: str = DEFAULT_METHOD
     """The preset the config was resolved from (view-only, push-only, grasp-only, no-cdc, ours)."""
-    seed: int = 0
+    seed: Int = 0
     """Root seed: every random choice of the episode flows from it."""
-    steps: int = Field(40, ge=1, le=1000)
+    steps: Int = Field(40, ge=1, le=1000)
     """T_max: number of actions in the episode."""
-    threads: int = Field(2, ge=1, le=256)
+    threads: Int = Field(2, ge=1, le=256)
     """Threads for numba and torch inside one episode."""
     grid: GridConfig = GridConfig()
     camera: CameraConfig = CameraConfig()
@@ -122,9 +123,16 @@ class RunConfig(_Strict):
     objective: list[TermRef] = Field(default_factory=lambda: [TermRef(name="ig")], min_length=1)
     ig: IGConfig = IGConfig()
     msas: MSASConfig = MSASConfig()
-    report_steps: list[Annotated[int, Field(ge=0)]] | None = None
+    report_steps: list[Annotated[Int, Field(ge=0)]] | None = None
     """Steps after which the belief and ground truth are saved (``belief_step{N}.npz``) for the run
     report; None: the first, middle and last step (0, T/2, T-1). Steps >= ``steps`` are ignored."""
+
+    @model_validator(mode="after")
+    def _start_view_exists(self) -> RunConfig:
+        start, views = self.msas.start_view, self.viewpoints.num_views
+        if start is not None and start >= views:
+            raise ValueError(f"msas.start_view {start} is not a viewpoint: there are {views} (0 to {views - 1})")
+        return self
 
     def snapshot_steps(self) -> list[int]:
         """The steps whose belief the run folder keeps for the report (sorted, within the episode)."""
@@ -132,8 +140,9 @@ class RunConfig(_Strict):
         return sorted({s for s in wanted if s < self.steps})
 
     def grid_spec(self, shelf: Any) -> GridSpec:
-        return GridSpec.around_box(shelf.interior_lower, shelf.interior_upper, self.grid.voxel_m,
-                                   self.grid.margin_voxels)
+        """The episode's grid around the shelf interior; refused (one line) when it would not fit in memory."""
+        return check_grid_memory(GridSpec.around_box(shelf.interior_lower, shelf.interior_upper, self.grid.voxel_m,
+                                                     self.grid.margin_voxels))
 
 
 def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
@@ -152,8 +161,8 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     except OSError as e:
         raise UserError(f"cannot read config file {p}: {e.strerror or e}") from e
     try:
-        data = json.loads(text) if p.suffix == ".json" else yaml.safe_load(text)
-    except (json.JSONDecodeError, yaml.YAMLError) as e:
+        data = load_json(text) if p.suffix == ".json" else load_yaml(text)
+    except (ValueError, yaml.YAMLError) as e:
         raise UserError(f"config file {p} is not valid {'JSON' if p.suffix == '.json' else 'YAML'}: {e}") from e
     if data is None:
         return {}
@@ -167,19 +176,14 @@ def preset(method: str) -> dict[str, Any]:
     if method not in METHODS:
         raise UserError(f"unknown method {method!r}; methods: {', '.join(METHODS)}")
     text = resources.files("msmem_core.presets").joinpath(f"{method}.yaml").read_text()
-    return yaml.safe_load(text) or {}
+    return load_yaml(text) or {}
 
 
 def validate_config(data: dict[str, Any], source: str = "config") -> RunConfig:
     try:
         return RunConfig.model_validate(data)
     except ValidationError as e:
-        lines = []
-        for err in e.errors()[:5]:
-            loc = ".".join(str(x) for x in err["loc"]) or "<root>"
-            lines.append(f"field {loc}: {err['msg']}")
-        more = f" (+{e.error_count() - 5} more)" if e.error_count() > 5 else ""
-        raise UserError(f"invalid {source}: " + "; ".join(lines) + more) from e
+        raise UserError(f"invalid {source}: {error_lines(e)}") from e
 
 
 def load_config(

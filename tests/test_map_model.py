@@ -514,3 +514,11 @@ def test_train_map_on_post_manipulation_data_records_the_effect_model(postmanip_
     assert side["post_manipulation_scenes"] == 1
     assert side["effect_models"] == {"push": {"name": "push-analytic", "params": {}}}
     assert side["train"]["effect_models"] == side["effect_models"]
+
+
+def test_the_shipped_network_settings_file_is_valid():
+    from msmem_core.config import read_config_file
+
+    arch = read_config_file(Path(__file__).parents[1] / "examples" / "train" / "cnabu-map-v2.yaml")
+    cfg = MapNetConfig(**arch)
+    assert cfg.class_head == "object" and cfg.nearest_class

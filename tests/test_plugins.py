@@ -72,12 +72,24 @@ def test_broken_plugin_is_named_in_a_warning_and_the_rest_load(monkeypatch):
 def test_duplicate_name_is_refused_naming_both_origins(monkeypatch):
     monkeypatch.setenv("MSMEM_PLUGINS", "clash=tests.support.duplicate_plugin")
     pm = get_plugin_manager()
-    with pytest.raises(PluginError) as e:
+    with pytest.warns(PluginLoadWarning) as caught:
+        skills = pm.skills()
+    msg = str(caught[0].message)
+    assert "plugin 'clash' (from MSMEM_PLUGINS) is skipped: its skill 'view' clashes with plugin 'view' " in msg
+    assert msg.endswith("from msmem")
+    assert pm.registered("skill")["view"].distribution == "msmem"
+    assert skills["view"].description != "clash"
+
+
+def test_duplicate_name_between_third_parties_is_an_error(monkeypatch, tmp_path):
+    (tmp_path / "good_again.py").write_text("from tests.support.good_plugin import msmem_skills  # noqa: F401\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("MSMEM_PLUGINS", "good=tests.support.good_plugin,again=good_again")
+    pm = get_plugin_manager()
+    with pytest.raises(PluginError, match=r"skill name 'wait' is registered twice: by plugin") as e:
         pm.skills()
-    msg = str(e.value)
-    assert "'view' is registered twice" in msg
-    assert "'view' from msmem" in msg
-    assert "'clash' from MSMEM_PLUGINS" in msg
+    assert "plugin 'good' from MSMEM_PLUGINS" in str(e.value)
+    assert "plugin 'again' from MSMEM_PLUGINS" in str(e.value)
 
 
 def test_hook_name_typo_is_caught(monkeypatch):
@@ -185,3 +197,19 @@ def test_disable_autoload_keeps_builtins_only(installed_third_party):
     names = {r["name"] for r in json.loads(out.stdout)["components"]}
     assert "time-cost" not in names
     assert {"view", "pybullet", "ig"} <= names
+
+
+def test_a_plugin_named_twice_for_the_same_module_loads_once_without_a_warning(monkeypatch):
+    """An installed plugin also listed in MSMEM_PLUGINS (the same module, e.g. a package's tests run
+    from its source folder) is the same plugin, not a clash."""
+    import warnings
+
+    monkeypatch.setenv("MSMEM_PLUGINS", "good=tests.support.good_plugin")
+    pm = get_plugin_manager()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PluginLoadWarning)
+        pm._load_one("good", "tests.support.good_plugin", "some-dist", lambda: None)
+        pm._load_one("good", "tests.support.good_plugin:plugin", "other-dist", lambda: None)
+    assert "wait" in pm.skills()
+    with pytest.warns(PluginLoadWarning, match="the name is taken"):
+        pm._load_one("good", "tests.support.broken_plugin", "some-dist", lambda: None)

@@ -73,7 +73,7 @@ def plugins(as_json: Annotated[bool, typer.Option("--json", help="Machine-readab
             table.add_row(c["command"], c["distribution"], escape(c["summary"]))
         Console().print(table)
     for name, err in pm.load_errors.items():
-        typer.echo(f"warning: plugin {name!r} failed to load: {err}", err=True)
+        typer.echo(f"failed plugin {name!r} (from {pm.failed_distributions.get(name, '?')}): {err}", err=True)
 
 
 def config_show(method: MethodOpt = None, config: ConfigOpt = None) -> None:

@@ -17,12 +17,13 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, Field
 
 from msmem_core.map import raycast
 from msmem_core.map.belief import BeliefDelta, EvidentialMap, bernoulli_entropy
 from msmem_core.util.interrupt import deferred_interrupt
 from msmem_core.util.trace import span
+from msmem_core.util.validation import MODEL_CONFIG, Int
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
@@ -31,9 +32,9 @@ from msmem_core.world.scene import ShelfSpec
 class IGConfig(BaseModel):
     """How IG is computed."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = MODEL_CONFIG
 
-    ray_stride_px: int = Field(8, ge=1)
+    ray_stride_px: Int = Field(8, ge=1)
     """Cast a ray through every n-th pixel in u and v (640x480 / 8 = 80x60 = 4800 rays per view)."""
     early_exit: float = Field(1e-3, ge=0.0, lt=1.0)
     """Stop a ray once its transmission is <= this; error per ray <= early_exit * entropy left on it."""

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import pluggy
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, Field, ValidationError
 
 from msmem_core.errors import PluginError
 from msmem_core.plugins.hookspec import PROJECT, MsmemSpecs
@@ -24,6 +24,7 @@ from msmem_core.plugins.types import (
     SkillSpec,
     _Spec,
 )
+from msmem_core.util.validation import MODEL_CONFIG, loose_scalar, non_finite
 
 ENTRY_POINT_GROUP = "msmem"
 BUILTIN_DISTRIBUTION = "msmem"
@@ -43,7 +44,7 @@ class PluginLoadWarning(UserWarning):
 class ComponentRef(BaseModel):
     """A reference to a plugin component in config: its registered name and its parameters."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = MODEL_CONFIG
 
     name: str = Field(min_length=1)
     """Registered name of the component (``msmem plugins`` lists them)."""
@@ -73,6 +74,12 @@ def _flag(name: str) -> bool:
     return os.environ.get(name, "").strip().lower() not in ("", "0", "false", "no")
 
 
+def _reason(e: BaseException) -> str:
+    """``Type: message`` on one line (what ``msmem plugins`` lists for a failed plugin)."""
+    text = " ".join(str(e).split())
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
+
 class MsmemPluginManager(pluggy.PluginManager):
     """pluggy manager with typed accessors. Create one per process with ``get_plugin_manager``."""
 
@@ -82,7 +89,9 @@ class MsmemPluginManager(pluggy.PluginManager):
         self.distributions: dict[str, str] = {}
         """Plugin name -> distribution that provided it."""
         self.load_errors: dict[str, str] = {}
-        """Plugin name -> why it failed to load."""
+        """Plugin name -> why it failed to load or was skipped (one line; ``msmem plugins`` lists them)."""
+        self.failed_distributions: dict[str, str] = {}
+        """Plugin name (key of ``load_errors``) -> the distribution it came from."""
         self.command_errors: dict[str, str] = {}
         """Plugin name -> why its ``msmem_commands`` hook failed (its commands are left out)."""
         self._cache: dict[str, dict[str, Registered]] = {}
@@ -102,28 +111,47 @@ class MsmemPluginManager(pluggy.PluginManager):
         self._cache.clear()
         self._commands = None
 
+    def _skip(self, key: str, distribution: str, message: str, reason: str, stacklevel: int = 3) -> None:
+        """Record why a plugin is left out (``load_errors``, listed by ``msmem plugins``) and warn."""
+        self.load_errors[key] = reason
+        self.failed_distributions[key] = distribution
+        warnings.warn(message, PluginLoadWarning, stacklevel=stacklevel)
+
     def _load_one(self, name: str, target: str, distribution: str, loader: Any) -> None:
-        if self.is_blocked(name) or self.has_plugin(name):
+        if self.is_blocked(name):
+            return
+        if self.has_plugin(name):
+            same_module = getattr(self.get_plugin(name), "__name__", None) == target.partition(":")[0]
+            if self.distributions.get(name) != distribution and not same_module:  # never a silent replacement
+                other = self.distributions.get(name, "?")
+                reason = f"the name is taken by plugin {name!r} from {other}"
+                self._skip(f"{distribution}:{name}", distribution,
+                           f"msmem plugin {name!r} from {distribution} is refused: {reason}", f"refused: {reason}")
             return
         try:
             plugin = loader()
-        except Exception as e:  # a broken plugin must not take the others down
-            self.load_errors[name] = f"{type(e).__name__}: {e}"
-            warnings.warn(
-                f"msmem plugin {name!r} ({target}, from {distribution}) failed to load and is skipped: "
-                f"{type(e).__name__}: {e}",
-                PluginLoadWarning,
-                stacklevel=3,
-            )
+        except KeyboardInterrupt:
+            raise
+        except BaseException as e:  # SystemExit too: a broken plugin must not take the others down
+            self._skip(name, distribution, f"msmem plugin {name!r} ({target}, from {distribution}) failed to load "
+                       f"and is skipped: {_reason(e)}", _reason(e))
             return
-        self.register_plugin(plugin, name, distribution)
+        try:
+            self.register_plugin(plugin, name, distribution)
+        except PluginError as e:
+            self._skip(name, distribution, f"msmem plugin {name!r} (from {distribution}) is skipped: {e}", str(e))
 
     def load_entrypoints(self, group: str = ENTRY_POINT_GROUP) -> None:
-        """Load every ``msmem`` entry point. With ``MSMEM_DISABLE_PLUGIN_AUTOLOAD`` set, only built-ins load."""
+        """Load every ``msmem`` entry point. With ``MSMEM_DISABLE_PLUGIN_AUTOLOAD`` set, only built-ins load.
+
+        msmem's own distribution loads first, the others in name order, so a third-party plugin named
+        like a built-in one is the one refused, whatever the order of ``sys.path``.
+        """
         only_builtin = _flag("MSMEM_DISABLE_PLUGIN_AUTOLOAD")
         seen: set[tuple[str, str]] = set()
-        for dist in md.distributions():
-            dist_name = dist.metadata["Name"] or "?"
+        dists = sorted(((d.metadata["Name"] or "?", i, d) for i, d in enumerate(md.distributions())),
+                       key=lambda t: (t[0] != BUILTIN_DISTRIBUTION, t[0], t[1]))
+        for dist_name, _, dist in dists:
             if only_builtin and dist_name != BUILTIN_DISTRIBUTION:
                 continue
             for ep in dist.entry_points:
@@ -163,20 +191,42 @@ class MsmemPluginManager(pluggy.PluginManager):
         trace = _flag("MSMEM_TRACE_PLUGINS")
         for impl in reversed(hook.get_hookimpls()):  # registration order
             dist = self.distributions.get(impl.plugin_name, "?")
-            specs = list(impl.function() or ())
+            try:
+                specs = list(impl.function() or ())
+            except KeyboardInterrupt:
+                raise
+            except BaseException as e:  # a plugin whose hook fails is skipped, the others are kept
+                return self._drop(kind, impl.plugin_name, f"{KINDS[kind]} hook failed: {_reason(e)}")
             if trace:
                 names = ", ".join(s.name for s in specs)
                 print(f"msmem: {KINDS[kind]}() -> {impl.plugin_name} ({dist}): {names}", file=sys.stderr)
             for spec in specs:
-                if spec.name in out:
-                    other = out[spec.name]
-                    raise PluginError(
-                        f"{spec.kind} name {spec.name!r} is registered twice: by plugin {other.plugin!r} "
-                        f"from {other.distribution} and by plugin {impl.plugin_name!r} from {dist}"
-                    )
-                out[spec.name] = Registered(spec, impl.plugin_name, dist)
+                other = out.get(spec.name)
+                if other is None:
+                    out[spec.name] = Registered(spec, impl.plugin_name, dist)
+                    continue
+                if BUILTIN_DISTRIBUTION in (other.distribution, dist) and other.distribution != dist:
+                    # never a silent replacement of a built-in: the other distribution's plugin is refused
+                    keep, drop = (other.plugin, impl.plugin_name) if dist != BUILTIN_DISTRIBUTION else \
+                        (impl.plugin_name, other.plugin)
+                    return self._drop(kind, drop, f"its {spec.kind} {spec.name!r} clashes with plugin {keep!r} from "
+                                      f"{BUILTIN_DISTRIBUTION}")
+                raise PluginError(
+                    f"{spec.kind} name {spec.name!r} is registered twice: by plugin {other.plugin!r} "
+                    f"from {other.distribution} and by plugin {impl.plugin_name!r} from {dist}"
+                )
         self._cache[kind] = out
         return out
+
+    def _drop(self, kind: str, plugin: str, reason: str) -> dict[str, Registered]:
+        """Unregister ``plugin`` (named in a warning and in ``load_errors``) and list ``kind`` again."""
+        dist = self.distributions.get(plugin, "?")
+        self.unregister(name=plugin)
+        self.set_blocked(plugin)
+        self._cache.clear()
+        self._commands = None
+        self._skip(plugin, dist, f"msmem plugin {plugin!r} (from {dist}) is skipped: {reason}", reason, stacklevel=4)
+        return self.registered(kind)
 
     def spec(self, kind: str, name: str) -> _Spec:
         table = self.registered(kind)
@@ -248,13 +298,20 @@ class MsmemPluginManager(pluggy.PluginManager):
         spec = self.spec(kind, ref.name)
         fields = spec.config_model.model_fields
         params = {k: v for k, v in extra.items() if k in fields} | dict(ref.params)
+        at = f"{where}.params" if where else "params"
+        # whatever the plugin's config model allows: no NaN or infinity, no bool for an int or an int for a bool
+        for loc in non_finite(ref.params):
+            raise PluginError(f"{kind} {ref.name!r}: {at}.{loc}: Input should be a finite number")
+        for name, value in ref.params.items():
+            why = loose_scalar(value, fields[name].annotation) if name in fields else None
+            if why:
+                raise PluginError(f"{kind} {ref.name!r}: {at}.{name}: {why}")
         try:
             config = spec.config_model.model_validate(params)
         except ValidationError as e:
             err = e.errors()[0]
             loc = ".".join(str(x) for x in err["loc"])
-            at = f"{where}.params.{loc}" if where else f"params.{loc}"
-            raise PluginError(f"{kind} {ref.name!r}: {at}: {err['msg']}") from e
+            raise PluginError(f"{kind} {ref.name!r}: {at}.{loc}: {err['msg']}") from e
         return spec.factory(config)
 
     def listing(self) -> list[dict[str, Any]]:

@@ -42,6 +42,7 @@ from msmem_core.run.runfolder import save_ground_truth, save_snapshot
 from msmem_core.util.jsonable import dumps
 from msmem_core.util.threads import configure_threads
 from msmem_core.util.trace import Tracer
+from msmem_core.world.placement import load_scene
 from msmem_core.world.scene import SceneSpec
 from msmem_core.world.scenegen import generate_scene
 from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
@@ -62,7 +63,7 @@ def set_threads(n: int) -> None:
 
 def resolve_scene(cfg: RunConfig) -> SceneSpec:
     if cfg.scene.file is not None:
-        return SceneSpec.from_json(cfg.scene.file)
+        return load_scene(str(cfg.scene.file))  # fields, then placement: refused with a one-line error
     return generate_scene(cfg.scene.seed, cfg.scene.generator)
 
 

@@ -6,19 +6,27 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, Field, model_validator
+
+from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Int
 
 
 class CameraConfig(BaseModel):
     """Pinhole depth + semantics camera (MEM's: 640x480, 58 deg vertical FOV)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = FROZEN_MODEL_CONFIG
 
-    width_px: int = Field(640, ge=8, le=4096)
-    height_px: int = Field(480, ge=8, le=4096)
+    width_px: Int = Field(640, ge=8, le=4096)
+    height_px: Int = Field(480, ge=8, le=4096)
     vfov_deg: float = Field(58.0, gt=1.0, lt=170.0)
     near_m: float = Field(0.07, gt=0.0)
     far_m: float = Field(1.5, gt=0.0)
+
+    @model_validator(mode="after")
+    def _near_before_far(self) -> CameraConfig:
+        if self.near_m >= self.far_m:
+            raise ValueError(f"near_m ({self.near_m}) must be less than far_m ({self.far_m})")
+        return self
 
     @property
     def fy(self) -> float:

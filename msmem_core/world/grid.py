@@ -2,21 +2,27 @@
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, Field
+
+from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Int
+
+Count = Annotated[Int, Field(ge=1)]
 
 
 class GridSpec(BaseModel):
     """Axis-aligned voxel grid: voxel (i, j, k) covers ``[o + i*s, o + (i+1)*s)`` per axis."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = FROZEN_MODEL_CONFIG
 
     origin_m: tuple[float, float, float] = (-0.39, -0.01, -0.01)
     """World position of the grid's minimum corner, metres."""
     voxel_m: float = Field(0.01, gt=0.0, le=0.1)
     """Edge length of one cubic voxel, metres."""
-    shape: tuple[int, int, int] = (78, 40, 30)
+    shape: tuple[Count, Count, Count] = (78, 40, 30)
     """Number of voxels along x, y, z."""
 
     @property

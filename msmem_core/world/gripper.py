@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, Field
+
+from msmem_core.util.validation import FROZEN_MODEL_CONFIG
 
 
 class GripperSpec(BaseModel):
@@ -16,7 +18,7 @@ class GripperSpec(BaseModel):
     behind them, spanning z in [-finger_length - palm_depth, -finger_length].
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = FROZEN_MODEL_CONFIG
 
     max_opening_m: float = Field(0.08, gt=0.0, le=0.3)
     finger_length_m: float = Field(0.05, gt=0.0)

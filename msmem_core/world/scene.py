@@ -12,26 +12,37 @@ import math
 from collections.abc import Sequence
 from functools import cache
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import AfterValidator, BaseModel, Field, ValidationError, field_validator
 
 from msmem_core.errors import UserError
+from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Int, error_lines, load_json
 from msmem_core.world.geometry import pose_matrix
+
+
+def _rotation(q: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+    if math.hypot(*q) < 1e-6:
+        raise ValueError(f"quaternion {q} has no rotation: its norm is 0 (identity: [0, 0, 0, 1])")
+    return q
+
+
+Quaternion = Annotated[tuple[float, float, float, float], AfterValidator(_rotation)]
+"""A rotation as (x, y, z, w); any non-zero length (it is normalised where used)."""
 
 
 class Part(BaseModel):
     """One convex primitive of an object, in the object frame."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = FROZEN_MODEL_CONFIG
 
     kind: Literal["box", "cylinder"]
     size_m: tuple[float, ...]
     """box: full extents (x, y, z); cylinder: (radius, height) along the part's z."""
     position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    quat_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+    quat_xyzw: Quaternion = (0.0, 0.0, 0.0, 1.0)
 
     @property
     def half_height_m(self) -> float:
@@ -41,10 +52,10 @@ class Part(BaseModel):
 class ObjectClass(BaseModel):
     """A semantic class with YCB-like size, mass and geometry."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = FROZEN_MODEL_CONFIG
 
     name: str
-    class_id: int = Field(ge=1)
+    class_id: Int = Field(ge=1)
     parts: tuple[Part, ...]
     mass_kg: float = Field(gt=0.0)
     confusable_with: str | None = None
@@ -139,7 +150,7 @@ def object_class(name: str) -> ObjectClass:
 class ShelfSpec(BaseModel):
     """Open-front shelf. Interior: x in [-w/2, w/2], y in [0, depth] (front at y = 0), z in [0, h]."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = FROZEN_MODEL_CONFIG
 
     width_m: float = Field(0.76, gt=0.1, le=3.0)
     depth_m: float = Field(0.38, gt=0.1, le=2.0)
@@ -176,12 +187,12 @@ class ShelfSpec(BaseModel):
 class ObjectSpec(BaseModel):
     """One object instance: its class and its pose (object frame origin = footprint centre)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = FROZEN_MODEL_CONFIG
 
-    id: int = Field(ge=0)
+    id: Int = Field(ge=0)
     class_name: str
     position_m: tuple[float, float, float]
-    quat_xyzw: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+    quat_xyzw: Quaternion = (0.0, 0.0, 0.0, 1.0)
 
     @field_validator("class_name")
     @classmethod
@@ -205,15 +216,15 @@ class ObjectSpec(BaseModel):
 class SceneSpec(BaseModel):
     """A shelf with objects; what ``Simulator.reset`` builds. Serialised as JSON."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = FROZEN_MODEL_CONFIG
 
     name: str = "scene"
-    seed: int | None = None
+    seed: Int | None = None
     shelf: ShelfSpec = ShelfSpec()
     objects: tuple[ObjectSpec, ...] = ()
     occupancy_fraction: float | None = None
     """Fraction of the shelf floor covered by object footprints (recorded by the generator)."""
-    hidden_objects: int | None = None
+    hidden_objects: Int | None = None
     """Objects hidden from all viewpoints at the start (recorded by the hardness check)."""
 
     @field_validator("objects")
@@ -232,14 +243,14 @@ class SceneSpec(BaseModel):
         """Load a scene file; failures raise a ``UserError`` naming the file and the field."""
         p = Path(path)
         try:
-            data = json.loads(p.read_text())
+            data = load_json(p.read_text())
         except OSError as e:
             raise UserError(f"cannot read scene file {p}: {e.strerror or e}") from e
         except json.JSONDecodeError as e:
             raise UserError(f"scene file {p} is not valid JSON: {e.msg} at line {e.lineno}") from e
+        except ValueError as e:  # a duplicate key
+            raise UserError(f"scene file {p} is not valid JSON: {e}") from e
         try:
             return cls.model_validate(data)
         except ValidationError as e:
-            err = e.errors()[0]
-            loc = ".".join(str(x) for x in err["loc"]) or "<root>"
-            raise UserError(f"invalid scene file {p}: field {loc}: {err['msg']}") from e
+            raise UserError(f"invalid scene file {p}: {error_lines(e, most=3)}") from e

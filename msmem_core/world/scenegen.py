@@ -26,11 +26,12 @@ from functools import cache
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, Field, field_validator
 from scipy.signal import fftconvolve
 from scipy.spatial import ConvexHull
 
 from msmem_core.errors import UserError
+from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Bool, Int
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import yaw_quat
 from msmem_core.world.meshes import part_mesh_local
@@ -48,17 +49,17 @@ from msmem_core.world.visibility import (
 class SceneGenConfig(BaseModel):
     """How random scenes are generated and what makes one hard."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = FROZEN_MODEL_CONFIG
 
     occupancy_range: tuple[float, float] = (0.30, 0.45)
     """Range of the floor fraction covered by footprints; each scene's target is drawn from it."""
     min_gap_m: float = Field(0.005, ge=0.0, le=0.1)
     """Minimum distance between any two objects."""
-    require_hard: bool = True
+    require_hard: Bool = True
     """Retry until at least ``min_hidden`` objects are hidden from every viewpoint."""
-    min_hidden: int = Field(4, ge=0)
+    min_hidden: Int = Field(4, ge=0)
     """Hidden objects a hard scene needs ("more than 3")."""
-    max_tries: int = Field(50, ge=1)
+    max_tries: Int = Field(50, ge=1)
     """Attempts (sub-seeds) before giving up on a hard scene."""
     shelf: ShelfSpec = ShelfSpec()
     wall_clearance_m: float = Field(0.01, ge=0.0, le=0.1)
@@ -78,9 +79,9 @@ class SceneGenConfig(BaseModel):
     viewpoints: ViewpointConfig = ViewpointConfig()
     """Candidate views the hardness check casts from."""
     camera: CameraConfig = CameraConfig()
-    visibility_stride: int = Field(4, ge=1)
+    visibility_stride: Int = Field(4, ge=1)
     """Hardness check: cast every stride-th pixel of every view."""
-    min_visible_pixels: int = Field(MIN_VISIBLE_PIXELS, ge=1)
+    min_visible_pixels: Int = Field(MIN_VISIBLE_PIXELS, ge=1)
     """Hardness check: an object is hidden if fewer strided pixels summed over all views see it."""
 
     @field_validator("occupancy_range")

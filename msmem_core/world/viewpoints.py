@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, Field, model_validator
 
 from msmem_core.errors import UserError
+from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Int
 from msmem_core.world.geometry import look_at
 from msmem_core.world.scene import ShelfSpec
 
@@ -21,7 +22,7 @@ from msmem_core.world.scene import ShelfSpec
 class ViewpointConfig(BaseModel):
     """Where the candidate cameras are (defaults: 3 x 10 x 10 = 300 views, as MEM)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = FROZEN_MODEL_CONFIG
 
     targets_x_m: tuple[float, ...] = (-0.25, 0.0, 0.25)
     """x of each grid's target (left, middle, right); one 10x10 grid per target."""
@@ -35,7 +36,7 @@ class ViewpointConfig(BaseModel):
     """Azimuth range about -y (0 = straight in front of the target, positive = towards +x)."""
     elevation_deg: tuple[float, float] = (-10.0, 35.0)
     """Elevation range above the horizontal plane through the target."""
-    grid: int = Field(10, ge=1, le=100)
+    grid: Int = Field(10, ge=1, le=100)
     """Views per grid side (grid x grid views per target)."""
 
     @model_validator(mode="after")
