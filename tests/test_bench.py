@@ -12,6 +12,7 @@ import pytest
 
 from msmem_core.errors import UserError
 from msmem_core.run.bench import (
+    TABLE_METRICS,
     BenchTask,
     parse_range,
     run_bench,
@@ -161,6 +162,7 @@ def test_kill_and_resume_loses_at_most_the_inflight_episode(tmp_path):
     results = json.loads((tmp_path / "results.json").read_text())
     for ep in results["episodes"]:
         assert set(PAPER_METRIC_KEYS) <= set(ep["metrics"])
+        assert {k for k, _, _ in TABLE_METRICS} <= set(ep["metrics"]), "every column of the table is recorded"
         assert set(ep["paper_counts"]) == set(PAPER_COUNT_KEYS)
         assert paper_metrics_from_counts(ep["paper_counts"]) == pytest.approx(
             {k: ep["metrics"][k] for k in PAPER_METRIC_KEYS})

@@ -196,7 +196,7 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
         record.update({
             "scene": ep.scene.name, "status": "ok", "metrics": {
                 **{k: final[k] for k in ("occupancy_iou", "semantic_miou", "observable_iou", "semantic_miou_bev",
-                                         "position_change_m", *PAPER_METRIC_KEYS)},
+                                         "position_change_m", "occupancy_nll", "semantic_nll", *PAPER_METRIC_KEYS)},
                 **{k: int(final[k]) for k, _ in COUNT_METRICS},
                 "views": kinds.count("view"), "pushes": kinds.count("push"), "grasps": kinds.count("grasp"),
                 "grasp_success": float(np.mean(grasp_ok)) if grasp_ok else float("nan"),
