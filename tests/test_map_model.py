@@ -8,6 +8,7 @@ trained on seeds 100000 and up, below 900000; see ``plugins/msmem_cnabu/weights/
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -522,3 +523,25 @@ def test_the_shipped_network_settings_file_is_valid():
     arch = read_config_file(Path(__file__).parents[1] / "examples" / "train" / "cnabu-map-v2.yaml")
     cfg = MapNetConfig(**arch)
     assert cfg.class_head == "object" and cfg.nearest_class
+
+
+def test_the_object_head_class_loss_hardly_depends_on_the_occupancy():
+    """Its class NLL is that of the object class given occupied: raising p on an occupied voxel
+    barely changes it (only through the floors), where -log q_y would fall by log(p' / p)."""
+    from msmem_cnabu.mapnet import map_loss
+
+    occ = torch.ones(1, 2, 1, 1, dtype=bool)
+    cls = torch.full((1, 2, 1, 1), 3).long()
+    c = torch.zeros(1, 5, 2, 1, 1)
+    c[0, 3] = 1.0
+    c[0, 0] = -4.0
+    valid = torch.ones(2, 1, 1, dtype=bool)
+
+    def loss(o: float) -> float:
+        oc = torch.full((1, 2, 1, 1), o)
+        head = torch.cat([torch.nn.functional.logsigmoid(-oc)[:, None], torch.nn.functional.logsigmoid(oc)[:, None]
+                          + torch.log_softmax(c[:, 1:], 1)], 1)  # the object head's log q
+        return float(map_loss(oc, head, occ, cls, valid, 100.0, 300.0, occupied_only=True)[1])
+
+    assert abs(loss(0.0) - loss(3.0)) < 0.02
+    assert abs(loss(0.0) - loss(3.0)) < 0.05 * math.log((1 / (1 + math.exp(-3.0))) / 0.5)

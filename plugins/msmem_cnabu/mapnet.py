@@ -225,13 +225,18 @@ def map_loss(occ_logit: Tensor, cls_logit: Tensor, gt_occ: Tensor, gt_cls: Tenso
     voxels that are occupied in truth counts ``occupied_class_weight`` times (object voxels are a few
     percent of the shelf: without a weight the class head learns mostly "free"); with
     ``occupied_only`` (the ``object`` class head, whose free class is the occupancy's) it is taken on
-    those voxels alone."""
+    those voxels alone, as the NLL of the object class given occupied, ``-log(q_y / (1 - q_0))``:
+    ``-log q_y`` would also push their occupancy up, on top of the occupancy NLL (measured: run 4
+    trained that way lost 0.02 held-out occupancy mIoU and predicted objects in free columns).
+    """
     _, _, _, p, q = bounded_evidence(occ_logit, cls_logit, s_max, t_max)
     m = valid.expand_as(gt_occ)
     y = gt_occ.to(p.dtype)
     occ_nll = -(y * torch.log(p) + (1 - y) * torch.log1p(-p))
     qy = torch.gather(q, 1, gt_cls.long()[:, None])[:, 0]
     cls_nll = -torch.log(qy)
+    if occupied_only:  # the object class given occupied, -log(q_y / (1 - q_0)): (almost) no push on p
+        cls_nll = cls_nll + torch.log1p(-q[:, 0])
     n = m.sum().clamp(min=1)
     w = y if occupied_only else 1.0 + (occupied_class_weight - 1.0) * y
     return occ_nll[m].sum() / n, (w * cls_nll)[m].sum() / w[m].sum().clamp(min=1)
