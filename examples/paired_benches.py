@@ -58,7 +58,7 @@ def main(folders: list[str]) -> None:
         keys = sorted(set(base) & set(other))
         cells = []
         for k in METRICS:
-            m, c = mean_ci([base[s][k] - other[s][k] for s in keys])
+            m, c = mean_ci([base[s][k] - other[s][k] for s in keys if k in base[s] and k in other[s]])
             star = "*" if not math.isnan(c) and abs(m) > c else ""
             cells.append(f"{m:+.3f} ± {c:.3f}{star}")
         print(f"| {first.name} - {folder.name} | {len(keys)} | " + " | ".join(cells) + " |")
