@@ -452,3 +452,17 @@ def test_bad_weights_raise_clear_errors(tmp_path):
     write_weights(tiny_net("push", grid_shape=(10, 10, 5)), w3)
     with pytest.raises(WeightsError, match="grid"):
         CNABUPushEffect(CNABUEffectConfig(weights=w3)).predict(random_belief(), push_actions(), WORKSPACE)
+
+
+def test_dirichlet_kl_uniform_against_scipy_at_large_evidence_in_float32():
+    """KL(Dir(eta) || Dir(1)) = -H(Dir(eta)) - log Gamma(C) (the uniform Dirichlet's density is Gamma(C))."""
+    import math
+
+    from scipy import stats
+
+    from msmem_cnabu.losses import dirichlet_kl_uniform
+
+    for eta in ([2.0, 3.0, 4.0], [1e4, 2e4, 5.0], [7e4, 1.0, 1.0, 3e3]):
+        e = torch.tensor([eta], dtype=torch.float32)
+        want = -stats.dirichlet(eta).entropy() - math.lgamma(len(eta))
+        assert float(dirichlet_kl_uniform(e)[0]) == pytest.approx(want, rel=1e-5, abs=1e-4)

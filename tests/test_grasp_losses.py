@@ -162,3 +162,43 @@ def test_assign_targets_labels_points_near_gt_contacts():
     torch.testing.assert_close(t.width[0, :2].sort().values, _t(0.01, 0.02))
     torch.testing.assert_close(t.approach[1, 0], approach[0])
     assert t.label.tolist() == [1.0, 1.0, 0.0]
+
+
+# ---------------------------------------------------------------- precision at large evidence (issue 22)
+def test_beta_kl_uniform_is_minus_the_differential_entropy_in_float32_too():
+    from scipy import stats
+
+    from msmem_grasp.learn.losses import beta_kl_uniform
+
+    for a, b in ((3.0, 5.0), (40.0, 2.0), (1e4, 3e4)):
+        kl = beta_kl_uniform(torch.tensor([a], dtype=torch.float32), torch.tensor([b], dtype=torch.float32))
+        assert float(kl[0]) == pytest.approx(-stats.beta(a, b).entropy(), rel=1e-5, abs=1e-5)
+    # Beta(1e8, 1e8) is a normal with variance 1 / (4 (2a + 1)): KL = -0.5 log(2 pi e var) = 8.83
+    a = torch.tensor([1e8], dtype=torch.float32)
+    var = 1.0 / (4.0 * (2e8 + 1.0))
+    assert float(beta_kl_uniform(a, a)[0]) == pytest.approx(-0.5 * math.log(2 * math.pi * math.e * var), rel=1e-4)
+    x = torch.tensor([1e6], dtype=torch.float32, requires_grad=True)
+    beta_kl_uniform(x, torch.tensor([3e6])).sum().backward()
+    assert x.grad is not None and float(x.grad[0]) != 0.0
+
+
+def test_expected_angle_matches_a_high_precision_reference_at_every_concentration():
+    import mpmath as mp
+
+    from msmem_grasp.metrics import ASYMPTOTIC_KAPPA, expected_angle_deg
+
+    mp.mp.dps = 30
+
+    def reference(kappa: float) -> float:
+        k = mp.mpf(kappa)
+        f = lambda w: mp.acos(w) * k * mp.e ** (k * (w - 1)) / (1 - mp.e ** (-2 * k))  # noqa: E731
+        cuts = sorted({-1.0, 1.0, *(float(1 - c / k) for c in (30.0, 3.0, 0.3) if c / k < 2)})
+        return float(mp.degrees(mp.quad(f, cuts)))
+
+    for kappa in (0.05, 1.0, 10.0, 1e3, 1e4, 1e6):
+        assert expected_angle_deg(kappa) == pytest.approx(reference(kappa), rel=1e-5), kappa
+    assert expected_angle_deg(1e4) == pytest.approx(0.718, abs=1e-3)  # was 0.0003 before the fix
+    above = expected_angle_deg(ASYMPTOTIC_KAPPA * 10)
+    assert above == pytest.approx(reference(ASYMPTOTIC_KAPPA * 10), rel=1e-5)
+    with pytest.raises(ValueError, match="kappa"):
+        expected_angle_deg(0.0)

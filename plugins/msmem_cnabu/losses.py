@@ -65,11 +65,14 @@ def dirichlet_expected_ce(eta: Tensor, y: Tensor) -> Tensor:
 
 
 def dirichlet_kl_uniform(eta: Tensor) -> Tensor:
-    """KL(Dir(eta) || Dir(1, ..., 1)) over the class axis 1."""
-    s = eta.sum(1)
+    """KL(Dir(eta) || Dir(1, ..., 1)) over the class axis 1, computed in float64 and returned in
+    ``eta``'s dtype (the terms are large and cancel; float32 loses them at large evidence)."""
+    e = eta.double()
+    s = e.sum(1)
     c = eta.shape[1]
-    return (torch.lgamma(s) - torch.lgamma(eta).sum(1) - torch.lgamma(torch.tensor(float(c), dtype=eta.dtype))
-            + ((eta - 1.0) * (torch.digamma(eta) - torch.digamma(s)[:, None])).sum(1))
+    kl = (torch.lgamma(s) - torch.lgamma(e).sum(1) - torch.lgamma(torch.tensor(float(c), dtype=e.dtype))
+          + ((e - 1.0) * (torch.digamma(e) - torch.digamma(s)[:, None])).sum(1))
+    return kl.to(eta.dtype)
 
 
 def evidential_dirichlet_loss(eta: Tensor, y: Tensor, kl_weight: float) -> tuple[Tensor, Tensor]:

@@ -80,13 +80,18 @@ def beta_expected_ce(alpha: Tensor, beta: Tensor, y: Tensor) -> Tensor:
 
 def beta_kl_uniform(alpha: Tensor, beta: Tensor) -> Tensor:
     """KL(Beta(alpha, beta) || Beta(1, 1)) = lnG(S) - lnG(alpha) - lnG(beta)
-    + (alpha - 1)(psi(alpha) - psi(S)) + (beta - 1)(psi(beta) - psi(S))."""
-    s = alpha + beta
+    + (alpha - 1)(psi(alpha) - psi(S)) + (beta - 1)(psi(beta) - psi(S)).
+
+    Computed in float64 and returned in the inputs' dtype: the terms are large and cancel (in
+    float32, Beta(1e8, 1e8) gave -160 instead of 8.83 and the gradient vanished near 1e6)."""
+    a, b = alpha.double(), beta.double()
+    s = a + b
     ds = torch.digamma(s)
-    return (
-        torch.lgamma(s) - torch.lgamma(alpha) - torch.lgamma(beta)
-        + (alpha - 1.0) * (torch.digamma(alpha) - ds) + (beta - 1.0) * (torch.digamma(beta) - ds)
+    kl = (
+        torch.lgamma(s) - torch.lgamma(a) - torch.lgamma(b)
+        + (a - 1.0) * (torch.digamma(a) - ds) + (b - 1.0) * (torch.digamma(b) - ds)
     )
+    return kl.to(alpha.dtype)
 
 
 def evidential_beta_loss(alpha: Tensor, beta: Tensor, y: Tensor, kl_weight: float) -> tuple[Tensor, Tensor]:
