@@ -42,6 +42,34 @@ def test_a_dead_worker_is_that_tasks_failure_and_the_others_go_on():
     assert "worker process died" in failure.error
 
 
+def test_a_worker_dying_between_two_submissions_is_a_failure_too(monkeypatch):
+    """A worker may die after a wait returned and before the next submit, which then raises
+    BrokenProcessPool itself (seen in CI). Reproduced: the pool kills one of its idle workers just
+    before the fifth submission; every task still gets its result (none of them killed it)."""
+    import concurrent.futures.process as cfp
+
+    from msmem_core.run import executors
+
+    class DyingPool(cfp.ProcessPoolExecutor):
+        calls = 0
+
+        def submit(self, fn, /, *args, **kwargs):
+            type(self).calls += 1
+            if type(self).calls == 5:
+                victim = next(iter(self._processes.values()))
+                victim.kill()
+                victim.join()
+                deadline = time.time() + 10
+                while not self._broken and time.time() < deadline:
+                    time.sleep(0.01)
+            return super().submit(fn, *args, **kwargs)
+
+    monkeypatch.setattr(executors, "ProcessPoolExecutor", DyingPool)
+    results = run_tasks(square_or_die, [1, 2, 3, 4, 5, 6, 7, 8], workers=2, progress=False, threads=None)
+    assert DyingPool.calls >= 5
+    assert results == [x * x for x in range(1, 9)], "a task in flight on the killed worker is rerun alone"
+
+
 def test_workers_exit_when_their_parent_is_killed(tmp_path):
     script = ("import sys; from msmem_core.run.executors import run_tasks; "
               "from tests.support.tasks import record_pid_and_sleep; "

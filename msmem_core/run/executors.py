@@ -164,10 +164,16 @@ def _iter_local(
             while (source or pending) and not broken:
                 while source and len(pending) < limit:  # a bounded number in flight: a dead worker costs few
                     i = source.pop()
-                    pending[pool.submit(_call, fn, i, tasks[i], None)] = i
-                done, _ = wait(pending, return_when=FIRST_COMPLETED)
-                if any(isinstance(f.exception(), BrokenProcessPool) for f in done):
-                    broken = True
+                    try:
+                        pending[pool.submit(_call, fn, i, tasks[i], None)] = i
+                    except BrokenProcessPool:  # a worker died since the last wait: this task never ran
+                        source.append(i)
+                        broken = True
+                        break
+                if not broken:
+                    done, _ = wait(pending, return_when=FIRST_COMPLETED)
+                    broken = any(isinstance(f.exception(), BrokenProcessPool) for f in done)
+                if broken:
                     done = set(wait(pending).done)  # the pool is broken: every future ends now
                 for fut in done:
                     i = pending.pop(fut)
