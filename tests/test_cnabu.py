@@ -466,3 +466,21 @@ def test_dirichlet_kl_uniform_against_scipy_at_large_evidence_in_float32():
         e = torch.tensor([eta], dtype=torch.float32)
         want = -stats.dirichlet(eta).entropy() - math.lgamma(len(eta))
         assert float(dirichlet_kl_uniform(e)[0]) == pytest.approx(want, rel=1e-5, abs=1e-4)
+
+
+def test_datagen_require_hard_makes_hard_scenes(tmp_path):
+    """`--require-hard` reaches the scene generator: the shard's scene is the hard one of its seed."""
+    from msmem_core.cli import build_app
+    from msmem_core.world.scenegen import SceneGenConfig, generate_scene
+
+    res = CliRunner().invoke(build_app(), ["datagen", "cnabu", "--kind", "observe", "--scenes", "1", "--seed", "300000",
+                                           "--samples", "1", "--min-views", "0", "--max-views", "0", "--require-hard",
+                                           "--out", str(tmp_path), "-q"])
+    assert res.exit_code == 0, res.output
+    shard = load_shard(next(tmp_path.glob("scene_*.npz")))
+    assert shard.info["config"]["require_hard"] is True
+    from msmem_core.world.voxelize import voxelize
+
+    for hard, match in ((True, True), (False, False)):
+        occ, _ = voxelize(generate_scene(300000, SceneGenConfig(require_hard=hard)).objects, shard.grid)
+        assert np.array_equal(occ, shard.gt_occ[0]) is match

@@ -42,6 +42,9 @@ def datagen_cnabu(
     manipulate_after: Annotated[int | None, typer.Option(
         "--manipulate-after", help="observe: after this many recorded views, execute one push for real "
                                    "(post-manipulation sequences).")] = None,
+    require_hard: Annotated[bool, typer.Option(
+        "--require-hard", help="Hard scenes (as the hard25 suite: more hidden objects) instead of random "
+                               "30-45 % shelves; slower to generate.")] = False,
     sim: SimOpt = "pybullet",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
@@ -57,7 +60,7 @@ def datagen_cnabu(
     try:
         cfg = CNABUDataConfig(kind=kind, voxel_m=voxel, states=states, actions_per_state=actions,
                               observe_samples=samples, min_views=min_views, max_views=max_views,
-                              manipulate_after=manipulate_after,
+                              manipulate_after=manipulate_after, require_hard=require_hard,
                               simulator=ComponentRef(name=sim))
     except ValidationError as e:
         err = e.errors()[0]
