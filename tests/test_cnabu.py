@@ -458,9 +458,8 @@ def test_dirichlet_kl_uniform_against_scipy_at_large_evidence_in_float32():
     """KL(Dir(eta) || Dir(1)) = -H(Dir(eta)) - log Gamma(C) (the uniform Dirichlet's density is Gamma(C))."""
     import math
 
-    from scipy import stats
-
     from msmem_cnabu.losses import dirichlet_kl_uniform
+    from scipy import stats
 
     for eta in ([2.0, 3.0, 4.0], [1e4, 2e4, 5.0], [7e4, 1.0, 1.0, 3e3]):
         e = torch.tensor([eta], dtype=torch.float32)

@@ -166,9 +166,8 @@ def test_assign_targets_labels_points_near_gt_contacts():
 
 # ---------------------------------------------------------------- precision at large evidence (issue 22)
 def test_beta_kl_uniform_is_minus_the_differential_entropy_in_float32_too():
-    from scipy import stats
-
     from msmem_grasp.learn.losses import beta_kl_uniform
+    from scipy import stats
 
     for a, b in ((3.0, 5.0), (40.0, 2.0), (1e4, 3e4)):
         kl = beta_kl_uniform(torch.tensor([a], dtype=torch.float32), torch.tensor([b], dtype=torch.float32))
@@ -184,7 +183,6 @@ def test_beta_kl_uniform_is_minus_the_differential_entropy_in_float32_too():
 
 def test_expected_angle_matches_a_high_precision_reference_at_every_concentration():
     import mpmath as mp
-
     from msmem_grasp.metrics import ASYMPTOTIC_KAPPA, expected_angle_deg
 
     mp.mp.dps = 30

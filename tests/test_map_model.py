@@ -245,8 +245,8 @@ def test_nearest_known_class_is_the_class_of_a_nearest_known_voxel():
 def test_nearest_known_class_without_known_voxels_is_uniform_and_far():
     from msmem_cnabu.mapnet import nearest_known_class
 
-    out = nearest_known_class(-torch.ones(1, 3, 3, 3), torch.full((1, 4, 3, 3, 3), 0.25), torch.ones(3, 3, 3, dtype=bool),
-                              10.0)
+    out = nearest_known_class(-torch.ones(1, 3, 3, 3), torch.full((1, 4, 3, 3, 3), 0.25),
+                              torch.ones(3, 3, 3, dtype=bool), 10.0)
     assert torch.allclose(out[0, :-1], torch.full((4, 3, 3, 3), 0.25))
     assert torch.allclose(out[0, -1], torch.ones(3, 3, 3))
 

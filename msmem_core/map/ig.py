@@ -262,7 +262,8 @@ class IGService:
         box_lo = self._g0 + ijk.min(axis=0) * self._s - pad
         box_hi = self._g0 + (ijk.max(axis=0) + 1) * self._s + pad
         rays = self.coarse_rays(ray_step)
-        with deferred_interrupt(), numba.parallel_chunksize(4):  # views differ in work (rays skipped): schedule them dynamically
+        # views differ in work (rays skipped): schedule them dynamically
+        with deferred_interrupt(), numba.parallel_chunksize(4):
             change = raycast.ig_views_delta(
                 base.p, base.H, stop, slot, pu, hu, cand_ptr, cand_k, *rays.args(), t_stop, box_lo, box_hi,
                 self._g0, self._s, self._n, eps,

@@ -16,10 +16,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from msmem_core.config import RunConfig
 from pydantic import ValidationError
 
+from msmem_core.config import RunConfig
 from msmem_core.errors import Interrupted, PluginError
 from msmem_core.interfaces import EffectModel, ObservationModel, Outcome, Simulator, Workspace
 from msmem_core.map.belief import EvidentialMap

@@ -167,7 +167,8 @@ def train_cnabu_map(
     seed: Annotated[int, typer.Option("--seed", help="Seed of the initialisation, order and mirroring.")] = 0,
     threads: Annotated[int, typer.Option("--threads", help="torch threads.")] = 2,
     max_minutes: Annotated[float | None, typer.Option("--max-minutes", help="Stop (and write) after this.")] = None,
-    init: Annotated[Path | None, typer.Option("--init", help="Start from these weights (same architecture, or one whose per-voxel inputs grew).")] = None,
+    init: Annotated[Path | None, typer.Option(
+        "--init", help="Start from these weights (same architecture, or one whose per-voxel inputs grew).")] = None,
     occupied_class_weight: Annotated[float, typer.Option(
         "--occupied-class-weight", help="Weight of truly occupied voxels in the class NLL.")] = 1.0,
     arch: Annotated[Path | None, typer.Option(

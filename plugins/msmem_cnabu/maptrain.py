@@ -41,11 +41,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard, predicted_belief
 from msmem_cnabu.features import wall_mask
 from msmem_cnabu.mapnet import MapNet, MapNetConfig, bounded_evidence, map_loss, parameter_count
-from msmem_core.errors import UserError, validation_summary
+from msmem_core.errors import UserError
 from msmem_core.interfaces import Workspace
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.plugins import ComponentRef
 from msmem_core.util.artifacts import atomic_save, write_sidecar
+from msmem_core.util.validation import error_lines
 
 WEIGHTS_FORMAT = "msmem-cnabu-map"
 WEIGHTS_VERSION = 1
@@ -308,8 +309,8 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
     if model_cfg is None:
         try:
             model_cfg = MapNetConfig(grid_shape=shape, num_classes=first.seen.shape[1], **(arch or {}))
-        except (ValidationError, TypeError) as e:
-            raise UserError(f"network settings (--arch): {validation_summary(e)}") from e
+        except ValidationError as e:
+            raise UserError(f"network settings (--arch): {error_lines(e)}") from e
     if tuple(model_cfg.grid_shape) != tuple(shape):
         raise UserError(f"the data's grid is {shape}, the network's {tuple(model_cfg.grid_shape)}")
     net = MapNet(model_cfg)
