@@ -101,3 +101,41 @@ def test_load_run_names_the_missing_file_of_an_incomplete_folder(tmp_path: Path,
     (d / missing).unlink()
     with pytest.raises(UserError, match=missing):
         load_run(d)
+
+
+def _metrics(n: int, **over: object) -> dict[str, object]:
+    return {"steps": n, "scene": "empty", "method": RunConfig().method, "occupancy_iou": 0.5} | over
+
+
+def _with_metrics(d: Path, n: int, last: float = 0.5, **over: object) -> None:
+    lines = [json.dumps({"step": i, "skill": "view", "metrics": {"occupancy_iou": 0.1 if i < n - 1 else last}})
+             for i in range(n)]
+    (d / "steps.jsonl").write_text("\n".join(lines) + "\n")
+    (d / "metrics.json").write_text(json.dumps(_metrics(n, **over)))
+
+
+def test_load_run_accepts_a_consistent_folder_with_metrics(tmp_path: Path) -> None:
+    d = tmp_path / "run"
+    _run_folder(d, steps=3)
+    _with_metrics(d, 3)
+    save_snapshot(d / "belief_step2.npz", _belief(2), *_truth(2))
+    assert load_run(d).metrics["occupancy_iou"] == 0.5
+
+
+@pytest.mark.parametrize(("plant", "message"), [
+    (lambda d: _with_metrics(d, 3, steps=5), "counts 5 steps, steps.jsonl holds 3"),
+    (lambda d: _with_metrics(d, 3, scene="gen-4"), "scene 'gen-4'"),
+    (lambda d: _with_metrics(d, 3, method="push-only"), "method 'push-only'"),
+    (lambda d: _with_metrics(d, 3, last=0.25), "final occupancy_iou differ"),
+    (lambda d: (_with_metrics(d, 3), save_snapshot(d / "belief_step7.npz", _belief(7), *_truth(7))),
+     "belief_step7.npz is of a step"),
+])
+def test_load_run_refuses_a_folder_that_mixes_two_runs_and_says_what_disagrees(
+        tmp_path: Path, plant: object, message: str) -> None:
+    d = tmp_path / "run"
+    _run_folder(d, steps=3)
+    plant(d)  # type: ignore[operator]
+    with pytest.raises(UserError, match="mixes files of different runs") as e:
+        load_run(d)
+    assert message in str(e.value)
+    assert "--overwrite" in str(e.value)

@@ -139,6 +139,9 @@ def load_run(run_dir: str | Path) -> RunData:
             gt_occ, gt_cls = f["gt_occ"], f["gt_cls"]
         snaps.append(Snapshot(step, EvidentialMap.load(p), gt_occ, gt_cls, f"after step {step}"))
     last = len(steps) - 1
+    if problems := _mixed(config, scene, steps, metrics, snaps):
+        raise UserError(f"{d} mixes files of different runs ({'; '.join(problems)}); rerun into it with "
+                        "--overwrite, or into an empty --out")
     if not snaps or snaps[-1].step != last:
         final = EvidentialMap.load(d / "belief_final.npz")
         if (d / "gt_final.npz").is_file():
@@ -147,3 +150,28 @@ def load_run(run_dir: str | Path) -> RunData:
             occ, cls = np.zeros(final.grid.shape, bool), np.zeros(final.grid.shape, np.int8)
         snaps.append(Snapshot(last, final, occ, cls, f"final (after step {last})"))
     return RunData(d, config, scene, steps, metrics, snaps)
+
+
+def _mixed(config: RunConfig, scene: SceneSpec, steps: list[dict[str, Any]], metrics: dict[str, Any],
+           snaps: list[Snapshot]) -> list[str]:
+    """What shows that a run folder's files come from more than one run (empty if nothing does):
+    metrics.json's step count, scene, method or final metrics disagree with steps.jsonl, scene.json or
+    config.json, or a snapshot is of a step the steps file does not hold."""
+    problems = []
+    if metrics:
+        if metrics.get("steps", len(steps)) != len(steps):
+            problems.append(f"metrics.json counts {metrics['steps']} steps, steps.jsonl holds {len(steps)}")
+        if metrics.get("scene", scene.name) != scene.name:
+            problems.append(f"metrics.json is of scene {metrics['scene']!r}, scene.json of {scene.name!r}")
+        if metrics.get("method", config.method) != config.method:
+            problems.append(f"metrics.json is of method {metrics['method']!r}, config.json of {config.method!r}")
+        if steps:
+            last = steps[-1].get("metrics", {})
+            differ = sorted(k for k, v in last.items() if isinstance(v, (int, float)) and k in metrics
+                            and not (v == metrics[k] or (v != v and metrics[k] != metrics[k])))
+            if differ:
+                problems.append(f"metrics.json's final {', '.join(differ[:3])} differ from the last step's")
+    late = [s.step for s in snaps if s.step >= len(steps)]
+    if late:
+        problems.append(f"belief_step{late[0]}.npz is of a step steps.jsonl does not hold ({len(steps)} steps)")
+    return problems
