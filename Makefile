@@ -56,7 +56,7 @@ test-sapien: sapien
 # Optional Ray executor: local and Ray runs of the benchmark must give identical tables.
 test-ray: setup
 	$(PY) -m pip install -q -e ".[dev,ray]"
-	$(PY) -m pytest -q tests/test_bench.py -k ray
+	$(PY) -m pytest -q tests/test_bench.py tests/test_faults_bench.py -k ray
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -42,6 +42,18 @@ def test_a_dead_worker_is_that_tasks_failure_and_the_others_go_on():
     assert "worker process died" in failure.error
 
 
+def test_a_dead_ray_worker_is_that_tasks_failure_and_the_others_go_on():
+    """On Ray the dying task is retried once (``RAY_RETRIES``) and then comes back as its failure;
+    the others finish (this used to raise WorkerCrashedError out of the whole run)."""
+    pytest.importorskip("ray", reason="Ray is the optional extra msmem[ray]; not installed here")
+    results = run_tasks(square_or_die, [1, 2, -1, 3], executor="ray", workers=2, progress=False, threads=None)
+    assert [r for i, r in enumerate(results) if i != 2] == [1, 4, 9]
+    failure = results[2]
+    assert isinstance(failure, TaskFailure)
+    assert failure.index == 2
+    assert "worker process died" in failure.error
+
+
 def test_a_worker_dying_between_two_submissions_is_a_failure_too(monkeypatch):
     """A worker may die after a wait returned and before the next submit, which then raises
     BrokenProcessPool itself (seen in CI). Reproduced: the pool kills one of its idle workers just

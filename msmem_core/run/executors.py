@@ -7,7 +7,8 @@ its own result file atomically, so a killed run resumes by skipping finished tas
 - ``local``: a ``ProcessPoolExecutor`` with the *spawn* start method (forking a process whose
   OpenMP / torch thread pools are running can deadlock the child); ``workers=1`` runs in this process.
 - ``ray``: ``ray.remote`` tasks (one CPU each), at most ``workers`` in flight; connects to a running
-  cluster if ``ray.init`` was called (or ``RAY_ADDRESS`` is set), else starts a local one.
+  cluster if ``ray.init`` was called (or ``RAY_ADDRESS`` is set), else starts a local one. A task whose
+  worker dies is retried once by Ray (``RAY_RETRIES``), then becomes that task's failure, as locally.
 
 Every worker applies ``configure_threads`` (the OpenMP settings, ``msmem_core.util.threads``) and limits
 torch / numba / OpenMP to ``threads`` threads before it runs a task, so results do not depend on where a
@@ -189,6 +190,9 @@ def _iter_local(
             pool.shutdown(wait=True, cancel_futures=True)
 
 
+RAY_RETRIES = 1  # Ray reruns a task whose worker died this often (e.g. memory freed since); then it fails
+
+
 def _iter_ray(
     fn: Callable[[Any], Any], tasks: Sequence[Any], workers: int, threads: int | None
 ) -> Iterator[tuple[int, Any]]:
@@ -203,7 +207,7 @@ def _iter_ray(
         else:
             ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
     # Ray's workers may not share this process's environment (a cluster started elsewhere): pass the settings
-    remote = ray.remote(num_cpus=1, runtime_env={"env_vars": configure_threads()})(_call)
+    remote = ray.remote(num_cpus=1, max_retries=RAY_RETRIES, runtime_env={"env_vars": configure_threads()})(_call)
     queue = list(enumerate(tasks))[::-1]
     in_flight: dict[Any, int] = {}
     while queue or in_flight:
@@ -212,7 +216,11 @@ def _iter_ray(
             in_flight[remote.remote(fn, i, t, threads)] = i
         done, _ = ray.wait(list(in_flight), num_returns=1)
         for ref in done:
-            yield in_flight.pop(ref), ray.get(ref)
+            i = in_flight.pop(ref)
+            try:
+                yield i, ray.get(ref)
+            except ray.exceptions.RayError as e:  # the worker died (and its retry too), or Ray lost the task
+                yield i, _dead_worker(i, tasks[i], e)
 
 
 def iter_tasks(
