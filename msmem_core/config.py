@@ -186,6 +186,14 @@ def validate_config(data: dict[str, Any], source: str = "config") -> RunConfig:
         raise UserError(f"invalid {source}: {error_lines(e)}") from e
 
 
+def _relative_to(data: dict[str, Any], folder: Path) -> dict[str, Any]:
+    """The config file's paths (``viewpoints.poses_file``) made relative to the file's folder."""
+    vp = data.get("viewpoints")
+    if isinstance(vp, dict) and isinstance(vp.get("poses_file"), str) and not Path(vp["poses_file"]).is_absolute():
+        return data | {"viewpoints": vp | {"poses_file": str(folder / vp["poses_file"])}}
+    return data
+
+
 def load_config(
     method: str | None = None, config_file: str | Path | None = None, overrides: dict[str, Any] | None = None
 ) -> RunConfig:
@@ -197,7 +205,7 @@ def load_config(
     data = deep_merge(data, preset(chosen))
     sources.append(f"preset {chosen}")
     if config_file:
-        data = deep_merge(data, file_data)
+        data = deep_merge(data, _relative_to(file_data, Path(config_file).parent))
         sources.append(str(config_file))
     if overrides:
         data = deep_merge(data, overrides)

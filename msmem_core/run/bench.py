@@ -34,6 +34,7 @@ from msmem_core.errors import IncompleteError, UserError
 from msmem_core.run.metrics import PAPER_COUNT_KEYS, PAPER_METRIC_KEYS, paper_metrics_from_counts, sum_paper_counts
 from msmem_core.util.jsonable import dumps, nan_from_null
 from msmem_core.world.scene import SceneSpec
+from msmem_core.world.viewpoints import read_poses_file
 
 if TYPE_CHECKING:
     from msmem_core.config import RunConfig
@@ -109,9 +110,11 @@ def sha256_text(text: str) -> str:
 
 def fingerprint(cfg: RunConfig, suite: str, scene: SceneSpec, plugins: dict[str, str]) -> dict[str, Any]:
     """What produced an episode: method, suite, scene (hash of its JSON), steps, the resolved config
-    (hash; ``threads`` left out, results do not depend on it) and the versions of the distributions
+    (hash; ``threads`` left out, results do not depend on it; with a poses file, its content too) and the versions of the distributions
     providing the components it uses."""
     config = json.dumps(cfg.model_dump(mode="json", exclude={"threads"}), sort_keys=True)
+    if cfg.viewpoints.poses_file is not None:  # the file's content, not only its name
+        config += read_poses_file(cfg.viewpoints.poses_file).sha256
     return {"method": cfg.method, "suite": suite, "scene_sha256": sha256_text(scene.model_dump_json()),
             "steps": cfg.steps, "config_sha256": sha256_text(config), "plugins": plugins}
 

@@ -111,7 +111,7 @@ def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
     the distributions that provide them."""
     from importlib.metadata import PackageNotFoundError, version
 
-    common = {"camera": cfg.camera, "gripper": cfg.gripper, "seed": cfg.seed}  # as build_episode gives them
+    common = run_wide(cfg)  # as build_episode gives them
     dists = set()
     for kind, ref, where in component_refs(cfg, pm):
         spec = pm.spec(kind, ref.name)
@@ -132,10 +132,14 @@ def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
     return out
 
 
+def run_wide(cfg: RunConfig) -> dict[str, Any]:
+    """Run-wide values a component receives for config fields of the same name the user left unset."""
+    return {"camera": cfg.camera, "gripper": cfg.gripper, "viewpoints": cfg.viewpoints, "seed": cfg.seed}
+
+
 def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | None = None) -> Episode:
     configure_threads()  # before the plugins built here load torch
-    # run-wide values a component receives for config fields the user left unset
-    common = {"camera": cfg.camera, "gripper": cfg.gripper, "seed": cfg.seed}
+    common = run_wide(cfg)
     observe_model = pm.build("belief-model", cfg.observation_model, where="observation_model", **common)
     if not isinstance(observe_model, ObservationModel):
         raise PluginError(f"belief model {cfg.observation_model.name!r} cannot update from observations")

@@ -42,7 +42,7 @@ from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
-from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
+from msmem_core.world.viewpoints import ViewpointConfig, front_views, generate_viewpoints
 
 F32 = NDArray[np.float32]
 FEATURES = ("nx", "ny", "nz", "occupancy")
@@ -101,13 +101,10 @@ class SurfaceCloud:
 
 
 def virtual_front_views(viewpoints: ViewpointConfig | None = None) -> NDArray[np.float64]:
-    """Camera-to-world poses [G, 4, 4] of one virtual camera per viewpoint grid (the grid's centre
-    view), used when no view has been visited (e.g. right after a manipulation)."""
+    """Camera-to-world poses [G, 4, 4] of the virtual front cameras (``viewpoints.front_views``: each
+    grid's centre view), used when no view has been visited (e.g. right after a manipulation)."""
     cfg = viewpoints or ViewpointConfig()
-    poses = generate_viewpoints(cfg)
-    g = cfg.grid
-    centre = (g // 2) * g + g // 2
-    return poses[[k * g * g + centre for k in range(len(cfg.targets_x_m))]]
+    return generate_viewpoints(cfg)[front_views(cfg)]
 
 
 def _trilinear(field: NDArray[np.floating], grid: GridSpec, points: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -76,6 +76,7 @@ from msmem_core.world.geometry import F64
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scene import ShelfSpec
+from msmem_core.world.viewpoints import ViewpointConfig
 from msmem_grasp.fpp import FPPConfig, frontier_points, virtual_front_views
 from msmem_grasp.fusion import FusionConfig, GraspBuffer, GraspHypotheses
 from msmem_grasp.geometric import GeometricConfig, predict_geometric
@@ -177,6 +178,8 @@ class GraspConfig(BaseModel):
     """The run's gripper (filled in by the runner)."""
     camera: CameraConfig = CameraConfig()
     """The run's camera (FPP casts its rays)."""
+    viewpoints: ViewpointConfig = ViewpointConfig()
+    """The run's viewpoints (filled in by the runner): the virtual front cameras are theirs."""
     seed: int = 0
     """Seed of the FPP point sampling (the run's seed; each step draws its own from it)."""
     predictor: Literal["auto", "fe-vmf", "geometric"] = "auto"
@@ -329,7 +332,7 @@ class GraspSkill(Skill):
         visited = sorted(v for v in ctx.visited if 0 <= v < len(ctx.viewpoints))
         views = np.asarray(ctx.viewpoints)[visited].reshape(-1, 4, 4)
         if manipulated < 0:  # nothing predicted in the belief: the virtual front cameras see real evidence
-            views = np.concatenate([views, virtual_front_views()])
+            views = np.concatenate([views, virtual_front_views(self.config.viewpoints)])
         elif not visited:
             # no view since the manipulation: the belief is the effect model's prediction, and grasps
             # planned on predicted geometry fail (docs/results.md); wait for a real view
