@@ -293,6 +293,24 @@ def test_semantic_entropy_term_is_the_clipped_entropy_difference() -> None:
     assert term.score(_ctx(belief), sharp_batch)[0] == 0.0
 
 
+def test_unclipped_semantic_entropy_is_the_papers_difference_and_rewards_removed_entropy() -> None:
+    from msmem_objectives.entropy import SemanticEntropyConfig
+
+    belief = synthetic_belief(4)
+    actions = PushSkill(PushConfig(max_samples=10)).propose(_ctx(belief))
+    pred = AnalyticPushEffect().predict(belief, actions, WORKSPACE)
+    batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
+    term = SemanticEntropyTerm(SemanticEntropyConfig(clip=False))
+    h0 = belief.total_semantic_entropy()
+    want = np.array([h0 - b.total_semantic_entropy() for b in pred.beliefs])
+    np.testing.assert_allclose(term.score(_ctx(belief), batch), want, rtol=1e-6, atol=1e-3)
+    sharper = belief.copy()
+    sharper.eta[0] += 5.0  # more background evidence everywhere: less entropy
+    sharp = CandidateBatch("push", "manipulation", list(actions[:1]), prediction=Prediction.from_beliefs(belief, [sharper]))
+    assert term.score(_ctx(belief), sharp)[0] == pytest.approx(h0 - sharper.total_semantic_entropy(), rel=1e-6)
+    assert term.score(_ctx(belief), sharp)[0] > 0.0
+
+
 # ---------------------------------------------------------------------------------- physics (PyBullet)
 @pytest.fixture(scope="module")
 def sim():  # type: ignore[no-untyped-def]
