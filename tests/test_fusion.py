@@ -45,6 +45,25 @@ def test_two_identical_predictions_double_the_evidence_and_keep_the_mean() -> No
     np.testing.assert_array_equal(buf.hits, 2)
 
 
+def test_a_confirming_update_keeps_only_the_buffered_grasps_a_new_grasp_matches() -> None:
+    g = grasps(5)
+    buf = GraspBuffer(FusionConfig(decay=1.0))
+    buf.update(g)
+    seen_again = g.subset(np.array([1, 3]))  # the post-manipulation view finds two of the five
+    stats = buf.update(seen_again, confirm=True)
+    assert stats.dropped_unconfirmed == 3
+    assert len(buf) == 2
+    np.testing.assert_allclose(buf.contact, g.contact[[1, 3]])
+    np.testing.assert_allclose(buf.alpha, 2 * g.alpha[[1, 3]])  # confirmed ones fuse as usual
+    np.testing.assert_array_equal(buf.hits, 2)
+    # a new grasp elsewhere is added; without confirm nothing is dropped
+    elsewhere = grasps(1, seed=9)
+    elsewhere = GraspHypotheses(elsewhere.contact + 1.0, *[getattr(elsewhere, f) for f in
+                                ("mu_a_hat", "kappa_a_hat", "mu_b", "kappa_b", "alpha", "beta", "width")])
+    stats = buf.update(elsewhere)
+    assert (stats.dropped_unconfirmed, len(buf)) == (0, 3)
+
+
 def test_decay_is_applied_once_per_step() -> None:
     g = grasps()
     gamma = 0.9

@@ -380,6 +380,33 @@ def test_after_a_manipulation_the_buffer_restarts_from_views_taken_since() -> No
     assert float((skill.buffer.alpha + skill.buffer.beta).sum()) > fused
 
 
+def test_with_confirm_a_manipulation_keeps_the_grasps_its_following_view_confirms() -> None:
+    from msmem_grasp.fpp import virtual_front_views
+
+    belief = box_belief([TARGET])
+    moved = box_belief([((-0.15, 0.18), (-0.11, 0.27), 0.14, SUGAR)])  # the object is elsewhere now
+    skill = GraspSkill(GraspConfig(predictor="geometric", fusion={"decay": 1.0}, after_manipulation="confirm"))
+    views = virtual_front_views()
+
+    def at(b: EvidentialMap, step: int, visited: set[int], manipulated: int) -> DecisionContext:
+        c = ctx(b, step=step)
+        c.viewpoints, c.visited, c.last_manipulation = views, visited, manipulated
+        return c
+
+    skill.track(at(belief, 0, set(), -1))
+    before = skill.buffer.state()
+    assert len(before["alpha"]) > 0
+    skill.track(at(belief, 4, set(), 3))  # a manipulation, no view yet: the buffer waits, kept whole
+    assert len(skill.buffer) == len(before["alpha"])
+    skill.track(at(belief, 5, {0, 1, 2}, 3))  # the views see the object where it was: grasps confirmed
+    assert np.all(skill.buffer.hits[: len(before["alpha"])] >= 1)
+    assert (skill.buffer.hits >= 2).sum() > 0.5 * len(before["alpha"])
+    skill.track(at(moved, 7, {0, 1, 2}, 6))  # another manipulation moved it: the old grasps go
+    skill.track(at(moved, 8, {0, 1, 2}, 6))
+    kept = skill.buffer.contact
+    assert len(kept) > 0 and np.all(kept[:, 0] < -0.09), "only grasps on the object's new place remain"
+
+
 def test_the_lift_rises_over_a_low_object_in_the_way_when_the_shelf_leaves_room() -> None:
     low = ((-0.05, 0.12), (0.05, 0.18), 0.04, MEAT)
     short_target = ((-0.02, 0.18), (0.02, 0.27), 0.10, SUGAR)

@@ -18,6 +18,8 @@ A global grasp buffer G_t is updated every step with the current per-point predi
   approach is then the projection of mu_a_hat orthogonal to mu_b (eq. proj). The width is the
   evidence-weighted (S = alpha + beta) mean. The cluster keeps its contact (the cluster centre).
 - *New clusters*: unmatched new grasps are appended.
+- *After a manipulation* (``confirm``): the first update keeps only the buffered grasps that a new
+  grasp of the post-manipulation view matches; the others were about geometry that may have moved.
 - *Stale grasps*: a grasp whose contact left the believed surface (no voxel of the 3x3x3 around the
   contact believed occupied: expected occupancy <= ``surface_threshold`` = 0.5, i.e. believed free
   or back to the prior after a manipulation; or outside the grid) is dropped; so are the weakest
@@ -170,6 +172,8 @@ class FusionStats:
     dropped_stale: int
     dropped_capacity: int
     size: int
+    dropped_unconfirmed: int = 0
+    """Buffered grasps no new grasp matched, dropped because the update was to ``confirm`` them."""
 
 
 class GraspBuffer:
@@ -233,9 +237,18 @@ class GraspBuffer:
             flipped[better] = sign < 0
         return target, flipped
 
-    def update(self, new: GraspHypotheses, belief: EvidentialMap | None = None) -> FusionStats:
-        """G_t <- FE-UMGF(G_{t-1}, G'_t); with ``belief``, grasps off its surface are dropped."""
+    def update(self, new: GraspHypotheses, belief: EvidentialMap | None = None, confirm: bool = False) -> FusionStats:
+        """G_t <- FE-UMGF(G_{t-1}, G'_t); with ``belief``, grasps off its surface are dropped. With
+        ``confirm`` (the first update after a manipulation), buffered grasps that no new grasp matches
+        are dropped: only the hypotheses the post-manipulation view confirms are kept."""
         cfg = self.config
+        unconfirmed = 0
+        if confirm and len(self):
+            joined = np.zeros(len(self), dtype=bool)
+            target, _ = self._match(new)
+            joined[target[target >= 0]] = True
+            unconfirmed = int((~joined).sum())
+            self._keep(joined)
         gamma = cfg.decay
         self.alpha = gamma * self.alpha
         self.beta = gamma * self.beta
@@ -276,7 +289,8 @@ class GraspBuffer:
             keep[order[: cfg.max_grasps]] = True
             self._keep(keep)
         self.steps += 1
-        return FusionStats(len(new), int(m.sum()), int((flipped & m).sum()), len(add), stale, over, len(self))
+        return FusionStats(len(new), int(m.sum()), int((flipped & m).sum()), len(add), stale, over, len(self),
+                           unconfirmed)
 
     def on_surface(self, belief: EvidentialMap) -> NDArray[np.bool_]:
         """[N]: the contact's voxel neighbourhood (radius ``surface_radius_voxels``) holds a voxel with

@@ -192,6 +192,10 @@ class GraspConfig(BaseModel):
     ray_stride_px: int = Field(4, ge=1, le=64)
     """FPP casts every n-th pixel of each camera."""
     fusion: FusionConfig = FusionConfig()
+    after_manipulation: Literal["clear", "confirm"] = "clear"
+    """What a manipulation does to the FE-UMGF buffer. clear: it is emptied (grasps fused on the
+    geometry before it are no evidence about the scene now). confirm: the first update after it keeps
+    only the grasps its view's predictions match (the paper's fusion; docs/grasp.md)."""
     geometric: GeometricConfig = GeometricConfig()
     min_affordance: float = Field(0.5, ge=0.0, le=1.0)
     """Grasps with a lower fused E[q] are not executed."""
@@ -273,6 +277,8 @@ class GraspSkill(Skill):
         """(step, belief) of the last FE-UMGF update."""
         self._manipulated = -1
         """``last_manipulation`` of the context the buffer was built under."""
+        self._confirm = False
+        """The next update confirms the buffer (``after_manipulation: confirm``)."""
 
     # ------------------------------------------------------------------------------ prediction
     @property
@@ -323,10 +329,14 @@ class GraspSkill(Skill):
         if ctx.step == 0 or (self._tracked is not None and ctx.step < self._tracked[0]):
             self.buffer.clear()  # a new episode
             self._manipulated = -1
+            self._confirm = False
         if manipulated != self._manipulated:
             # the scene changed physically: grasps fused on the geometry before it are not evidence
             # about the scene now (pushed objects and their neighbours moved as no model foresaw)
-            self.buffer.clear()
+            if self.config.after_manipulation == "clear":
+                self.buffer.clear()
+            else:
+                self._confirm = True
             self._manipulated = manipulated
         self._tracked = (int(ctx.step), ctx.belief)
         visited = sorted(v for v in ctx.visited if 0 <= v < len(ctx.viewpoints))
@@ -340,7 +350,8 @@ class GraspSkill(Skill):
         seed = int(np.random.default_rng([self.config.seed, int(ctx.step)]).integers(2**31))
         new = self.predict(ctx.belief, ctx.shelf, views, seed)
         with span("FE-UMGF fusion"):
-            self.buffer.update(new, ctx.belief)
+            self.buffer.update(new, ctx.belief, confirm=self._confirm)
+            self._confirm = False
 
     # -------------------------------------------------------------------------------- proposal
     def propose(self, ctx: Any) -> list[Action]:
