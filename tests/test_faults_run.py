@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -79,10 +80,12 @@ def test_os_and_memory_errors_are_one_line_rc_2(monkeypatch, capsys):
                         (MemoryError("Unable to allocate 67.0 GiB for an array with shape (4096, 4096, 1024)"),
                          "msmem: error: out of memory: Unable to allocate 67.0 GiB for an array with shape "
                          "(4096, 4096, 1024)")]:
-        def show() -> None:
-            raise current
+        def raiser(current: BaseException) -> Callable[[], None]:
+            def command() -> None:
+                raise current
+            return command
 
-        current = error
+        show = raiser(error)
         monkeypatch.setattr(app, "CORE_COMMANDS", {**app.CORE_COMMANDS, "config": {"show": show}})
         monkeypatch.setattr(sys, "argv", ["msmem", "config", "show"])
         with pytest.raises(SystemExit) as exit_:

@@ -404,7 +404,8 @@ def test_with_confirm_a_manipulation_keeps_the_grasps_its_following_view_confirm
     skill.track(at(moved, 7, {0, 1, 2}, 6))  # another manipulation moved it: the old grasps go
     skill.track(at(moved, 8, {0, 1, 2}, 6))
     kept = skill.buffer.contact
-    assert len(kept) > 0 and np.all(kept[:, 0] < -0.09), "only grasps on the object's new place remain"
+    assert len(kept) > 0
+    assert np.all(kept[:, 0] < -0.09), "only grasps on the object's new place remain"
 
 
 def test_the_lift_rises_over_a_low_object_in_the_way_when_the_shelf_leaves_room() -> None:

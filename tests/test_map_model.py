@@ -522,7 +522,8 @@ def test_the_shipped_network_settings_file_is_valid():
 
     arch = read_config_file(Path(__file__).parents[1] / "examples" / "train" / "cnabu-map-v2.yaml")
     cfg = MapNetConfig(**arch)
-    assert cfg.class_head == "object" and cfg.nearest_class
+    assert cfg.class_head == "object"
+    assert cfg.nearest_class
 
 
 def test_the_object_head_class_loss_hardly_depends_on_the_occupancy():

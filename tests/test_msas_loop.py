@@ -241,8 +241,10 @@ def test_a_failed_manipulation_does_not_write_the_prediction_of_success(ig, succ
     after = beliefs[0]
     a, b = after.alpha.ravel(), after.beta.ravel()
     if success:  # the prediction, as is (no disturbed cap configured)
-        assert np.all(b[:10] == 60.0) and np.all(a[:10] == 1.0)
+        assert np.all(b[:10] == 60.0)
+        assert np.all(a[:10] == 1.0)
     else:  # the belief before, its evidence shrunk to alpha + beta <= 4 where the prediction would have changed it
         assert np.allclose(a[:10] + b[:10], cfg.failed_manipulation_cap)
         assert np.all(a[:10] > b[:10]), "still believed occupied: only the confidence is gone"
-        assert np.all(a[10:] == 30.0) and np.all(b[10:] == 2.0)
+        assert np.all(a[10:] == 30.0)
+        assert np.all(b[10:] == 2.0)

@@ -306,7 +306,8 @@ def test_unclipped_semantic_entropy_is_the_papers_difference_and_rewards_removed
     np.testing.assert_allclose(term.score(_ctx(belief), batch), want, rtol=1e-6, atol=1e-3)
     sharper = belief.copy()
     sharper.eta[0] += 5.0  # more background evidence everywhere: less entropy
-    sharp = CandidateBatch("push", "manipulation", list(actions[:1]), prediction=Prediction.from_beliefs(belief, [sharper]))
+    sharp = CandidateBatch("push", "manipulation", list(actions[:1]),
+                           prediction=Prediction.from_beliefs(belief, [sharper]))
     assert term.score(_ctx(belief), sharp)[0] == pytest.approx(h0 - sharper.total_semantic_entropy(), rel=1e-6)
     assert term.score(_ctx(belief), sharp)[0] > 0.0
 

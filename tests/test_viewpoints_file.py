@@ -66,7 +66,8 @@ def test_without_them_the_start_is_the_most_frontal_central_view_and_the_fronts_
     poses = generate_viewpoints(cfg)
     start = default_start_view(cfg)
     forward = poses[:, :3, 2]
-    assert abs(poses[start, 0, 3]) < 0.05 and forward[start, 1] > 0.99  # straight in, near x = 0
+    assert abs(poses[start, 0, 3]) < 0.05  # near x = 0
+    assert forward[start, 1] > 0.99  # straight in
     fronts = front_views(cfg)
     assert len(fronts) == 3
     targets = [f // 100 for f in fronts]  # view k * 100 + i looks at target k (left, middle, right)
@@ -89,7 +90,8 @@ def _write(tmp_path: Path, text: str, name: str = "v.yaml") -> Path:
 
 @pytest.mark.parametrize(("text", "message"), [
     ("views: []\n", "lists no views"),
-    ("views:\n  - {position_m: [0, -0.5, 0.1], target_m: [0, -0.5, 0.1]}\n", "views.0: position_m and target_m coincide"),
+    ("views:\n  - {position_m: [0, -0.5, 0.1], target_m: [0, -0.5, 0.1]}\n",
+     "views.0: position_m and target_m coincide"),
     ("views:\n  - {position_m: [0, -0.5, 0.1], target_m: [0, 0.2, 0.1]}\n  - {position_m: [0, -0.5]}\n",
      "views.1 must have exactly position_m and target_m, or matrix"),
     ("views:\n  - matrix: [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n", "views.0: the rotation"),
@@ -97,7 +99,8 @@ def _write(tmp_path: Path, text: str, name: str = "v.yaml") -> Path:
     ("views:\n  - {position_m: [0, -0.5, .nan], target_m: [0, 0.2, 0.1]}\n", "must be finite"),
     ("views:\n  - {position_m: [0, -0.5, 0.1], target_m: [0, 0.2, 0.1]}\nstart_view: 1\n",
      "start_view must be a view index from 0 to 0"),
-    ("views:\n  - {position_m: [0, -0.5, 0.1], target_m: [0, 0.2, 0.1]}\nfront_view: [0]\n", "unknown key(s) front_view"),
+    ("views:\n  - {position_m: [0, -0.5, 0.1], target_m: [0, 0.2, 0.1]}\nfront_view: [0]\n",
+     "unknown key(s) front_view"),
     ("cameras: []\n", "must be a mapping with a list 'views'"),
     ("views: [\n", "is not valid YAML"),
 ])
@@ -114,7 +117,7 @@ def test_config_errors_name_the_field(tmp_path: Path) -> None:
         load_config("view-only", None, {"viewpoints": {"poses_file": str(tmp_path / "missing.yaml")}})
     with pytest.raises(UserError, match="poses_file replaces the parametric grids: leave out grid"):
         load_config("view-only", None, {"viewpoints": {"poses_file": str(EXAMPLE), "grid": 4}})
-    with pytest.raises(UserError, match="msas.start_view 300 is not a viewpoint: there are 300"):
+    with pytest.raises(UserError, match=r"msas\.start_view 300 is not a viewpoint: there are 300"):
         load_config("view-only", None, {"viewpoints": {"poses_file": str(EXAMPLE)}, "msas": {"start_view": 300}})
 
 
@@ -134,7 +137,8 @@ def test_a_relative_path_in_a_config_file_is_relative_to_that_file(tmp_path: Pat
     monkeypatch.chdir(tmp_path)  # not the config file's folder
     cfg = load_config("view-only", Path("cfg/run.yaml"))
     assert cfg.viewpoints.num_views == 12
-    assert cfg.viewpoints.poses_file is not None and cfg.viewpoints.poses_file.resolve() == (sub / "views.json")
+    assert cfg.viewpoints.poses_file is not None
+    assert cfg.viewpoints.poses_file.resolve() == (sub / "views.json")
     assert RunConfig.model_validate_json(cfg.model_dump_json()) == cfg  # a run folder's config.json reads back
 
 
@@ -171,5 +175,6 @@ def test_a_pybullet_episode_runs_over_the_views_of_a_file(tmp_path: Path) -> Non
     np.testing.assert_array_equal(ep.viewpoints, generate_viewpoints(cfg.viewpoints))
     final = run_episode(ep, tmp_path / "run")
     views = [r["action"]["view"] for r in ep.records]
-    assert len(views) == 3 and all(0 <= v < 27 and v != 13 for v in views)
+    assert len(views) == 3
+    assert all(0 <= v < 27 and v != 13 for v in views)
     assert final["observable_iou"] > 0.1

@@ -33,7 +33,8 @@ def main() -> None:
             lines.append(f"  - {{position_m: [{p}], target_m: [{t}]}}")
     out = Path(__file__).with_name("shared-positions.yaml")
     out.write_text("\n".join(lines) + "\n")
-    print(f"wrote {out}: {len(TARGETS_X_M) * len(middle)} views from {len(np.unique(middle.round(6), axis=0))} positions")
+    positions = len(np.unique(middle.round(6), axis=0))
+    print(f"wrote {out}: {len(TARGETS_X_M) * len(middle)} views from {positions} positions")
 
 
 if __name__ == "__main__":
