@@ -218,8 +218,11 @@ def test_many_faults_are_summarised_in_one_line():
 # ----------------------------------------------------------------------------- what ships still validates
 SHIPPED_SCENES = [*sorted((ROOT / "msmem_core" / "suites").glob("*/scene_*.json")),
                   *sorted(ROOT.glob("examples/**/*scene*.json"))]
-SHIPPED_CONFIGS = sorted(p for p in ROOT.glob("examples/**/*.yaml") if "train" not in p.relative_to(ROOT).parts)
-"""Run configs (``examples/train/`` holds network settings for the train commands, checked in their tests)."""
+SHIPPED_CONFIGS = sorted(p for p in ROOT.glob("examples/**/*.yaml")
+                         if "train" not in p.relative_to(ROOT).parts and not p.name.endswith(".poses.yaml"))
+"""Run configs (``examples/train/`` holds network settings for the train commands, checked in their tests;
+``*.poses.yaml`` are viewpoint files, checked below)."""
+SHIPPED_POSES = sorted(ROOT.glob("examples/**/*.poses.yaml"))
 
 
 def test_every_suite_is_covered():
@@ -229,6 +232,14 @@ def test_every_suite_is_covered():
 @pytest.mark.parametrize("path", SHIPPED_SCENES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_shipped_scenes_validate(path):
     load_scene(str(path))
+
+
+@pytest.mark.parametrize("path", SHIPPED_POSES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_shipped_viewpoint_files_validate(path):
+    from msmem_core.world.scene import ShelfSpec
+    from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
+
+    assert len(generate_viewpoints(ViewpointConfig(poses_file=path), ShelfSpec())) > 0
 
 
 @pytest.mark.parametrize("path", SHIPPED_CONFIGS, ids=lambda p: str(p.relative_to(ROOT)))

@@ -25,7 +25,7 @@ from msmem_core.world.viewpoints import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-EXAMPLE = ROOT / "examples" / "viewpoints" / "shared-positions.yaml"
+EXAMPLE = ROOT / "examples" / "viewpoints" / "shared-positions.poses.yaml"
 SMALL = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
 
 

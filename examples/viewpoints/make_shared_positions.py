@@ -1,4 +1,4 @@
-"""Write ``shared-positions.yaml``: 300 views from 100 camera positions, each looking at three targets.
+"""Write ``shared-positions.poses.yaml``: 300 views from 100 camera positions, each looking at three targets.
 
 MEM's reference camera set reuses about 100 camera positions for three look-at targets (left, middle,
 right of the shelf), which msmem's parametric grids (one grid of positions per target) cannot express.
@@ -31,7 +31,7 @@ def main() -> None:
             p = ", ".join(f"{v:.4f}" for v in pos)
             t = ", ".join(f"{v:.4f}" for v in target)
             lines.append(f"  - {{position_m: [{p}], target_m: [{t}]}}")
-    out = Path(__file__).with_name("shared-positions.yaml")
+    out = Path(__file__).with_name("shared-positions.poses.yaml")
     out.write_text("\n".join(lines) + "\n")
     positions = len(np.unique(middle.round(6), axis=0))
     print(f"wrote {out}: {len(TARGETS_X_M) * len(middle)} views from {positions} positions")
