@@ -21,7 +21,7 @@ from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
 from msmem_core.world.camera import Observation
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.scene import ShelfSpec
+from msmem_core.world.scene import NUM_CLASSES, ShelfSpec
 
 if TYPE_CHECKING:
     from msmem_core.map.ig import IGField, IGService
@@ -44,6 +44,8 @@ class Workspace:
     grid: GridSpec
     shelf: ShelfSpec
     gripper: GripperSpec = field(default_factory=GripperSpec)
+    num_classes: int = NUM_CLASSES
+    """Classes of the belief (background and every object class of the scene)."""
 
     @property
     def interior_box(self) -> tuple[float, float, float, float, float, float]:
@@ -251,6 +253,9 @@ class BeliefModel(ABC):  # noqa: B024 - a plugin implements one or both roles, s
     """Base of belief models; a plugin implements one or both roles."""
 
     roles: ClassVar[frozenset[str]] = frozenset()
+    classes: tuple[str, ...] | None = None
+    """The class names a learned model was trained on (index = class id, ``background`` first);
+    None: any. The runner refuses a scene whose classes (``SceneSpec.class_names``) differ."""
 
 
 class ObservationModel(BeliefModel):

@@ -327,7 +327,8 @@ def run_msas(
 
     rng = np.random.default_rng(seed)
     with tracing(tracer):
-        belief = observe_model.update(EvidentialMap.empty(workspace.grid), sim.observe(ig.viewpoints[start_view]))
+        belief = observe_model.update(EvidentialMap.empty(workspace.grid, workspace.num_classes),
+                                     sim.observe(ig.viewpoints[start_view]))
         if on_start is not None:
             on_start(belief)
         visited: set[int] = set()

@@ -360,3 +360,24 @@ def test_full_method_episode_runs_unchanged_on_each_backend(simulator: str, tmp_
             assert max(outcome.displacement_m.values()) > 0.005, f"step {r['step']}: the push moved nothing"
     assert (tmp_path / "steps.jsonl").is_file()
     assert len((tmp_path / "steps.jsonl").read_text().splitlines()) == steps
+
+
+@pytest.mark.parametrize("renderer", RENDERERS)
+def test_a_class_the_scene_declares_is_built_and_labelled_as_on_pybullet(renderer: str,
+                                                                          pybullet_small: PyBulletSimulator) -> None:
+    from tests.test_scene_classes import chips_scene
+
+    scene = chips_scene()
+    sim = sapien_sim(renderer)
+    try:
+        sim.reset(scene)
+        pybullet_small.reset(scene)
+        view = front_view(scene)
+        a, b = sim.observe(view), pybullet_small.observe(view)
+    finally:
+        sim.close()
+    chips = scene.object_class("chips_can").class_id
+    assert chips == 15
+    for obs in (a, b):
+        assert obs.object_ids is not None
+        assert set(np.unique(obs.labels[obs.object_ids == 0]).tolist()) == {chips}

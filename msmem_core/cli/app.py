@@ -136,8 +136,9 @@ def run(
         if staged is not None:
             shutil.rmtree(staged, ignore_errors=True)
         raise
-    typer.echo(f"msmem run: method {cfg.method}, scene {ep.scene.name} ({len(ep.scene.objects)} objects, "
-               f"{ep.scene.hidden_objects} hidden), simulator {cfg.simulator.name}, {cfg.steps} steps -> {out_dir}")
+    hidden = f", {ep.scene.hidden_objects} hidden" if ep.scene.hidden_objects is not None else ""
+    typer.echo(f"msmem run: method {cfg.method}, scene {ep.scene.name} ({len(ep.scene.objects)} objects{hidden}), "
+               f"simulator {cfg.simulator.name}, {cfg.steps} steps -> {out_dir}")
     if quiet:
         final = run_episode(ep, staged)
     else:

@@ -35,13 +35,16 @@ from numpy.typing import NDArray
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.run.runfolder import RunData, load_run
 from msmem_core.world.grid import GridSpec
-from msmem_core.world.scene import CLASS_NAMES
+from msmem_core.world.scene import SceneSpec
 
 CLASS_COLORS: tuple[str, ...] = (
     "#b0b0b0", "#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
     "#7f7f7f", "#bcbd22", "#17becf", "#aec7e8", "#ffbb78", "#98df8a", "#ff9896",
 )
-"""Colour of each class id (0 background, grey) in every report figure."""
+"""Colour of each built-in class id (0 background, grey) in every report figure."""
+EXTRA_COLORS: tuple[str, ...] = ("#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#5254a3", "#8ca252",
+                                 "#bd9e39", "#ad494a", "#a55194")
+"""Colours of a scene's own classes without ``color_rgb``, in turn."""
 UNKNOWN_COLOR = "#202020"
 """Colour of occupied voxels whose class is unknown (vacuity >= tau_chi)."""
 SKILL_SYMBOLS = ("circle", "diamond", "square", "x", "triangle-up", "cross", "star")
@@ -205,9 +208,19 @@ def _polyline(segs: list[NDArray[np.float64]]) -> tuple[list[float | None], ...]
 
 
 # ------------------------------------------------------------------------------------- plotly figures
-def _class_colorscale() -> list[list[float | str]]:
-    """Discrete colour scale over ids -1 (unknown) .. C-1, for cmin = -1.5, cmax = C - 0.5."""
+def class_palette(scene: SceneSpec) -> tuple[list[str], list[str]]:
+    """(names, colours) of class ids -1 (unknown), 0 (background), 1, ... for a scene: the built-ins'
+    colours, then each of the scene's own classes' ``color_rgb`` or the next of ``EXTRA_COLORS``."""
     colors = [UNKNOWN_COLOR, *CLASS_COLORS]
+    for i, c in enumerate(scene.object_classes[len(CLASS_COLORS) - 1:]):
+        rgb = c.color_rgb
+        colors.append("#" + "".join(f"{round(255 * v):02x}" for v in rgb) if rgb is not None
+                      else EXTRA_COLORS[i % len(EXTRA_COLORS)])
+    return ["unknown", *scene.class_names], colors
+
+
+def _class_colorscale(colors: list[str]) -> list[list[float | str]]:
+    """Discrete colour scale over ids -1 (unknown) .. C-1, for cmin = -1.5, cmax = C - 0.5."""
     n = len(colors)
     scale: list[list[float | str]] = []
     for i, c in enumerate(colors):
@@ -215,12 +228,13 @@ def _class_colorscale() -> list[list[float | str]]:
     return scale
 
 
-def _class_marker(cls: NDArray[np.int16], show_scale: bool) -> dict[str, Any]:
-    n = len(CLASS_COLORS)
+def _class_marker(cls: NDArray[np.int16], show_scale: bool, palette: tuple[list[str], list[str]]) -> dict[str, Any]:
+    names, colors = palette
+    n = len(colors) - 1
     return {
-        "color": cls, "colorscale": _class_colorscale(), "cmin": -1.5, "cmax": n - 0.5, "showscale": show_scale,
+        "color": cls, "colorscale": _class_colorscale(colors), "cmin": -1.5, "cmax": n - 0.5, "showscale": show_scale,
         "colorbar": {"title": {"text": "class"}, "tickvals": list(range(-1, n)),
-                     "ticktext": ["unknown", *CLASS_NAMES[:n]], "len": 0.9, "x": 1.02},
+                     "ticktext": names, "len": 0.9, "x": 1.02},
     }
 
 
@@ -238,6 +252,8 @@ def figure_3d(run: RunData) -> Any:
     from plotly.subplots import make_subplots
 
     cfg, shelf = run.config, run.scene.shelf
+    palette = class_palette(run.scene)
+    names_all = np.array(palette[0])
     fig = make_subplots(rows=1, cols=2, specs=[[{"type": "scene"}, {"type": "scene"}]], horizontal_spacing=0.02,
                         subplot_titles=("belief", "ground truth"))
     edges = _polyline(shelf_edges(shelf))
@@ -256,11 +272,11 @@ def figure_3d(run: RunData) -> Any:
         idx: list[int] = []
         bl = belief_layer(snap.belief, shelf, cfg.msas.tau_chi)
         layers.append(bl)
-        names = np.array(["unknown", *CLASS_NAMES])[bl.cls + 1]
+        names = names_all[bl.cls + 1]
         custom = np.stack([bl.values["occupancy"], bl.values["vacuity"], bl.values["occupancy entropy"]], axis=1)
         fig.add_trace(go.Scatter3d(
             x=bl.xyz[:, 0], y=bl.xyz[:, 1], z=bl.xyz[:, 2], mode="markers", name="belief p > 0.5",
-            marker={"size": 2.5, "symbol": "square", **_class_marker(bl.cls, True)},
+            marker={"size": 2.5, "symbol": "square", **_class_marker(bl.cls, True, palette)},
             text=names, customdata=custom, visible=first, legendgroup="belief",
             hovertemplate="%{text}<br>p %{customdata[0]:.2f}, vacuity %{customdata[1]:.2f}, "
                           "H_occ %{customdata[2]:.2f}<extra>belief</extra>"), row=1, col=1)
@@ -269,8 +285,8 @@ def figure_3d(run: RunData) -> Any:
         gl = gt_layer(snap.belief.grid, snap.gt_occ, snap.gt_cls)
         fig.add_trace(go.Scatter3d(
             x=gl.xyz[:, 0], y=gl.xyz[:, 1], z=gl.xyz[:, 2], mode="markers", name="ground truth",
-            marker={"size": 2.5, "symbol": "square", **_class_marker(gl.cls, False)},
-            text=np.array(CLASS_NAMES)[np.clip(gl.cls, 0, len(CLASS_NAMES) - 1)], visible=first,
+            marker={"size": 2.5, "symbol": "square", **_class_marker(gl.cls, False, palette)},
+            text=names_all[np.clip(gl.cls, 0, len(names_all) - 2) + 1], visible=first,
             hovertemplate="%{text}<extra>ground truth</extra>"), row=1, col=2)
         idx.append(len(fig.data) - 1)
         cams = camera_path(run, snap.step)
@@ -326,7 +342,7 @@ def figure_3d(run: RunData) -> Any:
     for name, scale, lo, hi in COLOURINGS:
         args: dict[str, Any]
         if scale is None:
-            markers = [_class_marker(layer.cls, True) for layer in layers]
+            markers = [_class_marker(layer.cls, True, palette) for layer in layers]
             args = {f"marker.{k}": [m[k] for m in markers] for k in ("color", "colorscale", "cmin", "cmax", "colorbar")}
         else:
             args = {"marker.color": [layer.values[name] for layer in layers],
@@ -530,8 +546,8 @@ def _hex_rgb(c: str) -> tuple[float, float, float]:
     return tuple(int(c[i : i + 2], 16) / 255 for i in (1, 3, 5))  # type: ignore[return-value]
 
 
-def _class_rgb(cls: NDArray[np.integer]) -> NDArray[np.float64]:
-    table = np.array([_hex_rgb(c) for c in (UNKNOWN_COLOR, *CLASS_COLORS)])
+def _class_rgb(cls: NDArray[np.integer], colors: list[str]) -> NDArray[np.float64]:
+    table = np.array([_hex_rgb(c) for c in colors])
     return table[np.clip(np.asarray(cls) + 1, 0, len(table) - 1)]
 
 
@@ -585,6 +601,7 @@ def png_belief(run: RunData, path: Path) -> None:
 
     snap = run.final
     shelf = run.scene.shelf
+    palette = class_palette(run.scene)
     bl = belief_layer(snap.belief, shelf, run.config.msas.tau_chi)
     gl = gt_layer(snap.belief.grid, snap.gt_occ, snap.gt_cls)
     fig = Figure(figsize=(12, 5.2), dpi=110, layout="constrained")
@@ -594,8 +611,8 @@ def png_belief(run: RunData, path: Path) -> None:
     arrows, _ = manipulations(run, snap.step)
     for i, (layer, title) in enumerate(((bl, f"belief {snap.label} (p > 0.5)"), (gl, "ground truth"))):
         ax = fig.add_subplot(1, 2, i + 1, projection="3d")
-        ax.scatter(layer.xyz[:, 0], layer.xyz[:, 1], layer.xyz[:, 2], c=_class_rgb(layer.cls), s=2, marker="s",
-                   depthshade=False, linewidths=0)
+        ax.scatter(layer.xyz[:, 0], layer.xyz[:, 1], layer.xyz[:, 2], c=_class_rgb(layer.cls, palette[1]), s=2,
+                   marker="s", depthshade=False, linewidths=0)
         for seg in shelf_edges(shelf):
             ax.plot(seg[:, 0], seg[:, 1], seg[:, 2], color="#555", lw=0.8)
         for a in arrows:
@@ -616,7 +633,7 @@ def png_belief(run: RunData, path: Path) -> None:
     present = sorted({int(c) for c in np.concatenate([bl.cls, gl.cls])})
     from matplotlib.patches import Patch
 
-    handles = [Patch(color=_class_rgb(np.array([c]))[0], label=(["unknown", *CLASS_NAMES])[c + 1]) for c in present]
+    handles = [Patch(color=_class_rgb(np.array([c]), palette[1])[0], label=palette[0][c + 1]) for c in present]
     fig.legend(handles=handles, loc="outside lower center", ncols=min(8, max(1, len(handles))), fontsize=7)
     fig.suptitle(f"{run.config.method}, {run.scene.name}: final belief vs ground truth "
                  f"(occupancy IoU {run.metrics.get('occupancy_iou', float('nan')):.3f})", fontsize=11)

@@ -20,7 +20,7 @@ from pydantic import ValidationError
 
 from msmem_core.config import RunConfig
 from msmem_core.errors import Interrupted, PluginError
-from msmem_core.interfaces import EffectModel, ObservationModel, Outcome, Simulator, Workspace
+from msmem_core.interfaces import BeliefModel, EffectModel, ObservationModel, Outcome, Simulator, Workspace
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.map.ig import IGService, shelf_interior_mask, shelf_wall_mask
 from msmem_core.msas import BoundSkill, Decision, Objective, run_msas
@@ -42,7 +42,7 @@ from msmem_core.util.jsonable import dumps
 from msmem_core.util.threads import configure_threads
 from msmem_core.util.trace import Tracer
 from msmem_core.world.placement import load_scene
-from msmem_core.world.scene import SceneSpec
+from msmem_core.world.scene import SceneSpec, class_mismatch
 from msmem_core.world.scenegen import generate_scene
 from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
 from msmem_core.world.visibility import observable_mask
@@ -83,7 +83,7 @@ class Episode:
     @property
     def workspace(self) -> Workspace:
         """The grid, shelf and gripper every skill, effect model and term of the episode works in."""
-        return Workspace(self.ig.grid, self.scene.shelf, self.cfg.gripper)
+        return Workspace(self.ig.grid, self.scene.shelf, self.cfg.gripper, self.scene.num_classes)
 
     @property
     def start_view(self) -> int:
@@ -143,6 +143,7 @@ def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | Non
     observe_model = pm.build("belief-model", cfg.observation_model, where="observation_model", **common)
     if not isinstance(observe_model, ObservationModel):
         raise PluginError(f"belief model {cfg.observation_model.name!r} cannot update from observations")
+    models: list[tuple[str, str, BeliefModel]] = [("observation_model", cfg.observation_model.name, observe_model)]
     skills = []
     for i, ref in enumerate(cfg.skills):
         skill = pm.build("skill", ref, where=f"skills.{i}", **common)
@@ -155,11 +156,17 @@ def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | Non
             effect = pm.build("belief-model", eref, where=f"skills.{i}.effect_model", **common)
             if not isinstance(effect, EffectModel):
                 raise PluginError(f"belief model {eref.name!r} cannot predict effects (skills.{i}.effect_model)")
+            models.append((f"skills.{i}.effect_model", eref.name, effect))
         skills.append(BoundSkill(ref.name, skill, effect))
     terms = [(t.name, t.weight, pm.build("objective-term", t, where=f"objective.{i}", **common))
              for i, t in enumerate(cfg.objective)]
     sim = pm.build("simulator", cfg.simulator, where="simulator", **common)
     scene = scene or resolve_scene(cfg)  # after the plugins, so a bad name fails fast
+    for where, name, model in models:
+        if model.classes is not None and (why := class_mismatch(model.classes, scene.class_names)):
+            raise PluginError(f"{where}: {name} was trained on {len(model.classes)} classes and scene "
+                              f"{scene.name!r} has {scene.num_classes}: {why}; use an analytic model there or "
+                              "train one on scenes with these classes")
     viewpoints = generate_viewpoints(cfg.viewpoints, scene.shelf)
     ig = IGService(cfg.grid_spec(scene.shelf), cfg.camera, viewpoints, scene.shelf, cfg.ig)
     return Episode(cfg, scene, sim, observe_model, skills, Objective(terms), ig, viewpoints)

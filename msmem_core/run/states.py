@@ -71,7 +71,8 @@ def mid_episode_state(ep: Episode, views: int, seed: int) -> EpisodeState:
     others = np.setdiff1d(np.arange(len(ep.viewpoints)), [start])
     order = [start, *(int(v) for v in rng.choice(others, size=views - 1, replace=False))]
     skills = clone_skills(ep.skills)
-    belief = ep.observe_model.update(EvidentialMap.empty(ep.ig.grid), ep.sim.observe(ep.viewpoints[start]))
+    belief = ep.observe_model.update(EvidentialMap.empty(ep.ig.grid, ep.scene.num_classes),
+                                    ep.sim.observe(ep.viewpoints[start]))
     for step in range(views - 1):
         ctx = decision_context(ep, belief, visited_at(order, step), step, allowed=False)
         for b in skills:

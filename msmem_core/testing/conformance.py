@@ -38,7 +38,7 @@ from msmem_core.testing.plugin_conformance import (
 from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.world.geometry import look_at, quat_to_matrix, rotation_angle_deg
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.scene import ObjectSpec, SceneSpec, object_class
+from msmem_core.world.scene import ObjectSpec, SceneSpec
 
 PLACEMENT_TOL_M = 0.01
 PLACEMENT_TOL_DEG = 3.0
@@ -165,8 +165,8 @@ def check_observation(sim: Simulator, scene: SceneSpec, camera: CameraConfig, *,
         seen = set(np.unique(obs.labels[v, u]).tolist())
         assert len(seen) == 1, f"object {o.id} carries several labels {seen} in one view (noise must be structured)"
         allowed = {o.class_id}
-        if not noise_free and o.object_class.confusable_with:
-            allowed.add(object_class(o.object_class.confusable_with).class_id)
+        if not noise_free and o.object_class.confusable_id is not None:
+            allowed.add(o.object_class.confusable_id)
         assert seen <= allowed, f"object {o.id} labelled {seen}, expected one of {allowed}"
 
 

@@ -15,7 +15,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from msmem_core.world.geometry import pose_matrix
-from msmem_core.world.scene import ObjectSpec, Part, ShelfSpec, object_class
+from msmem_core.world.scene import ObjectClass, ObjectSpec, Part, ShelfSpec, object_class
 
 CYLINDER_SECTIONS = 48
 
@@ -30,26 +30,27 @@ def part_mesh_local(part: Part) -> trimesh.Trimesh:
 
 
 @cache
-def _class_part_meshes(class_name: str) -> tuple[trimesh.Trimesh, ...]:
-    return tuple(part_mesh_local(p) for p in object_class(class_name).parts)
+def _class_part_meshes(cls: ObjectClass) -> tuple[trimesh.Trimesh, ...]:
+    return tuple(part_mesh_local(p) for p in cls.parts)
 
 
 @cache
-def _class_mesh(class_name: str) -> trimesh.Trimesh:
-    mesh = trimesh.util.concatenate(list(_class_part_meshes(class_name)))
+def _class_mesh(cls: ObjectClass) -> trimesh.Trimesh:
+    mesh = trimesh.util.concatenate(list(_class_part_meshes(cls)))
     assert isinstance(mesh, trimesh.Trimesh)
     return mesh
 
 
-def class_mesh(class_name: str) -> trimesh.Trimesh:
-    """The class's mesh in its object frame (a concatenation of watertight part meshes; a copy)."""
-    return _class_mesh(class_name).copy()
+def class_mesh(cls: str | ObjectClass) -> trimesh.Trimesh:
+    """The class's mesh in its object frame (a concatenation of watertight part meshes; a copy); a
+    name is a built-in class."""
+    return _class_mesh(object_class(cls) if isinstance(cls, str) else cls).copy()
 
 
 def part_meshes(obj: ObjectSpec, pose: NDArray[np.float64] | None = None) -> list[trimesh.Trimesh]:
     """One watertight mesh per part, at ``pose`` (default: the spec's pose)."""
     t = obj.pose() if pose is None else np.asarray(pose, dtype=np.float64)
-    return [m.copy().apply_transform(t) for m in _class_part_meshes(obj.class_name)]
+    return [m.copy().apply_transform(t) for m in _class_part_meshes(obj.object_class)]
 
 
 def object_mesh(obj: ObjectSpec, pose: NDArray[np.float64] | None = None) -> trimesh.Trimesh:
@@ -59,7 +60,7 @@ def object_mesh(obj: ObjectSpec, pose: NDArray[np.float64] | None = None) -> tri
     from outside and which ground truth does not use.
     """
     t = obj.pose() if pose is None else np.asarray(pose, dtype=np.float64)
-    return _class_mesh(obj.class_name).copy().apply_transform(t)
+    return _class_mesh(obj.object_class).copy().apply_transform(t)
 
 
 def shelf_meshes(shelf: ShelfSpec) -> list[trimesh.Trimesh]:

@@ -16,7 +16,7 @@ from typing import Annotated, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import AfterValidator, BaseModel, Field, ValidationError, field_validator
+from pydantic import AfterValidator, BaseModel, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from msmem_core.errors import UserError
 from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Int, error_lines, load_json
@@ -60,6 +60,10 @@ class ObjectClass(BaseModel):
     mass_kg: float = Field(gt=0.0)
     confusable_with: str | None = None
     """Class the structured segmentation noise may report instead of this one."""
+    confusable_id: Int | None = None
+    """Its class id (filled in with the registry the class belongs to)."""
+    color_rgb: tuple[float, float, float] | None = None
+    """Report colour (0..1); None: the report's palette colour for the class id."""
 
     @property
     def footprint_radius_m(self) -> float:
@@ -127,8 +131,9 @@ def _catalogue() -> tuple[ObjectClass, ...]:
         ("foam_brick", [_box(0.075, 0.050, 0.050)], 0.03, "wood_block"),
         ("wood_block", [_box(0.085, 0.085, 0.200)], 0.73, "foam_brick"),
     ]
+    ids = {n: i + 1 for i, (n, *_) in enumerate(classes)}
     return tuple(
-        ObjectClass(name=n, class_id=i + 1, parts=tuple(p), mass_kg=m, confusable_with=c)
+        ObjectClass(name=n, class_id=i + 1, parts=tuple(p), mass_kg=m, confusable_with=c, confusable_id=ids[c])
         for i, (n, p, m, c) in enumerate(classes)
     )
 
@@ -141,10 +146,47 @@ BACKGROUND = 0
 
 @cache
 def object_class(name: str) -> ObjectClass:
+    """A built-in class by name (a scene's own classes: ``SceneSpec.object_class``)."""
     for c in OBJECT_CLASSES:
         if c.name == name:
             return c
     raise UserError(f"unknown object class {name!r}; known: {', '.join(c.name for c in OBJECT_CLASSES)}")
+
+
+def model_classes(recorded: Sequence[str] | None, num_classes: int) -> tuple[str, ...] | None:
+    """The classes a learned model was trained on: those its sidecar records, else (weights from
+    before class lists were recorded) the built-ins when the count matches them, else None."""
+    if recorded:
+        return tuple(recorded)
+    return CLASS_NAMES if num_classes == NUM_CLASSES else None
+
+
+def class_mismatch(trained: Sequence[str], scene: tuple[str, ...]) -> str:
+    """'' when a model trained on ``trained`` fits a scene with classes ``scene``, else what differs."""
+    if tuple(trained) == scene:
+        return ""
+    missing = [c for c in scene if c not in trained]
+    if missing:
+        return f"it does not know {', '.join(missing)}"
+    return f"its classes are {', '.join(trained)}, the scene's {', '.join(scene)}"
+
+
+ClassName = Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$", max_length=64)]
+
+
+class ClassSpec(BaseModel):
+    """A class a scene declares beside the built-ins (docs/scenes.md): its name, its geometry (convex
+    ``parts``, as the built-ins), its mass, and optionally the class segmentation noise confuses it
+    with and its colour in reports."""
+
+    model_config = FROZEN_MODEL_CONFIG
+
+    name: ClassName
+    parts: tuple[Part, ...] = Field(min_length=1)
+    mass_kg: float = Field(0.2, gt=0.0, le=50.0)
+    confusable_with: str | None = None
+    color_rgb: tuple[float, float, float] | None = None
+    """Report colour (0..1 per channel); None: a colour from the report's palette."""
 
 
 class ShelfSpec(BaseModel):
@@ -191,19 +233,15 @@ class ObjectSpec(BaseModel):
 
     id: Int = Field(ge=0)
     class_name: str
+    """A built-in class, or one the scene declares in ``classes`` (checked by ``SceneSpec``)."""
     position_m: tuple[float, float, float]
     quat_xyzw: Quaternion = (0.0, 0.0, 0.0, 1.0)
-
-    @field_validator("class_name")
-    @classmethod
-    def _known_class(cls, v: str) -> str:
-        if v not in CLASS_NAMES[1:]:
-            raise ValueError(f"unknown object class {v!r}")
-        return v
+    _class: ObjectClass | None = PrivateAttr(default=None)
+    """The class as the scene that holds this object resolved it (its own classes included)."""
 
     @property
     def object_class(self) -> ObjectClass:
-        return object_class(self.class_name)
+        return self._class if self._class is not None else object_class(self.class_name)
 
     @property
     def class_id(self) -> int:
@@ -221,6 +259,8 @@ class SceneSpec(BaseModel):
     name: str = "scene"
     seed: Int | None = None
     shelf: ShelfSpec = ShelfSpec()
+    classes: tuple[ClassSpec, ...] = ()
+    """Classes beyond the built-ins, numbered after them in this order (ids 15, 16, ...)."""
     objects: tuple[ObjectSpec, ...] = ()
     occupancy_fraction: float | None = None
     """Fraction of the shelf floor covered by object footprints (recorded by the generator)."""
@@ -234,6 +274,58 @@ class SceneSpec(BaseModel):
         if len(set(ids)) != len(ids):
             raise ValueError("object ids must be unique")
         return v
+
+    @model_validator(mode="after")
+    def _resolve_classes(self) -> SceneSpec:
+        """Number the scene's classes after the built-ins and give every object its class; refuse
+        unknown or duplicate names, naming the field."""
+        known: dict[str, ObjectClass] = {c.name: c for c in OBJECT_CLASSES}
+        for i, c in enumerate(self.classes):
+            if c.name in known:
+                what = "a built-in class" if known[c.name] in OBJECT_CLASSES else "declared twice"
+                raise ValueError(f"classes.{i}.name: {c.name!r} is {what}")
+            known[c.name] = ObjectClass(name=c.name, class_id=len(known) + 1, parts=c.parts, mass_kg=c.mass_kg,
+                                        confusable_with=c.confusable_with, color_rgb=c.color_rgb)
+        for i, c in enumerate(self.classes):
+            if c.confusable_with is not None:
+                if c.confusable_with not in known:
+                    raise ValueError(f"classes.{i}.confusable_with: unknown class {c.confusable_with!r}")
+                known[c.name] = known[c.name].model_copy(update={"confusable_id": known[c.confusable_with].class_id})
+        objects = []
+        for i, o in enumerate(self.objects):
+            if o.class_name not in known:
+                raise ValueError(f"objects.{i}.class_name: unknown object class {o.class_name!r}; known: "
+                                 f"{', '.join(known)} (declare a new one in the scene's classes)")
+            o = o.model_copy()
+            o._class = known[o.class_name]
+            objects.append(o)
+        object.__setattr__(self, "objects", tuple(objects))  # the copies that know their class
+        self._registry = tuple(known.values())
+        return self
+
+    _registry: tuple[ObjectClass, ...] = PrivateAttr(default=OBJECT_CLASSES)
+
+    @property
+    def object_classes(self) -> tuple[ObjectClass, ...]:
+        """The built-in classes and the scene's own, in class-id order (ids 1, 2, ...)."""
+        return self._registry
+
+    @property
+    def class_names(self) -> tuple[str, ...]:
+        """``background`` and every object class, indexed by class id."""
+        return ("background", *(c.name for c in self._registry))
+
+    @property
+    def num_classes(self) -> int:
+        """Classes of the belief over this scene: background and every object class."""
+        return 1 + len(self._registry)
+
+    def object_class(self, name: str) -> ObjectClass:
+        """A class of this scene (built-in or declared) by name."""
+        for c in self._registry:
+            if c.name == name:
+                return c
+        raise UserError(f"unknown object class {name!r}; known: {', '.join(c.name for c in self._registry)}")
 
     def to_json(self, path: str | Path) -> None:
         Path(path).write_text(self.model_dump_json(indent=2))

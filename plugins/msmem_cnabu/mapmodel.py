@@ -15,6 +15,7 @@ from msmem_cnabu.features import grid_interior, wall_mask
 from msmem_core.errors import UserError
 from msmem_core.interfaces import Observation, ObservationModel
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.world.scene import model_classes
 
 SHIPPED = Path(__file__).resolve().parent / "weights" / "cnabu_map.pt"
 
@@ -30,6 +31,7 @@ class CNABUMapObservationModel(ObservationModel):
         self.config = cfg = config or CNABUMapConfig()
         self.net, self.meta = load_map_net(cfg.weights if cfg.weights is not None else SHIPPED)
         self.meta["weights"] = str(cfg.weights if cfg.weights is not None else SHIPPED)
+        self.classes = model_classes(self.meta.get("classes"), self.net.config.num_classes)
         self.rays = AnalyticObservationModel(AnalyticObservationConfig(
             pixel_stride=cfg.pixel_stride, surface_offset_m=cfg.surface_offset_m, far_m=cfg.far_m))
         self._valid: dict[Any, torch.Tensor] = {}

@@ -47,6 +47,7 @@ from msmem_core.map.belief import EvidentialMap
 from msmem_core.plugins import ComponentRef
 from msmem_core.util.artifacts import atomic_save, write_sidecar
 from msmem_core.util.validation import error_lines
+from msmem_core.world.scene import model_classes
 
 WEIGHTS_FORMAT = "msmem-cnabu-map"
 WEIGHTS_VERSION = 1
@@ -288,7 +289,8 @@ def load_widened(net: MapNet, state: dict[str, torch.Tensor], source: str) -> No
 def write_weights(net: MapNet, out: Path, record: dict[str, Any]) -> dict[str, Any]:
     out.parent.mkdir(parents=True, exist_ok=True)
     atomic_save(net.state_dict(), out)
-    head = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "kind": "map"}
+    head = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "kind": "map",
+            "classes": list(model_classes(None, net.config.num_classes) or ())}  # datagen scenes: built-ins
     return write_sidecar(out, head, {"model": net.config.model_dump(), "parameters": parameter_count(net), **record})
 
 

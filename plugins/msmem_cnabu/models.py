@@ -43,6 +43,7 @@ from msmem_cnabu.weights import WeightsError, load_cnabu
 from msmem_core.interfaces import Action, EffectModel, ObservationModel, Prediction, Workspace
 from msmem_core.map.belief import BeliefDelta, EvidentialMap
 from msmem_core.world.camera import Observation
+from msmem_core.world.scene import model_classes
 
 
 class _Threads:
@@ -135,6 +136,7 @@ class CNABUObservationModel(ObservationModel):
 
         self.config = cfg = config or CNABUObserveConfig()
         self.net, self.meta = load_cnabu("observe", cfg.weights)
+        self.classes = model_classes(self.meta.get("classes"), self.net.config.num_classes)
         self.rays = AnalyticObservationModel(AnalyticObservationConfig(
             pixel_stride=cfg.pixel_stride, surface_offset_m=cfg.surface_offset_m, far_m=cfg.far_m))
         self._walls: dict[Any, NDArray[np.bool_]] = {}
@@ -165,6 +167,7 @@ class _CNABUEffect(EffectModel):
     def __init__(self, config: CNABUEffectConfig | None = None) -> None:
         self.config = config or CNABUEffectConfig()
         self.net, self.meta = load_cnabu(self.kind, self.config.weights)
+        self.classes = model_classes(self.meta.get("classes"), self.net.config.num_classes)
         self._inside_cache: dict[tuple[Any, tuple[float, ...]], torch.Tensor] = {}
 
     def _inside(self, grid: Any, interior: tuple[float, ...]) -> torch.Tensor:

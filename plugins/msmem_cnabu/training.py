@@ -31,6 +31,7 @@ from msmem_core.learn.datagen import read_manifest
 from msmem_core.learn.training import TrainingRun, optimizer_step, split_scenes, training_record, warmup_cosine
 from msmem_core.util.artifacts import atomic_save, write_sidecar
 from msmem_core.util.artifacts import sha256_file as sha256_file  # re-exported: callers import it from here
+from msmem_core.world.scene import model_classes
 
 WEIGHTS_FORMAT = "msmem-cnabu"
 WEIGHTS_VERSION = 1
@@ -280,6 +281,7 @@ def write_weights(model: CNABUNet, out: str | Path, **meta: Any) -> dict[str, An
 
 def _write_sidecar(out: Path, kind: str, model_cfg: CNABUNetConfig, cfg: TrainConfig, data: dict[str, Any],
                    history: list[dict[str, Any]], best: dict[str, Any], seconds: float) -> None:
-    head = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "kind": kind}
+    head = {"format": WEIGHTS_FORMAT, "version": WEIGHTS_VERSION, "kind": kind,
+            "classes": list(model_classes(None, model_cfg.num_classes) or ())}  # datagen scenes: built-ins
     model = {"parameter_bytes": parameter_bytes(CNABUNet(model_cfg)), "model": model_cfg.model_dump()}
     write_sidecar(out, head, training_record(model, cfg.model_dump(), data, history, best, seconds))

@@ -275,7 +275,7 @@ def _first_exit(
 def sample_antipodal(cls: ObjectClass, config: AntipodalConfig, gripper: GripperSpec) -> GraspSet:
     """Antipodal, collision-free grasps of one class in its object frame (no cache)."""
     rng = np.random.default_rng([config.seed, cls.class_id])
-    mesh = class_mesh(cls.name)
+    mesh = class_mesh(cls)
     solids = Solids.from_parts(cls.parts)
     eps = 5e-4  # > the 0.11 mm sagitta of the prism meshes of the cylinders
     count = int(np.clip(round(config.samples_per_m2 * mesh.area), config.min_samples, config.max_samples))
@@ -330,7 +330,7 @@ def cache_key(cls: ObjectClass, config: AntipodalConfig, gripper: GripperSpec) -
 
 
 def class_grasps(
-    class_name: str,
+    class_name: str | ObjectClass,
     config: AntipodalConfig | None = None,
     gripper: GripperSpec | None = None,
     directory: str | Path | None = None,
@@ -339,8 +339,8 @@ def class_grasps(
     """Grasps of a class in its object frame, from ``<cache>/<class>-<key>.npz`` or generated and cached."""
     config = config or AntipodalConfig()
     gripper = gripper or GripperSpec()
-    cls = object_class(class_name)
-    path = Path(directory or cache_dir()) / f"{class_name}-{cache_key(cls, config, gripper)}.npz"
+    cls = object_class(class_name) if isinstance(class_name, str) else class_name
+    path = Path(directory or cache_dir()) / f"{cls.name}-{cache_key(cls, config, gripper)}.npz"
     if use_cache and path.exists():
         return GraspSet.load(path)
     grasps = sample_antipodal(cls, config, gripper)
@@ -368,7 +368,7 @@ def grasps_in_scene(
     boards = Solids.from_boxes(scene.shelf.boards())
     out: dict[int, GraspSet] = {}
     for o in scene.objects:
-        grasps = class_grasps(o.class_name, config, gripper, directory).transformed(world[o.id])
+        grasps = class_grasps(o.object_class, config, gripper, directory).transformed(world[o.id])
         others = Solids.concat([boards, *(s for i, s in solids.items() if i != o.id)])
         out[o.id] = grasps.subset(~grasp_collides(grasps, others, gripper, margin))
     return out

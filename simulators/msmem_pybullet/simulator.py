@@ -38,7 +38,7 @@ from msmem_core.sim.motion import (
 from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.world.geometry import matrix_to_quat, pose_matrix
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.scene import ObjectClass, ObjectSpec, SceneSpec, ShelfSpec, object_class, parts_centroid
+from msmem_core.world.scene import ObjectClass, ObjectSpec, SceneSpec, ShelfSpec, parts_centroid
 
 OBJECT_FRICTION = 0.6
 """Lateral friction of objects (Bullet multiplies the coefficients of the two bodies in contact)."""
@@ -236,8 +236,7 @@ class PyBulletSimulator(FloatingGripperSimulator):
         )
         if state is not None:
             self._set_body_state(uid, state)
-        other = cls.confusable_with
-        return _Object(uid, cls.class_id, object_class(other).class_id if other else None, com)
+        return _Object(uid, cls.class_id, cls.confusable_id, com)
 
     def _build_gripper(self) -> None:
         """Palm base (its frame is the gripper frame) with two prismatic fingers along gripper x."""

@@ -28,6 +28,7 @@ with warnings.catch_warnings():  # "Failed to find system libvulkan": SAPIEN the
 from msmem_core.errors import UserError
 from msmem_core.world.camera import Observation
 from msmem_core.world.meshes import class_mesh
+from msmem_core.world.scene import ObjectClass
 from msmem_sapien.scene import _matrix, _sapien_pose
 
 log = logging.getLogger(__name__)
@@ -72,9 +73,9 @@ def native_renderer() -> tuple[bool, str]:
 
 
 @functools.cache
-def _class_soup(class_name: str) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+def _class_soup(cls: ObjectClass) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Vertices and faces of a class's part meshes in its object frame (what ground truth voxelises)."""
-    mesh = class_mesh(class_name)
+    mesh = class_mesh(cls)
     return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
 
 
@@ -190,7 +191,7 @@ class CameraView:
             count += len(v)
 
         for oid, obj in self._objects.items():
-            v, f = _class_soup(obj.spec.class_name)
+            v, f = _class_soup(obj.spec.object_class)
             t = _matrix(obj.entity.pose)
             add(v @ t[:3, :3].T + t[:3, 3], f, oid)
         for m in [*self._shelf_meshes(self._scene.shelf), self._gripper_world_mesh()]:

@@ -34,7 +34,7 @@ with warnings.catch_warnings():  # "Failed to find system libvulkan": SAPIEN the
 from msmem_core.interfaces import GRIPPER_ID, SHELF_ID
 from msmem_core.world.geometry import matrix_to_quat, pose_matrix, quat_to_matrix
 from msmem_core.world.meshes import part_mesh_local, shelf_meshes
-from msmem_core.world.scene import ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec, object_class, parts_centroid
+from msmem_core.world.scene import ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec, parts_centroid
 
 OBJECT_FRICTION = 0.6
 """Friction coefficient of objects, as in the PyBullet backend (pairs get Bullet's products)."""
@@ -266,14 +266,13 @@ class SceneBuilder:
             body.set_linear_velocity(np.array(state.linear_velocity, np.float32))
             body.set_angular_velocity(np.array(state.angular_velocity, np.float32))
         self._ids[entity.per_scene_id] = spec.id
-        other = cls.confusable_with
         boxes = [_part_box(q) for q in cls.parts]
         return _Object(
             spec,
             entity,
             body,
             cls.class_id,
-            object_class(other).class_id if other else None,
+            cls.confusable_id,
             (np.array([b[0] for b in boxes]), np.array([b[1] for b in boxes]), np.array([b[2] for b in boxes])),
         )
 
