@@ -381,3 +381,20 @@ def test_a_class_the_scene_declares_is_built_and_labelled_as_on_pybullet(rendere
     for obs in (a, b):
         assert obs.object_ids is not None
         assert set(np.unique(obs.labels[obs.object_ids == 0]).tolist()) == {chips}
+
+
+def test_a_mesh_class_is_built_from_its_convex_pieces_and_labelled(tmp_path) -> None:
+    from tests.test_mesh_objects import _l_scene
+
+    scene = _l_scene(tmp_path)
+    sim = sapien_sim("raycast")
+    try:
+        sim.reset(scene)
+        pose = sim.object_poses()[0]
+        obs = sim.observe(front_view(scene))
+    finally:
+        sim.close()
+    np.testing.assert_allclose(pose[:3, 3], scene.objects[0].position_m, atol=0.005)
+    assert pose[2, 2] > 0.999
+    assert obs.object_ids is not None
+    assert set(np.unique(obs.labels[obs.object_ids == 0]).tolist()) == {15}

@@ -50,7 +50,7 @@ def test_a_declared_class_is_numbered_after_the_built_ins_and_its_objects_know_i
     ({"classes": [{**CHIPS, "name": "mug"}]}, "classes.0.name: 'mug' is a built-in class"),
     ({"classes": [{**CHIPS, "confusable_with": "crisps"}]}, "classes.0.confusable_with: unknown class 'crisps'"),
     ({"classes": [{**CHIPS, "name": "Chips Can"}]}, "String should match pattern"),
-    ({"classes": [{**CHIPS, "parts": []}]}, "at least 1 item"),
+    ({"classes": [{**CHIPS, "parts": []}]}, "class 'chips_can' needs either parts or a mesh"),
 ])
 def test_bad_classes_are_refused_naming_the_field(tmp_path: Path, data: dict, message: str) -> None:
     f = tmp_path / "scene.json"

@@ -25,6 +25,9 @@ def part_mesh_local(part: Part) -> trimesh.Trimesh:
     transform = pose_matrix(part.position_m, part.quat_xyzw)
     if part.kind == "box":
         return trimesh.creation.box(extents=part.size_m, transform=transform)
+    if part.kind == "convex":
+        hull = trimesh.convex.convex_hull(np.asarray(part.vertices_m, dtype=np.float64))
+        return hull.apply_transform(transform)
     radius, height = part.size_m
     return trimesh.creation.cylinder(radius=radius, height=height, sections=CYLINDER_SECTIONS, transform=transform)
 

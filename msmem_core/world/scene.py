@@ -34,19 +34,63 @@ Quaternion = Annotated[tuple[float, float, float, float], AfterValidator(_rotati
 
 
 class Part(BaseModel):
-    """One convex primitive of an object, in the object frame."""
+    """One convex primitive of an object, in the object frame: a box, a cylinder, or the convex hull
+    of ``vertices_m`` (``convex``: the pieces of a mesh's convex decomposition, ``world.meshparts``)."""
 
     model_config = FROZEN_MODEL_CONFIG
 
-    kind: Literal["box", "cylinder"]
-    size_m: tuple[float, ...]
-    """box: full extents (x, y, z); cylinder: (radius, height) along the part's z."""
+    kind: Literal["box", "cylinder", "convex"]
+    size_m: tuple[float, ...] = ()
+    """box: full extents (x, y, z); cylinder: (radius, height) along the part's z; convex: unused."""
+    vertices_m: tuple[tuple[float, float, float], ...] = ()
+    """convex: points whose hull is the part, in the part's frame (at least 4, not coplanar)."""
     position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     quat_xyzw: Quaternion = (0.0, 0.0, 0.0, 1.0)
 
+    @model_validator(mode="after")
+    def _shape(self) -> Part:
+        want = {"box": 3, "cylinder": 2, "convex": 0}[self.kind]
+        if len(self.size_m) != want or any(v <= 0 for v in self.size_m):
+            raise ValueError(f"a {self.kind} part needs size_m of {want} positive values" if want else
+                             "a convex part takes vertices_m, not size_m")
+        if self.kind == "convex":
+            v = np.asarray(self.vertices_m, dtype=np.float64).reshape(-1, 3)
+            if len(v) < 4 or np.linalg.matrix_rank(v[1:] - v[0], tol=1e-6) < 3:
+                raise ValueError("a convex part needs at least 4 vertices_m that are not coplanar")
+        elif self.vertices_m:
+            raise ValueError(f"a {self.kind} part takes size_m, not vertices_m")
+        return self
+
     @property
     def half_height_m(self) -> float:
+        if self.kind == "convex":
+            z = np.asarray(self.vertices_m)[:, 2]
+            return float(z.max() - z.min()) / 2
         return self.size_m[2] / 2 if self.kind == "box" else self.size_m[1] / 2
+
+    def volume_and_centroid(self) -> tuple[float, NDArray[np.float64]]:
+        """Volume (m^3) and centroid in the object frame."""
+        if self.kind == "box":
+            return float(np.prod(self.size_m)), np.asarray(self.position_m, dtype=np.float64)
+        if self.kind == "cylinder":
+            return math.pi * self.size_m[0] ** 2 * self.size_m[1], np.asarray(self.position_m, dtype=np.float64)
+        from scipy.spatial import ConvexHull
+
+        v = np.asarray(self.vertices_m, dtype=np.float64)
+        hull = ConvexHull(v)
+        c = v[hull.vertices].mean(axis=0)  # an interior point: split the hull into tetrahedra from it
+        tri = v[hull.simplices]
+        vols = np.abs(np.einsum("ij,ij->i", tri[:, 0] - c, np.cross(tri[:, 1] - c, tri[:, 2] - c))) / 6
+        local = ((tri.sum(axis=1) + c) / 4 * vols[:, None]).sum(axis=0) / vols.sum()
+        return float(vols.sum()), pose_matrix(self.position_m, self.quat_xyzw)[:3, :3] @ local + self.position_m
+
+    def footprint_radius_m(self) -> float:
+        """Largest horizontal distance of the part from the object's origin."""
+        if self.kind == "convex":
+            w = np.asarray(self.vertices_m) @ pose_matrix((0, 0, 0), self.quat_xyzw)[:3, :3].T + self.position_m
+            return float(np.hypot(w[:, 0], w[:, 1]).max())
+        ext = self.size_m[0] if self.kind == "cylinder" else 0.5 * float(np.hypot(self.size_m[0], self.size_m[1]))
+        return float(np.hypot(self.position_m[0], self.position_m[1])) + ext
 
 
 class ObjectClass(BaseModel):
@@ -67,21 +111,16 @@ class ObjectClass(BaseModel):
 
     @property
     def footprint_radius_m(self) -> float:
-        r = 0.0
-        for p in self.parts:
-            ext = p.size_m[0] if p.kind == "cylinder" else 0.5 * float(np.hypot(p.size_m[0], p.size_m[1]))
-            r = max(r, float(np.hypot(p.position_m[0], p.position_m[1])) + ext)
-        return r
+        return max((p.footprint_radius_m() for p in self.parts), default=0.0)
 
 
 def parts_centroid(parts: Sequence[Part]) -> NDArray[np.float64]:
     """Volume-weighted centroid of the parts (overlaps counted twice; good enough for a mass centre).
 
     The backends put an object's mass centre here."""
-    vols = np.array(
-        [float(np.prod(q.size_m)) if q.kind == "box" else math.pi * q.size_m[0] ** 2 * q.size_m[1] for q in parts]
-    )
-    centres = np.array([q.position_m for q in parts], dtype=np.float64)
+    vc = [q.volume_and_centroid() for q in parts]
+    vols = np.array([v for v, _ in vc])
+    centres = np.array([c for _, c in vc], dtype=np.float64)
     return (vols[:, None] * centres).sum(axis=0) / vols.sum()
 
 
@@ -174,19 +213,56 @@ def class_mismatch(trained: Sequence[str], scene: tuple[str, ...]) -> str:
 ClassName = Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$", max_length=64)]
 
 
+class MeshSpec(BaseModel):
+    """A mesh file as an object's geometry (``world.meshparts``): OBJ, STL, PLY, or a URDF whose first
+    collision mesh (with its scale) is used."""
+
+    model_config = FROZEN_MODEL_CONFIG
+
+    file: str
+    """Relative paths in a scene file are relative to that file; ``pybullet_data:duck.obj`` is a file
+    of the installed ``pybullet_data`` package."""
+    scale: float | tuple[float, float, float] = 1.0
+    """Metres per mesh unit (one factor, or one per axis)."""
+    quat_xyzw: Quaternion = (0.0, 0.0, 0.0, 1.0)
+    """Rotation of the mesh into the object frame (z up), applied after scaling: a y-up mesh standing
+    upright takes (0.7071, 0, 0, 0.7071)."""
+    max_hulls: Int = Field(16, ge=1, le=64)
+    """At most this many convex pieces (CoACD)."""
+    threshold: float = Field(0.05, gt=0.0, le=1.0)
+    """CoACD's concavity threshold: lower follows the mesh more closely, with more pieces."""
+
+
 class ClassSpec(BaseModel):
     """A class a scene declares beside the built-ins (docs/scenes.md): its name, its geometry (convex
-    ``parts``, as the built-ins), its mass, and optionally the class segmentation noise confuses it
-    with and its colour in reports."""
+    ``parts`` as the built-ins, or a ``mesh``), its mass, and optionally the class segmentation noise
+    confuses it with and its colour in reports."""
 
     model_config = FROZEN_MODEL_CONFIG
 
     name: ClassName
-    parts: tuple[Part, ...] = Field(min_length=1)
+    parts: tuple[Part, ...] = ()
+    mesh: MeshSpec | None = None
     mass_kg: float = Field(0.2, gt=0.0, le=50.0)
     confusable_with: str | None = None
     color_rgb: tuple[float, float, float] | None = None
     """Report colour (0..1 per channel); None: a colour from the report's palette."""
+
+    @model_validator(mode="after")
+    def _one_geometry(self) -> ClassSpec:
+        if bool(self.parts) == (self.mesh is not None):
+            raise ValueError(f"class {self.name!r} needs either parts or a mesh")
+        return self
+
+    def geometry(self) -> tuple[Part, ...]:
+        """The class's convex parts: its own, or its mesh's pieces (decomposed once, then cached)."""
+        if self.mesh is None:
+            return self.parts
+        from msmem_core.world.meshparts import mesh_pieces
+
+        m = self.mesh
+        pieces, _ = mesh_pieces(m.file, m.scale, m.max_hulls, m.threshold, quat_xyzw=m.quat_xyzw)
+        return tuple(Part(kind="convex", vertices_m=tuple(map(tuple, v))) for v in pieces)
 
 
 class ShelfSpec(BaseModel):
@@ -284,7 +360,11 @@ class SceneSpec(BaseModel):
             if c.name in known:
                 what = "a built-in class" if known[c.name] in OBJECT_CLASSES else "declared twice"
                 raise ValueError(f"classes.{i}.name: {c.name!r} is {what}")
-            known[c.name] = ObjectClass(name=c.name, class_id=len(known) + 1, parts=c.parts, mass_kg=c.mass_kg,
+            try:
+                parts = c.geometry()
+            except UserError as e:
+                raise ValueError(f"classes.{i}.mesh: {e}") from None
+            known[c.name] = ObjectClass(name=c.name, class_id=len(known) + 1, parts=parts, mass_kg=c.mass_kg,
                                         confusable_with=c.confusable_with, color_rgb=c.color_rgb)
         for i, c in enumerate(self.classes):
             if c.confusable_with is not None:
@@ -342,6 +422,11 @@ class SceneSpec(BaseModel):
             raise UserError(f"scene file {p} is not valid JSON: {e.msg} at line {e.lineno}") from e
         except ValueError as e:  # a duplicate key
             raise UserError(f"scene file {p} is not valid JSON: {e}") from e
+        for c in data.get("classes", []) if isinstance(data, dict) else []:  # mesh paths: relative to the file
+            mesh = c.get("mesh") if isinstance(c, dict) else None
+            file = mesh.get("file") if isinstance(mesh, dict) else None
+            if isinstance(file, str) and not Path(file).is_absolute() and ":" not in file:
+                mesh["file"] = str((p.parent / mesh["file"]).resolve())
         try:
             return cls.model_validate(data)
         except ValidationError as e:

@@ -61,6 +61,14 @@ def _candidates(
     return flat, grid.origin + (ijk + 0.5) * s
 
 
+def _unique_directions(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Unit directions of the rows of ``v``, each line once (v and -v are one axis)."""
+    u = v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+    first = np.argmax(np.abs(u) > 1e-9, axis=1)  # the first clearly non-zero component is made positive
+    u[u[np.arange(len(u)), first] < 0] *= -1
+    return np.unique(np.round(u, 9), axis=0)
+
+
 @cache
 def _polytope(part: Part) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Vertices, face normals and edge directions of a part in its own frame.
@@ -75,6 +83,12 @@ def _polytope(part: Part) -> tuple[NDArray[np.float64], NDArray[np.float64], NDA
     )
     if part.kind == "box":
         return verts, np.eye(3), np.eye(3)
+    if part.kind == "convex":  # the hull's face normals and edge directions, each direction once
+        at_origin = {"position_m": (0.0, 0.0, 0.0), "quat_xyzw": (0.0, 0.0, 0.0, 1.0)}
+        hull = part_mesh_local(part.model_copy(update=at_origin))
+        normals = _unique_directions(np.asarray(hull.face_normals))
+        edges = np.asarray(hull.vertices)[hull.edges_unique]
+        return verts, normals, _unique_directions(edges[:, 1] - edges[:, 0])
     n = CYLINDER_SECTIONS
     a = 2 * np.pi * (np.arange((n + 1) // 2) + 0.5) / n  # opposite sides are parallel for even n
     side = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=-1)

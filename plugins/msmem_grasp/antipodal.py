@@ -28,6 +28,7 @@ import trimesh
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.errors import UserError
 from msmem_core.world.geometry import F64, boxes_overlap, pose_matrix
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.meshes import class_mesh
@@ -130,6 +131,9 @@ class Solids:
         pose = np.eye(4) if pose is None else pose
         rots, cens, halves, cyl = [], [], [], []
         for p in parts:
+            if p.kind == "convex":
+                raise UserError("antipodal ground truth covers box and cylinder parts only; a mesh class's "
+                                "convex pieces are not supported yet (docs/scenes.md)")
             t = pose @ pose_matrix(p.position_m, p.quat_xyzw)
             rots.append(t[:3, :3])
             cens.append(t[:3, 3])

@@ -17,8 +17,11 @@ Design notes:
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -38,7 +41,9 @@ from msmem_core.sim.motion import (
 from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.world.geometry import matrix_to_quat, pose_matrix
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.scene import ObjectClass, ObjectSpec, SceneSpec, ShelfSpec, parts_centroid
+from msmem_core.world.meshes import part_mesh_local
+from msmem_core.world.meshparts import cache_dir
+from msmem_core.world.scene import ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec, parts_centroid
 
 OBJECT_FRICTION = 0.6
 """Lateral friction of objects (Bullet multiplies the coefficients of the two bodies in contact)."""
@@ -91,6 +96,22 @@ class _Snapshot:
     finger_target_m: float
     gripper_target: tuple[tuple[float, float, float], tuple[float, float, float, float]]
     parked: bool
+
+
+def convex_obj(part: Part) -> Path:
+    """An OBJ file of a convex part's vertices (PyBullet builds a convex hull from a GEOM_MESH file),
+    written once per vertex set into the mesh cache (``msmem_core.world.meshparts.cache_dir``)."""
+    v = np.asarray(part.vertices_m, dtype=np.float64)
+    key = hashlib.sha256(v.tobytes()).hexdigest()[:16]
+    path = cache_dir() / "pybullet" / f"convex-{key}.obj"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+        hull = part_mesh_local(part.model_copy(update={"position_m": (0.0, 0.0, 0.0), "quat_xyzw": (0, 0, 0, 1.0)}))
+        tmp.write_text("".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in hull.vertices)
+                       + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in hull.faces))
+        os.replace(tmp, path)
+    return path
 
 
 @dataclass(frozen=True)
@@ -209,14 +230,15 @@ class PyBulletSimulator(FloatingGripperSimulator):
     def _build_object(self, spec: ObjectSpec, state: _BodyState | None) -> _Object:
         cls: ObjectClass = spec.object_class
         c = self._client
-        boxes = [q.kind == "box" for q in cls.parts]
+        kinds = [q.kind for q in cls.parts]
+        geom = {"box": p.GEOM_BOX, "cylinder": p.GEOM_CYLINDER, "convex": p.GEOM_MESH}
         shape = p.createCollisionShapeArray(
-            shapeTypes=[p.GEOM_BOX if b else p.GEOM_CYLINDER for b in boxes],
-            halfExtents=[
-                [s / 2 for s in q.size_m] if b else [0.0, 0.0, 0.0] for q, b in zip(cls.parts, boxes, strict=True)
-            ],
-            radii=[0.0 if b else q.size_m[0] for q, b in zip(cls.parts, boxes, strict=True)],
-            lengths=[0.0 if b else q.size_m[1] for q, b in zip(cls.parts, boxes, strict=True)],
+            shapeTypes=[geom[k] for k in kinds],
+            halfExtents=[[s / 2 for s in q.size_m] if q.kind == "box" else [0.0, 0.0, 0.0] for q in cls.parts],
+            radii=[q.size_m[0] if q.kind == "cylinder" else 0.0 for q in cls.parts],
+            lengths=[q.size_m[1] if q.kind == "cylinder" else 0.0 for q in cls.parts],
+            fileNames=[str(convex_obj(q)) if q.kind == "convex" else "" for q in cls.parts],
+            meshScales=[[1.0, 1.0, 1.0] for _ in cls.parts],
             collisionFramePositions=[list(q.position_m) for q in cls.parts],
             collisionFrameOrientations=[list(q.quat_xyzw) for q in cls.parts],
             physicsClientId=c,

@@ -79,6 +79,10 @@ def _physx_frictions(obj: float, shelf: float, finger: float) -> tuple[float, fl
 def _part_box(part: Part) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """(centre, rotation, half extents) in the object frame of a part's bounding box."""
     rot = quat_to_matrix(part.quat_xyzw)
+    if part.kind == "convex":  # the vertices' bounds in the part frame
+        v = np.asarray(part.vertices_m, dtype=np.float64)
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        return np.asarray(part.position_m, dtype=np.float64) + rot @ ((lo + hi) / 2), rot, (hi - lo) / 2
     if part.kind == "box":
         half = np.asarray(part.size_m, dtype=np.float64) / 2
     else:
@@ -233,8 +237,12 @@ class SceneBuilder:
         body = sapien.physx.PhysxRigidDynamicComponent()
         for part in cls.parts:
             rot = quat_to_matrix(part.quat_xyzw)
-            if part.kind == "box":
-                shape: Any = sapien.physx.PhysxCollisionShapeBox(
+            if part.kind == "convex":
+                shape: Any = sapien.physx.PhysxCollisionShapeConvexMesh(
+                    np.asarray(part.vertices_m, dtype=np.float32), np.ones(3, np.float32), self._materials["object"]
+                )
+            elif part.kind == "box":
+                shape = sapien.physx.PhysxCollisionShapeBox(
                     half_size=np.asarray(part.size_m, dtype=np.float32) / 2, material=self._materials["object"]
                 )
             else:
