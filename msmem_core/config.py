@@ -67,20 +67,22 @@ FALL_TILT_DEG = 30.0
 class MSASConfig(_Strict):
     tau_chi: float = Field(0.5, gt=0.0, le=1.0)
     """Semantic vacuity below which a voxel's class counts as known (paper: tau_chi)."""
-    manipulation_window: tuple[Int, Int] = (3, 38)
-    """Steps (inclusive) in which manipulation may be chosen ([MEM]: 3 to 38; the push-only preset: 3 to 25)."""
+    manipulation_window: tuple[Int, Int] = (3, 25)
+    """Steps (inclusive) in which manipulation may be chosen: 3 to 25 leaves at least 14 views to check
+    the last one's outcome ([MEM]: 3 to 38, ``examples/mem-rules.yaml``; docs/results.md, "One set of
+    rules")."""
     conf_cutoff: float = Field(0.85, gt=0.0, lt=1.0)
     """A BEV cell counts as mapped when its max class probability (MEM's p^1.8 scaling) exceeds this."""
     mapped_fraction: float = Field(0.99, gt=0.0, le=1.0)
     """Manipulation is disabled once this fraction of BEV cells is mapped ([MEM])."""
     start_view: Int | None = Field(None, ge=0)
     """Viewpoint of the initial observation (None: the centre of the middle grid)."""
-    disturbed_evidence_cap: float | None = Field(None, ge=2.0)
+    disturbed_evidence_cap: float | None = Field(4.0, ge=2.0)
     """After a manipulation, occupancy and class evidence in the voxels its prediction changed (dilated
     by ``disturbed_margin_voxels``) is shrunk towards the prior until alpha + beta <= this, keeping
     which side of 0.5 each expected occupancy is on, so later views can overturn a wrong prediction and
     IG looks there again; 2 resets them to the prior (unknown). None: the belief is the prediction as
-    is, the paper's rule (the push-only preset sets 4, measured in docs/results.md)."""
+    is, the paper's rule (``examples/mem-rules.yaml``; measured in docs/results.md, "One set of rules")."""
     disturbed_margin_voxels: Int = Field(2, ge=0, le=10)
     """Dilation (voxels) of the changed mask for ``disturbed_evidence_cap`` and ``failed_manipulation_cap``."""
     failed_manipulation_cap: float = Field(4.0, ge=2.0)

@@ -26,16 +26,17 @@ def test_file_overrides_preset_and_flags_override_file(tmp_path):
     assert cfg.objective[0].name == "ig"  # untouched preset value survives
 
 
-def test_push_only_departs_from_mem_rules_and_a_file_restores_them():
-    """push-only caps the evidence a push changed and stops pushing at step 25 (benchmarked in
-    docs/results.md); the other methods keep MEM's rules, and a config file brings them back."""
-    cfg = load_config("push-only")
-    assert (cfg.msas.disturbed_evidence_cap, cfg.msas.manipulation_window) == (4.0, (3, 25))
-    for method in ("ours", "no-cdc", "grasp-only"):
-        other = load_config(method).msas
-        assert (other.disturbed_evidence_cap, other.manipulation_window) == (None, (3, 38))
-    mem = load_config("push-only", Path(__file__).parents[1] / "examples" / "mem-rules.yaml").msas
-    assert (mem.disturbed_evidence_cap, mem.manipulation_window, mem.disturbed_margin_voxels) == (None, (3, 38), 2)
+def test_every_method_runs_under_one_set_of_rules_and_a_file_restores_mems():
+    """Every preset caps the evidence a manipulation changed and stops manipulating at step 25
+    (docs/results.md, "One set of rules"); examples/mem-rules.yaml brings MEM's rules back."""
+    from msmem_core.config import METHODS
+
+    rules = {m: load_config(m).msas for m in METHODS}
+    assert {(r.disturbed_evidence_cap, r.manipulation_window, r.disturbed_margin_voxels, r.failed_manipulation_cap)
+            for r in rules.values()} == {(4.0, (3, 25), 2, 4.0)}
+    for method in METHODS:
+        mem = load_config(method, Path(__file__).parents[1] / "examples" / "mem-rules.yaml").msas
+        assert (mem.disturbed_evidence_cap, mem.manipulation_window) == (None, (3, 38))
 
 
 def test_json_config_files_work(tmp_path):

@@ -158,3 +158,63 @@ def test_ctrl_c_in_any_command_reaches_msmems_handler(monkeypatch, capsys):
         app.main()
     assert exit_.value.code == 130
     assert capsys.readouterr().err == "msmem: interrupted\n"  # typer alone exits 130 silently
+
+
+def _glue_error() -> SystemError:
+    """What a Ctrl-C inside numba's glue code (e.g. unpickling a cached kernel's constant) raises."""
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as k:
+            raise SystemError("<function _numba_unpickle> returned a result with an exception set") from k
+    except SystemError as e:
+        return e
+
+
+def test_a_system_error_from_a_ctrl_c_is_an_interrupt_and_any_other_is_not(monkeypatch, capsys):
+    import msmem_core.cli.app as app
+    from msmem_core.util.interrupt import caused_by_interrupt
+
+    assert caused_by_interrupt(_glue_error())
+    assert not caused_by_interrupt(SystemError("a real bug"))
+    for error, code, err in [(_glue_error(), 130, "msmem: interrupted\n"), (SystemError("a real bug"), None, None)]:
+        def raiser(current: BaseException) -> Callable[[], None]:
+            def command() -> None:
+                raise current
+            return command
+
+        monkeypatch.setattr(app, "CORE_COMMANDS", {**app.CORE_COMMANDS, "config": {"show": raiser(error)}})
+        monkeypatch.setattr(sys, "argv", ["msmem", "config", "show"])
+        if code is None:
+            with pytest.raises(SystemError, match="a real bug"):
+                app.main()
+            continue
+        with pytest.raises(SystemExit) as exit_:
+            app.main()
+        assert exit_.value.code == code
+        assert capsys.readouterr().err == err
+
+
+def test_run_episode_reports_a_ctrl_c_in_kernel_glue_as_the_interrupted_step(tmp_path, monkeypatch):
+    from msmem_core.config import load_config
+    from msmem_core.errors import Interrupted
+    from msmem_core.plugins import get_plugin_manager
+    from msmem_core.run import runner
+    from msmem_core.testing import FakeSimulator
+    from tests.test_episode import SMALL, small_scene
+
+    cfg = load_config("view-only", None, {**SMALL, "steps": 3})
+    ep = runner.build_episode(cfg, get_plugin_manager(), scene=small_scene())
+    ep.sim = FakeSimulator(cfg.camera)
+    real = ep.observe_model.update
+    calls = []
+
+    def update(belief, obs):  # the third observation (step 1) is interrupted inside a kernel
+        calls.append(1)
+        if len(calls) == 3:
+            raise _glue_error()
+        return real(belief, obs)
+
+    monkeypatch.setattr(ep.observe_model, "update", update)
+    with pytest.raises(Interrupted, match=r"interrupted at step 1; partial run in"):
+        runner.run_episode(ep, tmp_path / "run")

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from msmem_core.errors import IncompleteError, Interrupted, UserError
+from msmem_core.util.interrupt import caused_by_interrupt
 
 if TYPE_CHECKING:
     from msmem_core.plugins.manager import MsmemPluginManager
@@ -400,6 +401,10 @@ def interruptible(fn: Callable[..., Any]) -> Callable[..., Any]:
             return fn(*args, **kwargs)
         except KeyboardInterrupt as e:
             raise Interrupted("interrupted") from e
+        except SystemError as e:
+            if caused_by_interrupt(e):
+                raise Interrupted("interrupted") from e
+            raise
 
     return wrapper
 

@@ -38,6 +38,7 @@ from msmem_core.run.metrics import (
     semantic_miou_bev,
 )
 from msmem_core.run.runfolder import save_ground_truth, save_snapshot
+from msmem_core.util.interrupt import caused_by_interrupt
 from msmem_core.util.jsonable import dumps
 from msmem_core.util.threads import configure_threads
 from msmem_core.util.trace import Tracer
@@ -286,7 +287,9 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
     try:
         belief = run_msas(ep.sim, ep.observe_model, ep.skills, ep.objective, ep.ig, ep.workspace, cfg.msas, cfg.steps,
                           ep.start_view, cfg.seed, on_step, on_start, tracer)
-    except KeyboardInterrupt as e:  # step N: the one underway (steps.jsonl holds steps 0 to N-1)
+    except (KeyboardInterrupt, SystemError) as e:  # step N: the one underway (steps.jsonl holds 0 to N-1)
+        if not isinstance(e, KeyboardInterrupt) and not caused_by_interrupt(e):
+            raise
         where = f"; partial run in {out_dir}" if out_dir is not None else ""
         raise Interrupted(f"interrupted at step {len(ep.records)}{where}") from e
     finally:

@@ -16,6 +16,19 @@ from contextlib import contextmanager
 from types import FrameType
 
 
+def caused_by_interrupt(error: BaseException) -> bool:
+    """``error`` is, or was raised from, a ``KeyboardInterrupt`` (a Ctrl-C that landed in a compiled
+    extension's glue code surfaces as ``SystemError: ... returned a result with an exception set``)."""
+    seen: set[int] = set()
+    e: BaseException | None = error
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
+
+
 @contextmanager
 def deferred_interrupt() -> Iterator[None]:
     """Run the block with SIGINT recorded instead of raised; raise ``KeyboardInterrupt`` after it if

@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from msmem_core.interfaces import ObservationModel
 from msmem_core.map import raycast
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.util.interrupt import deferred_interrupt
 from msmem_core.world.camera import Observation
 
 
@@ -85,9 +86,11 @@ class AnalyticObservationModel(ObservationModel):
         d = depth.reshape(-1).astype(np.float64)
         d = np.where(d > 0.0, d + cfg.surface_offset_m / np.linalg.norm(cam, axis=1), 0.0)
         g0, s, n = raycast.grid_params(belief.grid)
-        free, occ, seen = raycast.integrate_rays(
-            origins, dirs, d, d > 0.0, labels.reshape(-1).astype(np.int16), belief.num_classes, g0, s, n, 0.0, cfg.far_m
-        )
+        with deferred_interrupt():  # a Ctrl-C inside the kernel is raised after it, as a KeyboardInterrupt
+            free, occ, seen = raycast.integrate_rays(
+                origins, dirs, d, d > 0.0, labels.reshape(-1).astype(np.int16), belief.num_classes, g0, s, n, 0.0,
+                cfg.far_m,
+            )
         shape = tuple(belief.grid.shape)
         occ_b = occ.reshape(shape).astype(bool)
         free_b = free.reshape(shape).astype(bool) & ~occ_b
