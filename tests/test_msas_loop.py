@@ -234,7 +234,8 @@ def test_a_failed_manipulation_does_not_write_the_prediction_of_success(ig, succ
     sim = FakeSimulator(CAMERA)
     sim.reset(SCENE)
     beliefs: list[EvidentialMap] = []
-    cfg = MSASConfig(manipulation_window=(0, 10), mapped_fraction=1.0, disturbed_margin_voxels=0)
+    cfg = MSASConfig(manipulation_window=(0, 10), mapped_fraction=1.0, disturbed_margin_voxels=0,
+                     disturbed_evidence_cap=None)
     run_msas(sim, Sure(), [BoundSkill("view", ViewSkill()), BoundSkill("flaky", Flaky(success), Stamp())],
              Objective([("constant", 1.0, Constant())]), ig, WORKSPACE, cfg, 1, start_view=0, seed=0,
              on_step=lambda step, d, o, b: beliefs.append(b))
