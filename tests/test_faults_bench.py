@@ -267,3 +267,26 @@ def test_an_out_folder_that_is_a_file_exits_2_before_any_episode(tmp_path):
                   str(tmp_path / "file"))
     assert res.returncode == 2, res.stdout + res.stderr
     assert res.stderr.startswith(f"msmem: error: cannot write bench results to {tmp_path / 'file' / 'episodes'}")
+
+
+def test_the_fingerprint_follows_the_weights_a_component_may_load(tmp_path):
+    """New weights under the same config and version are a mismatch, not a silent reuse."""
+    from msmem_core.config import load_config
+    from msmem_core.plugins import get_plugin_manager
+    from msmem_core.run.bench import fingerprint, fingerprint_diff
+    from msmem_core.run.runner import check_components
+
+    pm = get_plugin_manager()
+    assert "weights" not in check_components(load_config("view-only"), pm)  # the analytic update loads none
+    shipped = check_components(load_config("ours"), pm)["weights"]  # the learned effect models, FE-vMF
+    w = tmp_path / "map.pt"
+    w.write_bytes(b"first weights")
+    cfg = load_config("view-only", None, {"observation_model": {"name": "cnabu-map", "params": {"weights": str(w)}}})
+    before = check_components(cfg, pm)
+    assert before["weights"] != shipped
+    w.write_bytes(b"other weights")
+    after = check_components(cfg, pm)
+    assert after["weights"] != before["weights"]
+    scene = suite_scenes("tune10")[0]
+    old, new = fingerprint(cfg, "tune10", scene, before), fingerprint(cfg, "tune10", scene, after)
+    assert "plugins" in fingerprint_diff(old, new)

@@ -8,6 +8,9 @@ Run folder: ``config.json`` (resolved), ``scene.json``, ``steps.jsonl`` (one rec
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import inspect
 import os
 import time
 from collections import Counter
@@ -106,14 +109,35 @@ def component_refs(cfg: RunConfig, pm: MsmemPluginManager) -> list[tuple[str, Co
     return refs
 
 
+@functools.cache
+def _file_sha256(path: Path, size: int, mtime_ns: int) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def artifact_files(spec: Any, params: dict[str, Any]) -> list[Path]:
+    """The weights a component may load: ``*.pt`` files in a ``weights`` folder of the package that
+    defines it, and any ``.pt`` file its params name."""
+    files: set[Path] = set()
+    module = inspect.getmodule(spec.factory)
+    if module is not None and getattr(module, "__file__", None):
+        pkg = Path(module.__file__).resolve().parent  # type: ignore[arg-type]
+        files.update(pkg.glob("weights/*.pt"))
+    for v in params.values():
+        if isinstance(v, str | Path) and str(v).endswith(".pt") and Path(v).is_file():
+            files.add(Path(v).resolve())
+    return sorted(files)
+
+
 def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
     """Check, without building anything, that every component the config names is registered and
     accepts its params (``PluginError`` naming it otherwise); returns ``{distribution: version}`` of
-    the distributions that provide them."""
+    the distributions that provide them, and under ``weights`` a hash of the weights files the
+    components may load (``artifact_files``), so that new weights are not mistaken for the old."""
     from importlib.metadata import PackageNotFoundError, version
 
     common = run_wide(cfg)  # as build_episode gives them
     dists = set()
+    weights: set[Path] = set()
     for kind, ref, where in component_refs(cfg, pm):
         spec = pm.spec(kind, ref.name)
         fields = spec.config_model.model_fields
@@ -124,12 +148,19 @@ def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
             raise PluginError(f"{kind} {ref.name!r}: {where}.params.{'.'.join(map(str, err['loc']))}: "
                               f"{err['msg']}") from e
         dists.add(pm.registered(kind)[ref.name].distribution)
+        weights.update(artifact_files(spec, dict(ref.params)))
     out = {}
     for d in sorted(dists):
         try:
             out[d] = version(d)
         except (PackageNotFoundError, ValueError):
             out[d] = "unknown"
+    if weights:
+        h = hashlib.sha256()
+        for f in sorted(weights):
+            st = f.stat()
+            h.update(_file_sha256(f, st.st_size, st.st_mtime_ns).encode())
+        out["weights"] = h.hexdigest()[:16]
     return out
 
 
