@@ -325,3 +325,72 @@ def test_belief_nll_against_scipy_and_by_hand():
                      np.ones((1, 1, 1), int), np.ones((1, 1, 1), bool))
     assert one["occupancy_nll"] == pytest.approx(-np.log(1e-6))
     assert one["semantic_nll"] == pytest.approx(-np.log(1e-6))
+
+
+# ------------------------------------------------------------ input checks and branches (mutation testing)
+def test_ece_bins_refuses_bad_input_naming_it_and_takes_one_bin() -> None:
+    with pytest.raises(ValueError, match="3 confidences but 2 correctness flags"):
+        ece_bins([0.1, 0.5, 0.9], [True, False])
+    with pytest.raises(ValueError, match="n_bins must be >= 1, got 0"):
+        ece_bins([0.5], [True], n_bins=0)
+    for bad in ([float("nan")], [-0.01], [1.01]):
+        with pytest.raises(ValueError, match=r"confidences must lie in \[0, 1\]"):
+            ece_bins(bad, [True])
+    count, conf, correct = ece_bins([0.2, 0.9, 1.0], [True, False, True], n_bins=1)  # one bin holds all
+    assert (count.tolist(), correct.tolist()) == ([3], [2])
+    assert conf.tolist() == pytest.approx([2.1])
+    assert count.dtype == np.int64
+    assert correct.dtype == np.int64
+
+
+def test_occupancy_iou_over_a_mask_and_shape_mismatch() -> None:
+    pred = np.array([True, True, False, False])
+    gt = np.array([True, False, True, False])
+    assert occupancy_iou(pred, gt) == pytest.approx(1 / 3)
+    assert occupancy_iou(pred, gt, mask=np.array([True, True, False, True])) == pytest.approx(1 / 2)
+    with pytest.raises(ValueError, match=r"prediction shape \(4,\) differs from ground truth \(3,\)"):
+        occupancy_iou(pred, gt[:3])
+
+
+def test_position_change_needs_an_initial_pose_for_every_final_one() -> None:
+    with pytest.raises(KeyError, match="object 7 has a final pose but no initial pose"):
+        position_change_m({1: np.eye(4)}, {7: np.eye(4)})
+
+
+def test_belief_nll_is_nan_without_interior_and_scores_each_side() -> None:
+    from msmem_core.run.metrics import belief_nll
+
+    p = np.array([0.9, 0.2])
+    probs = np.array([[0.1, 0.7], [0.9, 0.3]])  # [C, N]: class 1 on voxel 0, class 0 on voxel 1
+    gt_occ, gt_cls = np.array([True, False]), np.array([1, 0])
+    out = belief_nll(p, probs, gt_occ, gt_cls, np.array([False, False]))
+    assert math.isnan(out["occupancy_nll"])
+    assert math.isnan(out["semantic_nll"])
+    out = belief_nll(p, probs, gt_occ, gt_cls, np.array([True, True]))
+    assert out["occupancy_nll"] == pytest.approx(-(math.log(0.9) + math.log(0.8)) / 2)
+    assert out["semantic_nll"] == pytest.approx(-(math.log(0.9) + math.log(0.7)) / 2)
+    sure = belief_nll(np.array([1.0]), np.array([[0.0], [1.0]]), np.array([False]), np.array([0]), np.array([True]))
+    assert sure["occupancy_nll"] == pytest.approx(-math.log(1e-6))  # clipped, not infinite
+    assert sure["semantic_nll"] == pytest.approx(-math.log(1e-6))
+
+
+def test_top_label_refuses_mismatched_shapes_and_labels_out_of_range() -> None:
+    probs = np.array([[0.2, 0.5], [0.8, 0.5]])
+    with pytest.raises(ValueError, match=r"probs shape \(2, 2\) does not match labels \(3,\) as \[C, \.\.\.\]"):
+        top_label(probs, np.array([0, 1, 1]))
+    for bad in ([0, 2], [-1, 0]):
+        with pytest.raises(ValueError, match=r"labels outside 0\.\.1"):
+            top_label(probs, np.array(bad))
+    conf, correct = top_label(probs, np.array([1, 0]))  # a tie goes to the lower class
+    assert conf.tolist() == [0.8, 0.5]
+    assert correct.tolist() == [True, True]
+
+
+def test_the_occupancy_ece_counts_a_voxel_correct_when_its_side_of_one_half_is_the_truths() -> None:
+    grid = (2, 1, 1)
+    p = np.array([0.9, 0.3]).reshape(grid)  # believed occupied, believed free
+    probs = np.stack([1 - p, p])  # two classes
+    gt_occ = np.array([True, True]).reshape(grid)  # the second is wrong
+    counts = paper_counts(p, probs, (p > 0.5).astype(int), gt_occ, gt_occ.astype(int), np.ones(grid, bool), n_bins=1)
+    assert counts["occupancy_ece_correct_sum"] == [1]
+    assert counts["occupancy_ece_count"] == [2]
