@@ -387,10 +387,10 @@ def test_top_label_refuses_mismatched_shapes_and_labels_out_of_range() -> None:
 
 
 def test_the_occupancy_ece_counts_a_voxel_correct_when_its_side_of_one_half_is_the_truths() -> None:
-    grid = (2, 1, 1)
-    p = np.array([0.9, 0.3]).reshape(grid)  # believed occupied, believed free
+    grid = (3, 1, 1)
+    p = np.array([0.9, 0.3, 0.8]).reshape(grid)  # believed occupied, free, occupied
     probs = np.stack([1 - p, p])  # two classes
-    gt_occ = np.array([True, True]).reshape(grid)  # the second is wrong
+    gt_occ = np.array([True, True, True]).reshape(grid)  # the second is wrong
     counts = paper_counts(p, probs, (p > 0.5).astype(int), gt_occ, gt_occ.astype(int), np.ones(grid, bool), n_bins=1)
-    assert counts["occupancy_ece_correct_sum"] == [1]
-    assert counts["occupancy_ece_count"] == [2]
+    assert counts["occupancy_ece_correct_sum"] == [2]
+    assert counts["occupancy_ece_count"] == [3]
