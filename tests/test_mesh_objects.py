@@ -17,7 +17,7 @@ from msmem_core.plugins import get_plugin_manager
 from msmem_core.run.runner import build_episode, run_episode
 from msmem_core.world.geometry import pose_matrix
 from msmem_core.world.grid import GridSpec
-from msmem_core.world.meshes import part_mesh_local
+from msmem_core.world.meshes import part_mesh_own_frame
 from msmem_core.world.meshparts import load_mesh, mesh_pieces
 from msmem_core.world.scene import ObjectSpec, Part, SceneSpec
 from msmem_core.world.voxelize import _part_voxels
@@ -28,8 +28,7 @@ SMALL = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 
 
 
 def _as_convex(part: Part) -> Part:
-    at_origin = part.model_copy(update={"position_m": (0.0, 0.0, 0.0), "quat_xyzw": (0.0, 0.0, 0.0, 1.0)})
-    v = np.asarray(part_mesh_local(at_origin).vertices)
+    v = np.asarray(part_mesh_own_frame(part).vertices)
     return Part(kind="convex", vertices_m=tuple(map(tuple, v)), position_m=part.position_m, quat_xyzw=part.quat_xyzw)
 
 

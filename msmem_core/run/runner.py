@@ -41,6 +41,7 @@ from msmem_core.run.metrics import (
     semantic_miou_bev,
 )
 from msmem_core.run.runfolder import save_ground_truth, save_snapshot
+from msmem_core.util.artifacts import sha256_file
 from msmem_core.util.interrupt import caused_by_interrupt
 from msmem_core.util.jsonable import dumps
 from msmem_core.util.threads import configure_threads
@@ -111,7 +112,8 @@ def component_refs(cfg: RunConfig, pm: MsmemPluginManager) -> list[tuple[str, Co
 
 @functools.cache
 def _file_sha256(path: Path, size: int, mtime_ns: int) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    """``sha256_file``, once per file version (size and modification time)."""
+    return sha256_file(path)
 
 
 def artifact_files(spec: Any, params: dict[str, Any]) -> list[Path]:

@@ -16,6 +16,13 @@ from pathlib import Path
 from typing import Any
 
 
+def cache_root(name: str) -> Path:
+    """``$MSMEM_CACHE_DIR/<name>``, by default ``~/.cache/msmem/<name>``: where msmem caches derived
+    files (antipodal grasps, mesh decompositions, ...)."""
+    root = os.environ.get("MSMEM_CACHE_DIR")
+    return (Path(root) if root else Path.home() / ".cache" / "msmem") / name
+
+
 def sha256_file(path: str | Path) -> str:
     """Hex sha256 of a file, read in 1 MiB blocks."""
     h = hashlib.sha256()

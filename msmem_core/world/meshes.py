@@ -20,6 +20,11 @@ from msmem_core.world.scene import ObjectClass, ObjectSpec, Part, ShelfSpec, obj
 CYLINDER_SECTIONS = 48
 
 
+def part_mesh_own_frame(part: Part) -> trimesh.Trimesh:
+    """Watertight mesh of one part in its own frame (its ``position_m`` and ``quat_xyzw`` not applied)."""
+    return part_mesh_local(part.model_copy(update={"position_m": (0.0, 0.0, 0.0), "quat_xyzw": (0.0, 0.0, 0.0, 1.0)}))
+
+
 def part_mesh_local(part: Part) -> trimesh.Trimesh:
     """Watertight mesh of one part in the object frame."""
     transform = pose_matrix(part.position_m, part.quat_xyzw)

@@ -29,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from msmem_core.errors import UserError
+from msmem_core.util.artifacts import atomic_text, cache_root
 from msmem_core.world.geometry import pose_matrix
 
 CACHE_VERSION = 1
@@ -63,8 +64,8 @@ def resolve(path: str | Path) -> Path:
 
 
 def cache_dir() -> Path:
-    root = os.environ.get("MSMEM_CACHE_DIR")
-    return (Path(root) if root else Path.home() / ".cache" / "msmem") / "meshes"
+    """``$MSMEM_CACHE_DIR/meshes`` or ``~/.cache/msmem/meshes``."""
+    return cache_root("meshes")
 
 
 def _urdf_mesh(path: Path) -> tuple[Path, NDArray[np.float64]]:
@@ -174,10 +175,8 @@ def mesh_pieces(
     pieces_volume = float(sum(trimesh.convex.convex_hull(v).volume for v in pieces))
     report = MeshReport(len(pieces), decomposed, volume, pieces_volume, cache)
     cache.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cache.with_name(cache.name + f".tmp-{os.getpid()}")
     record = {"source": str(p), "key": key, "decomposed": decomposed,
               "mesh_volume_m3": None if np.isnan(volume) else volume, "pieces_volume_m3": pieces_volume,
               "pieces": [v.tolist() for v in pieces]}
-    tmp.write_text(json.dumps(record))
-    os.replace(tmp, cache)
+    atomic_text(json.dumps(record), cache)
     return pieces, report

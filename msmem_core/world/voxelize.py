@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 from msmem_core.world.geometry import pose_matrix
 from msmem_core.world.grid import GridSpec
-from msmem_core.world.meshes import CYLINDER_SECTIONS, part_mesh_local
+from msmem_core.world.meshes import CYLINDER_SECTIONS, part_mesh_own_frame
 from msmem_core.world.scene import ObjectSpec, Part, ShelfSpec
 
 TOUCH_TOLERANCE_M = 1e-4
@@ -76,16 +76,12 @@ def _polytope(part: Part) -> tuple[NDArray[np.float64], NDArray[np.float64], NDA
     A cylinder is the prism its mesh uses (``CYLINDER_SECTIONS`` sides, vertices at angles
     2 pi k / n), so ground truth voxelises exactly the geometry that rays hit.
     """
-    verts = np.asarray(
-        part_mesh_local(
-            part.model_copy(update={"position_m": (0.0, 0.0, 0.0), "quat_xyzw": (0.0, 0.0, 0.0, 1.0)})
-        ).vertices
-    )
+    mesh = part_mesh_own_frame(part)
+    verts = np.asarray(mesh.vertices)
     if part.kind == "box":
         return verts, np.eye(3), np.eye(3)
     if part.kind == "convex":  # the hull's face normals and edge directions, each direction once
-        at_origin = {"position_m": (0.0, 0.0, 0.0), "quat_xyzw": (0.0, 0.0, 0.0, 1.0)}
-        hull = part_mesh_local(part.model_copy(update=at_origin))
+        hull = mesh
         normals = _unique_directions(np.asarray(hull.face_normals))
         edges = np.asarray(hull.vertices)[hull.edges_unique]
         return verts, normals, _unique_directions(edges[:, 1] - edges[:, 0])

@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from msmem_core.errors import UserError
+from msmem_core.util.artifacts import cache_root
 from msmem_core.world.geometry import F64, boxes_overlap, pose_matrix
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.meshes import class_mesh
@@ -319,8 +320,7 @@ def sample_antipodal(cls: ObjectClass, config: AntipodalConfig, gripper: Gripper
 # ------------------------------------------------------------------------------------------ cache
 def cache_dir() -> Path:
     """``$MSMEM_CACHE_DIR/antipodal`` or ``~/.cache/msmem/antipodal``."""
-    root = os.environ.get("MSMEM_CACHE_DIR")
-    return (Path(root) if root else Path.home() / ".cache" / "msmem") / "antipodal"
+    return cache_root("antipodal")
 
 
 def cache_key(cls: ObjectClass, config: AntipodalConfig, gripper: GripperSpec) -> str:

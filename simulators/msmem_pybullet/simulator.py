@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,10 +37,11 @@ from msmem_core.sim.motion import (
     FloatingGripperSimulator,
     PathTarget,
 )
+from msmem_core.util.artifacts import atomic_text
 from msmem_core.world.camera import CameraConfig, Observation
 from msmem_core.world.geometry import matrix_to_quat, pose_matrix
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.meshes import part_mesh_local
+from msmem_core.world.meshes import part_mesh_own_frame
 from msmem_core.world.meshparts import cache_dir
 from msmem_core.world.scene import ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec, parts_centroid
 
@@ -106,11 +106,9 @@ def convex_obj(part: Part) -> Path:
     path = cache_dir() / "pybullet" / f"convex-{key}.obj"
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-        hull = part_mesh_local(part.model_copy(update={"position_m": (0.0, 0.0, 0.0), "quat_xyzw": (0, 0, 0, 1.0)}))
-        tmp.write_text("".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in hull.vertices)
-                       + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in hull.faces))
-        os.replace(tmp, path)
+        hull = part_mesh_own_frame(part)
+        atomic_text("".join(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in hull.vertices)
+                    + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in hull.faces), path)
     return path
 
 
