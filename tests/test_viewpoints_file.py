@@ -178,3 +178,19 @@ def test_a_pybullet_episode_runs_over_the_views_of_a_file(tmp_path: Path) -> Non
     assert len(views) == 3
     assert all(0 <= v < 27 and v != 13 for v in views)
     assert final["observable_iou"] > 0.1
+
+
+def test_the_grasp_skill_tracks_with_the_front_views_of_its_viewpoints(tmp_path: Path, monkeypatch) -> None:
+    """FE-UMGF's first update (no view visited, nothing manipulated) uses the run's front views."""
+    import msmem_grasp.skill as skill_module
+
+    from tests.test_grasp import TARGET, box_belief, ctx
+
+    f = _look_at_file(tmp_path / "v.json", ViewpointConfig(grid=3), front_views=[7, 20])
+    cfg = ViewpointConfig(poses_file=f)
+    seen: list[ViewpointConfig | None] = []
+    real = skill_module.virtual_front_views
+    monkeypatch.setattr(skill_module, "virtual_front_views", lambda v=None: seen.append(v) or real(v))
+    grasp = skill_module.GraspSkill(skill_module.GraspConfig(predictor="geometric", viewpoints=cfg))
+    grasp.track(ctx(box_belief([TARGET]), step=0, allowed=False))
+    assert seen == [cfg]
