@@ -171,6 +171,8 @@ def train_cnabu_map(
         "--init", help="Start from these weights (same architecture, or one whose per-voxel inputs grew).")] = None,
     occupied_class_weight: Annotated[float, typer.Option(
         "--occupied-class-weight", help="Weight of truly occupied voxels in the class NLL.")] = 1.0,
+    top_view_weight: Annotated[float, typer.Option(
+        "--top-view-weight", help="Weight of the top-view class NLL (the paper's 2-D semantic map).")] = 0.0,
     arch: Annotated[Path | None, typer.Option(
         "--arch", help="YAML file of network settings (MapNetConfig fields, e.g. class_head: object).")] = None,
 ) -> None:
@@ -180,7 +182,7 @@ def train_cnabu_map(
 
     cfg = MapTrainConfig(epochs=epochs, batches=batches, batch=batch, lr=lr, seed=seed, threads=threads,
                          time_limit_s=None if max_minutes is None else 60 * max_minutes,
-                         occupied_class_weight=occupied_class_weight)
+                         occupied_class_weight=occupied_class_weight, top_view_weight=top_view_weight)
     side = train_map(data, out, cfg, heldout_dir=heldout, log=typer.echo, init=init,
                      arch=None if arch is None else read_config_file(arch))
     typer.echo(f"{side['data']['scenes']} scenes, {side['seconds'] / 60:.1f} min, stopped by {side['stopped']}, "

@@ -242,6 +242,38 @@ def map_loss(occ_logit: Tensor, cls_logit: Tensor, gt_occ: Tensor, gt_cls: Tenso
     return occ_nll[m].sum() / n, (w * cls_nll)[m].sum() / w[m].sum().clamp(min=1)
 
 
+def top_view_loss(occ_logit: Tensor, cls_logit: Tensor, gt_cls: Tensor, valid: Tensor, s_max: float,
+                  t_max: float) -> Tensor:
+    """NLL of the ground truth's top-view class map (the paper's 2-D semantic map, ``metrics.
+    top_view_classes`` of the interior) under the belief's expected top-view class distribution, mean
+    over the interior's columns.
+
+    A column's top class is the class of its highest occupied interior voxel, else background. Under
+    the belief (voxels independent), voxel z is the highest occupied one with probability
+    ``P_z = p_z prod_{z' > z} (1 - p_z')``, so the column's top class is object class c with
+    probability ``sum_z P_z r_c(z)`` (r: the voxel's object-class distribution, ``q[1:]`` renormalised)
+    and background with ``prod_z (1 - p_z)``. Unlike the per-voxel NLL it charges a false occupied
+    voxel above an object (it takes the top) and a wrong class on the surface the map is scored by."""
+    _, _, _, p, q = bounded_evidence(occ_logit, cls_logit, s_max, t_max)
+    v = valid.to(p.dtype)
+    p = p * v  # boards and outside: not occupied (the metric sets them to background)
+    log_free = torch.log1p(-p.clamp(max=1 - 1e-6))
+    above = torch.flip(torch.cumsum(torch.flip(log_free, [-1]), -1), [-1]) - log_free  # sum over z' > z
+    top = p * torch.exp(above)  # [B, X, Y, Z]
+    r = q[:, 1:] / q[:, 1:].sum(1, keepdim=True)
+    obj = (top[:, None] * r).sum(-1)  # [B, C - 1, X, Y]
+    bg = torch.exp(log_free.sum(-1))[:, None]  # [B, 1, X, Y]
+    probs = torch.cat([bg, obj], 1).clamp(min=1e-6)
+    z = gt_cls.shape[-1]
+    labels = torch.where(valid, gt_cls.long(), 0)
+    nonzero = labels > 0
+    highest = torch.where(nonzero, torch.arange(z, device=labels.device), -1).amax(-1, keepdim=True)
+    gt_top = torch.gather(labels, -1, highest.clamp(min=0))[..., 0] * (highest[..., 0] >= 0)  # [B, X, Y]
+    nll = -torch.log(torch.gather(probs, 1, gt_top[:, None])[:, 0])
+    cols = valid.any(-1).expand_as(nll)
+    return nll[cols].mean()
+
+
 def parameter_count(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
 

@@ -40,7 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard, predicted_belief
 from msmem_cnabu.features import wall_mask
-from msmem_cnabu.mapnet import MapNet, MapNetConfig, bounded_evidence, map_loss, parameter_count
+from msmem_cnabu.mapnet import MapNet, MapNetConfig, bounded_evidence, map_loss, parameter_count, top_view_loss
 from msmem_core.errors import UserError
 from msmem_core.interfaces import Workspace
 from msmem_core.map.belief import EvidentialMap
@@ -68,6 +68,9 @@ class MapTrainConfig(BaseModel):
     """Weight of the class NLL beside the occupancy NLL."""
     occupied_class_weight: float = Field(1.0, ge=1.0)
     """Weight of truly occupied voxels in the class NLL (``mapnet.map_loss``)."""
+    top_view_weight: float = Field(0.0, ge=0.0)
+    """Weight of the top-view class NLL (``mapnet.top_view_loss``: the surface the paper's 2-D semantic
+    map is scored on) beside the per-voxel NLLs."""
     seed: int = 0
     threads: int = Field(1, ge=1, le=64)
     time_limit_s: float | None = Field(None, gt=0.0)
@@ -232,13 +235,14 @@ def manipulate(net: MapNet, a: torch.Tensor, b: torch.Tensor, e: torch.Tensor, i
 
 def rollout_loss(net: MapNet, batch: dict[str, Any], valid: torch.Tensor, sem_weight: float = 1.0,
                  opt: torch.optim.Optimizer | None = None, sched: Any = None, occupied_class_weight: float = 1.0,
-                 effects: Effects | None = None, trace: list[tuple[torch.Tensor, torch.Tensor]] | None = None
-                 ) -> list[tuple[float, float]]:
+                 effects: Effects | None = None, trace: list[tuple[torch.Tensor, torch.Tensor]] | None = None,
+                 top_view_weight: float = 0.0) -> list[tuple[float, float, float]]:
     """Unroll the batch's views from the empty map, each step on the network's own (detached) output;
     with ``opt``, one optimiser step (and ``sched`` step) per view. Before a view that follows a
     manipulation, the belief becomes ``effects``' prediction for it (``manipulate``; default effect
-    models if None). Per view: (occupancy NLL, class NLL) against the ground truth after that view;
-    ``trace`` collects each view's (detached) output logits."""
+    models if None). Per view: (occupancy NLL, class NLL, top-view class NLL) against the ground truth
+    after that view, the last weighted by ``top_view_weight`` in the optimised loss; ``trace`` collects
+    each view's (detached) output logits."""
     cfg = net.config
     bsz = batch["free"].shape[0]
     a, b, e = empty_evidence(bsz, batch["free"].shape[2:], cfg.num_classes)
@@ -252,18 +256,19 @@ def rollout_loss(net: MapNet, batch: dict[str, Any], valid: torch.Tensor, sem_we
             o, c = net(a, b, e, batch["free"][:, t], batch["occ"][:, t], batch["seen"][:, t], valid)
             lo, lc = map_loss(o, c, batch["gt_occ"][:, t], batch["gt_cls"][:, t], valid, cfg.s_max, cfg.t_max,
                               occupied_class_weight, occupied_only=cfg.class_head == "object")
+            lt = top_view_loss(o, c, batch["gt_cls"][:, t], valid, cfg.s_max, cfg.t_max)
         if trace is not None:
             trace.append((o.detach(), c.detach()))
         if opt is not None:
             opt.zero_grad(set_to_none=True)
-            (lo + sem_weight * lc).backward()
+            (lo + sem_weight * lc + top_view_weight * lt).backward()
             torch.nn.utils.clip_grad_norm_(net.parameters(), 5.0)
             opt.step()
             if sched is not None:
                 sched.step()
         with torch.no_grad():
             a, b, e, _, _ = bounded_evidence(o.detach(), c.detach(), cfg.s_max, cfg.t_max)
-        out.append((lo.item(), lc.item()))
+        out.append((lo.item(), lc.item(), lt.item()))
     return out
 
 
@@ -345,16 +350,18 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
             manipulated.update(q.seed for q in seqs if q.manipulations)
             batch = _batch(seqs, flips)
             net.train()
-            losses = rollout_loss(net, batch, valid, cfg.sem_weight, opt, sched, cfg.occupied_class_weight, effects)
+            losses = rollout_loss(net, batch, valid, cfg.sem_weight, opt, sched, cfg.occupied_class_weight, effects,
+                                  top_view_weight=cfg.top_view_weight)
             done += 1
             rec = {"batch": done, "seconds": time.perf_counter() - t0, "occ_nll_last": losses[-1][0],
                    "sem_nll_last": losses[-1][1], "occ_nll_mean": float(np.mean([x[0] for x in losses])),
-                   "sem_nll_mean": float(np.mean([x[1] for x in losses]))}
+                   "sem_nll_mean": float(np.mean([x[1] for x in losses])),
+                   "top_view_nll_mean": float(np.mean([x[2] for x in losses]))}
             history.append(rec)
             if done % 10 == 0 or done == total_batches:
                 log(f"batch {done}/{total_batches} {rec['seconds']:.0f}s occ {rec['occ_nll_mean']:.4f} "
                     f"(last view {rec['occ_nll_last']:.4f}) sem {rec['sem_nll_mean']:.4f} "
-                    f"(last {rec['sem_nll_last']:.4f})")
+                    f"(last {rec['sem_nll_last']:.4f}) top view {rec['top_view_nll_mean']:.4f}")
             if done % 25 == 0:
                 rec = _record(cfg, sorted(used), history, time.perf_counter() - t0, "checkpoint", manipulated)
                 write_weights(net.eval(), out, rec)
