@@ -21,6 +21,7 @@ from msmem_core.util.validation import MODEL_CONFIG, Int, error_lines, load_json
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.scene import relative_mesh_files
 from msmem_core.world.scenegen import SceneGenConfig
 from msmem_core.world.viewpoints import ViewpointConfig
 
@@ -189,7 +190,11 @@ def validate_config(data: dict[str, Any], source: str = "config") -> RunConfig:
 
 
 def _relative_to(data: dict[str, Any], folder: Path) -> dict[str, Any]:
-    """The config file's paths (``viewpoints.poses_file``) made relative to the file's folder."""
+    """The config file's paths (``viewpoints.poses_file``, the generator's mesh files) made relative to
+    the file's folder."""
+    scene = data.get("scene")
+    if isinstance(scene, dict) and isinstance(scene.get("generator"), dict):
+        relative_mesh_files(scene["generator"].get("classes"), folder)
     vp = data.get("viewpoints")
     if isinstance(vp, dict) and isinstance(vp.get("poses_file"), str) and not Path(vp["poses_file"]).is_absolute():
         return data | {"viewpoints": vp | {"poses_file": str(folder / vp["poses_file"])}}

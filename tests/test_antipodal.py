@@ -74,10 +74,8 @@ def test_box_grasps_are_antipodal_narrow_and_collision_free(cache):
     assert not _gripper_hits(sample, Solids.from_parts(object_class(name).parts), rng).any()
 
 
-def test_collision_test_agrees_with_volume_sampling_on_random_poses():
-    rng = np.random.default_rng(1)
-    solids = Solids.from_parts(object_class("mug").parts)  # boxes and a cylinder, non-convex
-    n = 300
+def _random_grasps(rng: np.random.Generator, n: int) -> GraspSet:
+    """n grasps at random centres around the object, random baselines and approaches, widths 0-7 cm."""
     c = rng.uniform(-0.1, 0.1, (n, 3)) + np.array([0.0, 0.0, 0.05])
     b = rng.normal(size=(n, 3))
     b /= np.linalg.norm(b, axis=1, keepdims=True)
@@ -85,7 +83,14 @@ def test_collision_test_agrees_with_volume_sampling_on_random_poses():
     a -= np.einsum("ij,ij->i", a, b)[:, None] * b
     a /= np.linalg.norm(a, axis=1, keepdims=True)
     w = rng.uniform(0, 0.07, n)
-    grasps = GraspSet(c, c + w[:, None] * b, a, b, w)
+    return GraspSet(c, c + w[:, None] * b, a, b, w)
+
+
+def test_collision_test_agrees_with_volume_sampling_on_random_poses():
+    rng = np.random.default_rng(1)
+    solids = Solids.from_parts(object_class("mug").parts)  # boxes and a cylinder, non-convex
+    n = 300
+    grasps = _random_grasps(rng, n)
     ours = ap.grasp_collides(grasps, solids, GRIPPER, 0.01)
     sampled = _gripper_hits(grasps, solids, rng)
     assert not (sampled & ~ours).any()  # never misses a collision that sampling finds
@@ -167,3 +172,56 @@ def test_the_cache_round_trips(tmp_path, monkeypatch):
     with pytest.raises(AssertionError, match="generated again"):
         class_grasps("gelatin_box", AntipodalConfig(samples_per_m2=20_000, friction=0.4))
     assert ap.cache_key(object_class("gelatin_box"), config, GRIPPER) in files[0].name
+
+
+def _as_hull(part):
+    from msmem_core.world.meshes import part_mesh_own_frame
+    from msmem_core.world.scene import Part
+
+    v = np.asarray(part_mesh_own_frame(part).vertices)
+    return Part(kind="convex", vertices_m=tuple(map(tuple, v)), position_m=part.position_m, quat_xyzw=part.quat_xyzw)
+
+
+def test_a_convex_hull_solid_is_the_box_it_spans_for_inside_and_collision_tests():
+    """A mesh class's pieces (convex hulls) answer ``contains`` and the gripper collision test as the
+    primitive they span does: the same points inside, the same colliding grasps."""
+    box = object_class("potted_meat_can").parts[0]
+    pose = np.eye(4)
+    pose[:3, :3] = trimesh.transformations.rotation_matrix(0.4, [0.2, 0.3, 1.0])[:3, :3]
+    pose[:3, 3] = [0.02, -0.01, 0.03]
+    prim, hull = Solids.from_parts([box], pose), Solids.from_parts([_as_hull(box)], pose)
+    assert hull.hull[0] is not None
+    assert prim.hull[0] is None
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-0.08, 0.12, (20000, 3))
+    inside = prim.contains(pts)
+    assert 1000 < inside.sum()
+    np.testing.assert_array_equal(hull.contains(pts), inside)
+    n = 400
+    grasps = _random_grasps(rng, n)
+    want = ap.grasp_collides(grasps, prim, GRIPPER, 0.01)
+    assert 0.2 * n < want.sum() < n
+    np.testing.assert_array_equal(ap.grasp_collides(grasps, hull, GRIPPER, 0.01), want)
+
+
+def test_a_mesh_class_has_antipodal_grasps_on_its_pieces(cache):
+    """The mesh25 duck (6 CoACD pieces): grasps exist, each contact lies on the pieces' outer surface,
+    and volume sampling finds no gripper box inside a piece."""
+    from msmem_core.run.bench import suite_scenes
+
+    scene = next(s for s in suite_scenes("mesh25") if any(o.class_name == "duck" for o in s.objects))
+    duck = scene.object_class("duck")
+    assert len(duck.parts) > 1
+    assert all(p.kind == "convex" for p in duck.parts)
+    # fewer samples and approaches than the default: python-fcl tests each candidate against a hull
+    grasps = class_grasps(duck, AntipodalConfig(samples_per_m2=20_000.0, n_approach=3), directory=cache)
+    assert len(grasps) > 50
+    assert (grasps.width <= GRIPPER.max_opening_m).all()
+    solids = Solids.from_parts(duck.parts)
+    eps = 1e-3
+    for pts, n_dir in ((grasps.contacts, grasps.baseline), (grasps.opposite, -grasps.baseline)):
+        assert not solids.contains(pts - eps * n_dir).any()  # just outside, against the baseline
+        assert solids.contains(pts + eps * n_dir).mean() > 0.95  # just inside, along it
+    rng = np.random.default_rng(0)
+    sample = grasps.subset(rng.choice(len(grasps), 200, replace=False))
+    assert not _gripper_hits(sample, solids, rng).any()

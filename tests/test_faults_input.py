@@ -219,10 +219,12 @@ def test_many_faults_are_summarised_in_one_line():
 SHIPPED_SCENES = [*sorted((ROOT / "msmem_core" / "suites").glob("*/scene_*.json")),
                   *sorted(ROOT.glob("examples/**/*scene*.json"))]
 SHIPPED_CONFIGS = sorted(p for p in ROOT.glob("examples/**/*.yaml")
-                         if "train" not in p.relative_to(ROOT).parts and not p.name.endswith(".poses.yaml"))
+                         if "train" not in p.relative_to(ROOT).parts
+                         and not p.name.endswith((".poses.yaml", ".generator.yaml")))
 """Run configs (``examples/train/`` holds network settings for the train commands, checked in their tests;
-``*.poses.yaml`` are viewpoint files, checked below)."""
+``*.poses.yaml`` are viewpoint files and ``*.generator.yaml`` scene-generator settings, checked below)."""
 SHIPPED_POSES = sorted(ROOT.glob("examples/**/*.poses.yaml"))
+SHIPPED_GENERATORS = sorted(ROOT.glob("examples/**/*.generator.yaml"))
 
 
 def test_every_suite_is_covered():
@@ -232,6 +234,17 @@ def test_every_suite_is_covered():
 @pytest.mark.parametrize("path", SHIPPED_SCENES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_shipped_scenes_validate(path):
     load_scene(str(path))
+
+
+@pytest.mark.parametrize("path", SHIPPED_GENERATORS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_shipped_generator_files_validate(path):
+    from msmem_core.config import read_config_file
+    from msmem_core.world.scene import relative_mesh_files
+    from msmem_core.world.scenegen import SceneGenConfig
+
+    data = read_config_file(path)
+    relative_mesh_files(data.get("classes"), path.parent)
+    assert SceneGenConfig.model_validate(data).classes
 
 
 @pytest.mark.parametrize("path", SHIPPED_POSES, ids=lambda p: str(p.relative_to(ROOT)))

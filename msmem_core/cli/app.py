@@ -233,16 +233,45 @@ def report_cmd(
 
 
 def scene_generate(
-    seed: Annotated[int, typer.Option("--seed", help="Scene seed.")] = 0,
-    out: Annotated[Path, typer.Option("--out", help="Output SceneSpec JSON.")] = Path("scene.json"),
+    seed: Annotated[int, typer.Option("--seed", help="Scene seed (the first one with --count).")] = 0,
+    out: Annotated[Path, typer.Option(
+        "--out", help="Output SceneSpec JSON; with --count, a folder for scene_00.json, scene_01.json, ...")
+    ] = Path("scene.json"),
+    generator: Annotated[Path | None, typer.Option(
+        "--generator", help="YAML or JSON of generator settings (SceneGenConfig: classes, builtin_classes, "
+        "occupancy_range, ...); mesh paths are relative to the file.")] = None,
+    count: Annotated[int | None, typer.Option(
+        "--count", min=1, help="Generate this many scenes, seeds --seed, --seed + 1, ... (a suite).")] = None,
+    name: Annotated[str | None, typer.Option(
+        "--name", help="Scene names: NAME-00, NAME-01, ... (default gen-<seed>).")] = None,
 ) -> None:
-    """Generate a hard shelf scene from a seed and write it as SceneSpec JSON."""
+    """Generate hard shelf scenes from seeds and write them as SceneSpec JSON."""
+    from pydantic import ValidationError
+
+    from msmem_core.config import read_config_file
+    from msmem_core.util.validation import error_lines
+    from msmem_core.world.scene import relative_mesh_files
     from msmem_core.world.scenegen import SceneGenConfig, generate_scene
 
-    spec = generate_scene(seed, SceneGenConfig())
-    spec.to_json(out)
-    typer.echo(f"{out}: {len(spec.objects)} objects, floor occupancy {spec.occupancy_fraction:.2f}, "
-               f"{spec.hidden_objects} hidden from all viewpoints")
+    data: dict = {}
+    if generator is not None:
+        data = read_config_file(generator)
+        relative_mesh_files(data.get("classes"), generator.parent)
+    try:
+        cfg = SceneGenConfig.model_validate(data)
+    except ValidationError as e:
+        raise UserError(f"invalid generator settings{f' in {generator}' if generator else ''}: {error_lines(e)}") from e
+    if count is not None and out.exists() and not out.is_dir():
+        raise UserError(f"--out {out}: with --count it must be a folder")
+    for i in range(count or 1):  # each scene is written as soon as it is made
+        spec = generate_scene(seed + i, cfg)
+        path = out if count is None else out / f"scene_{i:02d}.json"
+        if name is not None:
+            spec = spec.model_copy(update={"name": name if count is None else f"{name}-{i:02d}"})
+        path.parent.mkdir(parents=True, exist_ok=True)
+        spec.to_json(path)
+        typer.echo(f"{path}: {len(spec.objects)} objects, floor occupancy {spec.occupancy_fraction:.2f}, "
+                   f"{spec.hidden_objects} hidden from all viewpoints")
 
 
 def perf_ig(repeats: Annotated[int, typer.Option("--repeats", help="Timed repeats per figure.")] = 3) -> None:

@@ -39,8 +39,9 @@ from msmem_core.world.viewpoints import read_poses_file
 if TYPE_CHECKING:
     from msmem_core.config import RunConfig
 
-SUITES = ("hard25", "tune10")
-"""hard25: the benchmark (seeds 25000-25024); tune10: for tuning defaults (seeds 30000-30009), never hard25."""
+SUITES = ("hard25", "tune10", "mesh25")
+"""hard25: the benchmark (seeds 25000-25024); tune10: for tuning defaults (seeds 30000-30009), never hard25;
+mesh25: hard scenes of ``pybullet_data`` meshes only (seeds 35000-35024, ``examples/suites/mesh25.generator.yaml``)."""
 TABLE_METRICS = (
     ("occupancy_iou", "occupancy IoU", "higher"),
     ("semantic_miou", "semantic mIoU", "higher"),

@@ -36,8 +36,11 @@ def error_lines(e: ValidationError, prefix: str = "", most: int = 5) -> str:
     """A pydantic error as one line: ``field a.b: message; field c: message (+N more)``."""
     lines = []
     for err in e.errors()[:most]:
-        loc = ".".join(str(x) for x in err["loc"]) or "<root>"
-        lines.append(f"field {prefix}{loc}: {err['msg']}")
+        loc = ".".join(str(x) for x in err["loc"])
+        if not loc and not prefix:  # a check across fields: its message names them
+            lines.append(str(err["msg"]).removeprefix("Value error, "))
+            continue
+        lines.append(f"field {prefix}{loc or '<root>'}: {err['msg']}")
     more = f" (+{e.error_count() - most} more)" if e.error_count() > most else ""
     return "; ".join(lines) + more
 

@@ -13,6 +13,7 @@ convex pieces every backend, ground truth and the scene tools share (``Part(kind
 - **Cache.** Decomposing takes seconds to minutes, so the pieces are cached as JSON, keyed by the
   file's content, scale and settings: beside the mesh (``<mesh>.hulls-<key>.json``) when that
   folder is writable, else in ``$MSMEM_CACHE_DIR/meshes`` (default ``~/.cache/msmem/meshes``).
+  Decompositions that ship with msmem (``shipped_cache_dir``) are found first, by the same key.
 """
 
 from __future__ import annotations
@@ -126,11 +127,30 @@ def _key(path: Path, scale: Any, settings: dict[str, Any]) -> str:
     return h.hexdigest()[:16]
 
 
+def shipped_cache_dir() -> Path:
+    """Decompositions that ship with msmem (``msmem_core/world/hulls``: the ``mesh25`` suite's meshes),
+    found by the same content key, so no suite needs CoACD at run time."""
+    return Path(__file__).with_name("hulls")
+
+
 def _cache_file(path: Path, key: str) -> Path:
+    shipped = shipped_cache_dir() / f"{path.name}.hulls-{key}.json"
+    if shipped.is_file():
+        return shipped
     beside = path.with_name(f"{path.name}.hulls-{key}.json")
     if beside.exists() or os.access(path.parent, os.W_OK):
         return beside
     return cache_dir() / f"{path.stem}.hulls-{key}.json"
+
+
+def _in_object_frame(pieces: list[NDArray[np.float64]]) -> list[NDArray[np.float64]]:
+    """The pieces moved as the mesh was (bounding box centred in x and y, lowest point at z = 0): a
+    decomposition's hulls may reach a little past the mesh (CoACD's remeshing), and an object must
+    not reach into the board it stands on."""
+    lo = np.min([v.min(axis=0) for v in pieces], axis=0)
+    hi = np.max([v.max(axis=0) for v in pieces], axis=0)
+    shift = np.array([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
+    return [np.round(v + shift, 6) for v in pieces]
 
 
 def mesh_pieces(
@@ -152,7 +172,7 @@ def mesh_pieces(
     if cache.is_file():
         try:
             data = json.loads(cache.read_text())
-            pieces = [np.asarray(v, dtype=np.float64) for v in data["pieces"]]
+            pieces = _in_object_frame([np.asarray(v, dtype=np.float64) for v in data["pieces"]])
             vol = data["mesh_volume_m3"]
             return pieces, MeshReport(len(pieces), data["decomposed"], float("nan") if vol is None else vol,
                                       data["pieces_volume_m3"], cache)
@@ -174,6 +194,7 @@ def mesh_pieces(
     pieces = [np.round(v, 6) for v in pieces if len(v) >= 4]
     pieces_volume = float(sum(trimesh.convex.convex_hull(v).volume for v in pieces))
     report = MeshReport(len(pieces), decomposed, volume, pieces_volume, cache)
+    pieces = _in_object_frame(pieces)
     cache.parent.mkdir(parents=True, exist_ok=True)
     record = {"source": str(p), "key": key, "decomposed": decomposed,
               "mesh_volume_m3": None if np.isnan(volume) else volume, "pieces_volume_m3": pieces_volume,

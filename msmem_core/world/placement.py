@@ -53,11 +53,37 @@ def _solids(obj: ObjectSpec) -> list[_Solid]:
     return out
 
 
+SAT_MAX_EDGES = 64
+"""Solids with more edges than this (mesh pieces) are compared by ``inscribed_depth``: the separating
+axis test's edge pairs grow as the product of the two edge counts."""
+
+
+def inscribed_depth(a: _Solid, b: _Solid) -> float:
+    """Twice the radius of the largest ball inside both convex solids (0 if they do not intersect): a
+    linear program over the two solids' face half-planes. Never more than the least projection
+    overlap ``penetration_depth`` measures, and equal to it for two boxes overlapping at a corner."""
+    from scipy.optimize import linprog
+
+    # each solid is the intersection of its supporting half-spaces along +-(its face normal directions)
+    na, nb = np.concatenate([a.normals, -a.normals]), np.concatenate([b.normals, -b.normals])
+    normals = np.concatenate([na, nb])
+    offsets = np.concatenate([(a.verts @ na.T).max(axis=0), (b.verts @ nb.T).max(axis=0)])
+    norm = np.linalg.norm(normals, axis=1)
+    keep = norm > 1e-9
+    rows = np.hstack([normals[keep], norm[keep, None]])  # n . x + |n| r <= offset
+    res = linprog(c=[0.0, 0.0, 0.0, -1.0], A_ub=rows, b_ub=offsets[keep],
+                  bounds=[(None, None)] * 3 + [(0.0, None)], method="highs")
+    return 2.0 * float(res.x[3]) if res.status == 0 else 0.0
+
+
 def penetration_depth(a: _Solid, b: _Solid) -> float:
     """Depth of the overlap of two convex solids (0 if they are apart): the least projection overlap
-    over the candidate separating axes (both solids' face normals and their edges' cross products)."""
+    over the candidate separating axes (both solids' face normals and their edges' cross products);
+    for solids with many edges, ``inscribed_depth``."""
     if np.any(a.lo > b.hi) or np.any(b.lo > a.hi):
         return 0.0
+    if max(len(a.edges), len(b.edges)) > SAT_MAX_EDGES:
+        return inscribed_depth(a, b)
     axes = np.concatenate([a.normals, b.normals, np.cross(a.edges[:, None, :], b.edges[None]).reshape(-1, 3)])
     norm = np.linalg.norm(axes, axis=1)
     axes = axes[norm > 1e-9] / norm[norm > 1e-9, None]

@@ -12,7 +12,7 @@ import math
 from collections.abc import Sequence
 from functools import cache
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -327,6 +327,16 @@ class ObjectSpec(BaseModel):
         return pose_matrix(self.position_m, self.quat_xyzw)
 
 
+def relative_mesh_files(classes: Any, folder: Path) -> None:
+    """In place: the relative mesh paths of raw class declarations (a list of mappings, as read from a
+    file in ``folder``) made absolute against ``folder``; ``pybullet_data:...`` paths stay."""
+    for c in classes if isinstance(classes, list) else []:
+        mesh = c.get("mesh") if isinstance(c, dict) else None
+        file = mesh.get("file") if isinstance(mesh, dict) else None
+        if isinstance(file, str) and not Path(file).is_absolute() and ":" not in file:
+            mesh["file"] = str((folder / file).resolve())
+
+
 class SceneSpec(BaseModel):
     """A shelf with objects; what ``Simulator.reset`` builds. Serialised as JSON."""
 
@@ -422,11 +432,8 @@ class SceneSpec(BaseModel):
             raise UserError(f"scene file {p} is not valid JSON: {e.msg} at line {e.lineno}") from e
         except ValueError as e:  # a duplicate key
             raise UserError(f"scene file {p} is not valid JSON: {e}") from e
-        for c in data.get("classes", []) if isinstance(data, dict) else []:  # mesh paths: relative to the file
-            mesh = c.get("mesh") if isinstance(c, dict) else None
-            file = mesh.get("file") if isinstance(mesh, dict) else None
-            if isinstance(file, str) and not Path(file).is_absolute() and ":" not in file:
-                mesh["file"] = str((p.parent / mesh["file"]).resolve())
+        if isinstance(data, dict):
+            relative_mesh_files(data.get("classes"), p.parent)
         try:
             return cls.model_validate(data)
         except ValidationError as e:

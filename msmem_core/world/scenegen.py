@@ -26,7 +26,7 @@ from functools import cache
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 from scipy.signal import fftconvolve
 from scipy.spatial import ConvexHull
 
@@ -35,7 +35,7 @@ from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Bool, Int
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import yaw_quat
 from msmem_core.world.meshes import part_mesh_local
-from msmem_core.world.scene import OBJECT_CLASSES, ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec
+from msmem_core.world.scene import OBJECT_CLASSES, ClassSpec, ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 from msmem_core.world.visibility import (
     MIN_VISIBLE_PIXELS,
@@ -83,6 +83,24 @@ class SceneGenConfig(BaseModel):
     """Hardness check: cast every stride-th pixel of every view."""
     min_visible_pixels: Int = Field(MIN_VISIBLE_PIXELS, ge=1)
     """Hardness check: an object is hidden if fewer strided pixels summed over all views see it."""
+    classes: tuple[ClassSpec, ...] = ()
+    """Classes to draw from beside the built-ins (as a scene file declares them: parts or a mesh);
+    every generated scene declares them all."""
+    builtin_classes: Bool = True
+    """Draw the built-in classes too (False: only ``classes``)."""
+
+    @model_validator(mode="after")
+    def _some_class(self) -> SceneGenConfig:
+        if not self.builtin_classes and not self.classes:
+            raise ValueError("classes: builtin_classes is false, so at least one class must be declared")
+        if self.classes:
+            try:  # names against the built-ins, geometry (mesh files), confusable_with
+                _class_pool(self)
+            except ValidationError as e:
+                msgs = (str(err["msg"]).removeprefix("Value error, ") for err in e.errors())
+                raise ValueError("; ".join(msgs)) from None
+        return self
+
 
     @field_validator("occupancy_range")
     @classmethod
@@ -142,6 +160,33 @@ def _rasterise_footprint(cls_: ObjectClass, yaw: float, cell_m: float, grow_m: f
     dist = np.min([np.max(pts @ (rot @ h[:, :2].T) + h[:, 2], axis=1) for h in hulls], axis=0)
     shape = (2 * k + 1, 2 * k + 1)
     return _Footprint(foot=(dist <= 0.0).reshape(shape), grown=(dist <= grow_m).reshape(shape))
+
+
+@cache
+def _class_pool(cfg: SceneGenConfig) -> tuple[ObjectClass, ...]:
+    """The classes objects are drawn from, numbered as a scene declaring ``cfg.classes`` numbers them."""
+    registry = SceneSpec(shelf=cfg.shelf, classes=cfg.classes).object_classes
+    own = {c.name for c in cfg.classes}
+    return tuple(c for c in registry if cfg.builtin_classes or c.name in own)
+
+
+def _box_bodied(cls_: ObjectClass) -> bool:
+    """A front-row candidate: a box body (built-ins), or a footprint that fills at least
+    ``BOX_FILL`` of its bounding rectangle at yaw 0 (mesh classes); round ones leave wide gaps."""
+    if cls_.parts[0].kind != "convex":
+        return cls_.parts[0].kind == "box"
+    xmin, xmax, ymin, ymax = _footprint_extent(cls_, 0.0)
+    cell = 0.0025
+    area = _rasterise_footprint(cls_, 0.0, cell, 0.0).area_cells * cell**2
+    return bool(area >= BOX_FILL * (xmax - xmin) * (ymax - ymin))
+
+
+def _row_width(cls_: ObjectClass) -> float:
+    """Width of a front-row class along the front (x) at yaw 0: its body's, or its footprint's."""
+    if cls_.parts[0].kind == "box":
+        return cls_.parts[0].size_m[0]
+    xmin, xmax, _, _ = _footprint_extent(cls_, 0.0)
+    return float(xmax - xmin)
 
 
 @cache
@@ -205,8 +250,8 @@ class _Floor:
         return self.covered_cells / (self.nx * self.ny)
 
 
-def _pad_cells(cfg: SceneGenConfig, grow_m: float) -> int:
-    reach = max(c.footprint_radius_m for c in OBJECT_CLASSES) + grow_m
+def _pad_cells(cfg: SceneGenConfig, grow_m: float, classes: tuple[ObjectClass, ...] = ()) -> int:
+    reach = max(c.footprint_radius_m for c in (*OBJECT_CLASSES, *classes)) + grow_m
     return int(np.ceil(reach / cfg.raster_m)) + 2
 
 
@@ -216,7 +261,7 @@ def footprint_fraction(scene: SceneSpec, cell_m: float = 0.0025) -> float:
     The generator's measure (``SceneSpec.occupancy_fraction``), recomputed from a scene.
     """
     cfg = SceneGenConfig(shelf=scene.shelf, raster_m=cell_m, require_hard=False)
-    floor = _Floor(cfg, _pad_cells(cfg, 0.0))
+    floor = _Floor(cfg, _pad_cells(cfg, 0.0, scene.object_classes))
     for obj in scene.objects:
         q = obj.quat_xyzw
         fp = _rasterise_footprint(obj.object_class, 2 * float(np.arctan2(q[2], q[3])), cell_m, 0.0)
@@ -235,6 +280,8 @@ ROW_JITTER_M = 0.01
 """Random setback of a front-row object from the front clearance line."""
 ROW_START_SLACK_M = 0.03
 """Random distance of the front row's first object from its wall."""
+BOX_FILL = 0.85
+"""A mesh class whose footprint fills this share of its bounding rectangle counts as box-bodied."""
 PLUG_MIN_HEIGHT_M = 0.08
 """Classes at least this tall may plug a gap of the front row."""
 PLUG_REACH_M = 0.02
@@ -294,9 +341,10 @@ class _Placer:
     def __init__(self, rng: np.random.Generator, cfg: SceneGenConfig, views: NDArray[np.float64]) -> None:
         self.rng, self.cfg = rng, cfg
         self.grow = cfg.min_gap_m + 2 * cfg.raster_m  # raster slack: real gaps stay >= min_gap_m
-        self.floor = _Floor(cfg, _pad_cells(cfg, self.grow))
+        pool = _class_pool(cfg)
+        self.floor = _Floor(cfg, _pad_cells(cfg, self.grow, pool))
         top = cfg.shelf.height_m - cfg.wall_clearance_m
-        self.classes = [c for c in OBJECT_CLASSES if _class_height(c) <= top]
+        self.classes = [c for c in pool if _class_height(c) <= top]
         if not self.classes:
             raise UserError(f"no object class fits a shelf {cfg.shelf.height_m} m high")
         self.heights = np.array([_class_height(c) for c in self.classes])
@@ -304,8 +352,8 @@ class _Placer:
         self.tallness = (self.heights - self.heights.min()) / span * 2 - 1  # -1 short .. +1 tall
         self.occluders = [i for i, h in enumerate(self.heights) if h >= OCCLUDER_HEIGHT_M]
         # Front-row classes: box-bodied occluders (round ones leave wide gaps), wider ones likelier.
-        self.row_classes = [i for i in self.occluders if self.classes[i].parts[0].kind == "box"] or self.occluders
-        widths = np.array([self.classes[i].parts[0].size_m[0] for i in self.row_classes])
+        self.row_classes = [i for i in self.occluders if _box_bodied(self.classes[i])] or self.occluders
+        widths = np.array([_row_width(self.classes[i]) for i in self.row_classes])
         self.row_weights = widths**2 / np.sum(widths**2)
         self.plug_classes = [i for i, h in enumerate(self.heights) if h >= PLUG_MIN_HEIGHT_M]
         self.plug_classes = self.plug_classes or list(range(len(self.classes)))
@@ -326,9 +374,11 @@ class _Placer:
         """The next object: class c at padded raster cell (i, j), standing on the floor."""
         x, y = self.floor.position(i, j)
         qx, qy, qz, qw = (float(v) for v in yaw_quat(yaw))
-        return ObjectSpec(
+        spec = ObjectSpec(
             id=len(self.objects), class_name=self.classes[c].name, position_m=(x, y, 0.0), quat_xyzw=(qx, qy, qz, qw)
         )
+        spec._class = self.classes[c]  # a declared class is known only to the registry it came from
+        return spec
 
     def _add(self, c: int, yaw: float, fp: _Footprint, i: int, j: int) -> None:
         self.floor.stamp(fp, i, j)
@@ -544,6 +594,7 @@ def generate_scene(seed: int, cfg: SceneGenConfig | None = None) -> SceneSpec:
                 name=f"gen-{seed}",
                 seed=seed,
                 shelf=cfg.shelf,
+                classes=cfg.classes,
                 objects=tuple(objects),
                 occupancy_fraction=round(fraction, 6),
                 hidden_objects=hidden,

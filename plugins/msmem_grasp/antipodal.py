@@ -9,9 +9,9 @@ orthogonal to the baseline; a grasp is kept if the finger and palm boxes of ``Gr
 = width + margin, posed by ``executable_grasp``) do not intersect the object. Every grasp is stored
 from both contacts (b flipped, same physical grasp), so each contact carries its directed baseline.
 
-Collision tests are solid-vs-solid on the catalogue's primitives (box-box: exact separating-axis
-test in numpy; box-cylinder: python-fcl on the pairs whose bounding boxes overlap); a triangle-mesh
-BVH test would miss a finger lying entirely inside a part.
+Collision tests are solid-vs-solid on the parts (box-box: exact separating-axis test in numpy;
+box-cylinder and box-convex hull, a mesh class's pieces: python-fcl on the pairs whose bounding boxes
+overlap); a triangle-mesh BVH test would miss a finger lying entirely inside a part.
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ import trimesh
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.errors import UserError
 from msmem_core.util.artifacts import cache_root
 from msmem_core.world.geometry import F64, boxes_overlap, pose_matrix
 from msmem_core.world.gripper import GripperSpec
@@ -116,28 +115,44 @@ class GraspSet:
 # ------------------------------------------------------------------------------------------ solids
 @dataclass(frozen=True)
 class Solids:
-    """Convex primitives (boxes and z-axis cylinders) with world poses, for inside and overlap tests.
+    """Convex primitives (boxes, z-axis cylinders and convex hulls) with world poses, for inside and
+    overlap tests.
 
     ``half`` is the half-extent of each solid's bounding box in its own frame: (r, r, h/2) for a
-    cylinder, whose radius is ``half[0]``.
+    cylinder, whose radius is ``half[0]``. A convex hull (a mesh class's piece) has its world
+    bounding box as (identity ``rot``, ``centre``, ``half``) and its world vertices, face normals and
+    offsets in ``hull`` (None for the primitives).
     """
 
     is_cylinder: NDArray[np.bool_]
     rot: F64
     centre: F64
     half: F64
+    hull: NDArray[np.object_]
 
     @classmethod
     def from_parts(cls, parts: tuple[Part, ...] | list[Part], pose: F64 | None = None) -> Solids:
         pose = np.eye(4) if pose is None else pose
-        rots, cens, halves, cyl = [], [], [], []
+        rots, cens, halves, cyl, hulls = [], [], [], [], []
         for p in parts:
-            if p.kind == "convex":
-                raise UserError("antipodal ground truth covers box and cylinder parts only; a mesh class's "
-                                "convex pieces are not supported yet (docs/scenes.md)")
             t = pose @ pose_matrix(p.position_m, p.quat_xyzw)
+            if p.kind == "convex":
+                mesh = trimesh.convex.convex_hull(np.asarray(p.vertices_m) @ t[:3, :3].T + t[:3, 3])
+                verts = np.asarray(mesh.vertices)
+                planes = np.hstack([mesh.face_normals, np.einsum("fk,fk->f", mesh.face_normals,
+                                                                   verts[mesh.faces[:, 0]])[:, None]])
+                planes = np.unique(np.round(planes, 9), axis=0)  # a facet's triangles share one plane
+                normals, offsets = planes[:, :3], planes[:, 3]
+                lo, hi = verts.min(axis=0), verts.max(axis=0)
+                rots.append(np.eye(3))
+                cens.append((lo + hi) / 2)
+                halves.append((hi - lo) / 2)
+                cyl.append(False)
+                hulls.append((verts, np.asarray(mesh.faces), normals, offsets))
+                continue
             rots.append(t[:3, :3])
             cens.append(t[:3, 3])
+            hulls.append(None)
             if p.kind == "box":
                 halves.append(np.asarray(p.size_m) / 2)
                 cyl.append(False)
@@ -145,20 +160,24 @@ class Solids:
                 r, h = p.size_m
                 halves.append(np.array([r, r, h / 2]))
                 cyl.append(True)
+        hull = np.empty(len(hulls), dtype=object)
+        hull[:] = hulls
         return cls(np.array(cyl, dtype=bool), np.array(rots).reshape(-1, 3, 3), np.array(cens).reshape(-1, 3),
-                   np.array(halves).reshape(-1, 3))
+                   np.array(halves).reshape(-1, 3), hull)
 
     @classmethod
     def from_boxes(cls, boxes: list[tuple[F64, F64]]) -> Solids:
         """Axis-aligned boxes given as (centre, half-extents), e.g. ``ShelfSpec.boards()``."""
         n = len(boxes)
         return cls(np.zeros(n, dtype=bool), np.tile(np.eye(3), (n, 1, 1)),
-                   np.array([c for c, _ in boxes]).reshape(-1, 3), np.array([h for _, h in boxes]).reshape(-1, 3))
+                   np.array([c for c, _ in boxes]).reshape(-1, 3), np.array([h for _, h in boxes]).reshape(-1, 3),
+                   np.full(n, None, dtype=object))
 
     @classmethod
     def concat(cls, items: list[Solids]) -> Solids:
         if not items:
-            return cls(np.zeros(0, dtype=bool), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
+            return cls(np.zeros(0, dtype=bool), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
+                       np.zeros(0, dtype=object))
         return cls(*(np.concatenate([getattr(s, f.name) for s in items]) for f in fields(cls)))
 
     def __len__(self) -> int:
@@ -168,6 +187,11 @@ class Solids:
         """Points [N, 3] strictly inside the union (shrunk by ``tol``)."""
         inside = np.zeros(len(points), dtype=bool)
         for i in range(len(self)):
+            if self.hull[i] is not None:  # the points in its bounding box, against its face planes
+                _, _, normals, offsets = self.hull[i]
+                near = np.flatnonzero(np.all(np.abs(points - self.centre[i]) < self.half[i] - tol, axis=1))
+                inside[near] |= np.all(points[near] @ normals.T - offsets < -tol, axis=1)
+                continue
             local = (points - self.centre[i]) @ self.rot[i]
             h = self.half[i] - tol
             if self.is_cylinder[i]:
@@ -177,6 +201,10 @@ class Solids:
         return inside
 
     def _fcl(self, i: int) -> fcl.CollisionObject:
+        if self.hull[i] is not None:
+            verts, faces, _, _ = self.hull[i]
+            flat = np.hstack([np.full((len(faces), 1), 3), faces]).ravel()
+            return fcl.CollisionObject(fcl.Convex(verts, len(faces), flat), fcl.Transform())
         h = self.half[i]
         geom = fcl.Cylinder(h[0], 2 * h[2]) if self.is_cylinder[i] else fcl.Box(*(2 * h))
         return fcl.CollisionObject(geom, fcl.Transform(self.rot[i], self.centre[i]))
@@ -196,7 +224,7 @@ class Solids:
             for lo in range(0, len(near), chunk):
                 idx = near[lo:lo + chunk]
                 cand = idx[boxes_overlap(centre[idx], rot[idx], half[idx], self.centre[s], self.rot[s], self.half[s])]
-                if not self.is_cylinder[s]:
+                if not self.is_cylinder[s] and self.hull[s] is None:  # a box: the test was exact
                     hit[cand] = True
                     continue
                 obj = fcl_objs.setdefault(s, self._fcl(s))
