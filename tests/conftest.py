@@ -5,11 +5,16 @@ from pathlib import Path
 
 import pytest
 
-from msmem_core.util.threads import configure_threads
-
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # so MSMEM_PLUGINS can name tests.support.* modules
-    sys.path.insert(0, str(ROOT))
+# This checkout's packages before the installed ones: ROOT so MSMEM_PLUGINS can name tests.support.*
+# modules, and the plugin folders so that a copy of the project (mutmut's mutants/) tests its own,
+# mutated plugins rather than the editable install's.
+for _path in (ROOT / "simulators", ROOT / "plugins", ROOT):
+    if str(_path) not in sys.path:
+        sys.path.insert(0, str(_path))
+
+from msmem_core.util.threads import configure_threads  # noqa: E402
+
 os.environ.setdefault("NUMBA_NUM_THREADS", "2")
 configure_threads()  # before any test module imports torch or numba
 
