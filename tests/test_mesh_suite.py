@@ -34,7 +34,9 @@ def test_the_generator_draws_only_the_declared_classes_when_asked() -> None:
     assert names <= {"crate", "pebble"}
     assert len(scene.objects) >= 5
     assert [c.name for c in scene.classes] == ["crate", "pebble"]
-    assert {o.class_id for o in scene.objects} <= {NUM_CLASSES, NUM_CLASSES + 1}  # numbered after the built-ins
+    assert not scene.builtin_classes
+    assert scene.class_names == ("background", "crate", "pebble")  # only what can occur, numbered from 1
+    assert {o.class_id for o in scene.objects} <= {1, 2}
     again = SceneSpec.model_validate_json(scene.model_dump_json())
     assert again == scene
     assert again.objects[0].object_class == scene.objects[0].object_class
@@ -64,6 +66,22 @@ def test_a_mesh_box_makes_the_front_row_and_a_mesh_cylinder_does_not() -> None:
         convex(trimesh.creation.cylinder(0.05, 0.2, sections=32).apply_translation((0, 0, 0.1))),)))[0]
     assert _box_bodied(box)
     assert not _box_bodied(cyl)
+
+
+def test_a_scene_without_the_built_ins_knows_only_its_own_classes() -> None:
+    own = {"builtin_classes": False, "classes": [TALL], "objects": [{"id": 0, "class_name": "crate",
+                                                                    "position_m": [0.0, 0.1, 0.0]}]}
+    scene = SceneSpec.model_validate(own)
+    assert (scene.num_classes, scene.objects[0].class_id) == (2, 1)
+    with_builtins = SceneSpec.model_validate({**own, "builtin_classes": True})
+    assert (with_builtins.num_classes, with_builtins.objects[0].class_id) == (NUM_CLASSES + 1, NUM_CLASSES)
+    bad = {**own, "objects": [{"id": 0, "class_name": "mug", "position_m": [0.0, 0.1, 0.0]}]}
+    with pytest.raises(ValidationError, match=r"objects\.0\.class_name: unknown object class 'mug'; known: crate"):
+        SceneSpec.model_validate(bad)
+    with pytest.raises(ValidationError, match=r"classes\.0\.name: 'mug' is a built-in class"):
+        SceneSpec.model_validate({**own, "classes": [{**TALL, "name": "mug"}]})
+    with pytest.raises(ValidationError, match="at least one class must be declared"):
+        SceneSpec.model_validate({"builtin_classes": False})
 
 
 @pytest.mark.parametrize(("settings", "message"), [
@@ -183,3 +201,16 @@ def test_the_shipped_mesh25_suite_is_what_its_generator_file_makes() -> None:
     shipped = suite_scenes("mesh25")[0]
     made = generate_scene(35000, SceneGenConfig.model_validate(data))
     assert made.model_copy(update={"name": shipped.name}) == shipped
+
+
+def test_an_episode_on_a_mesh25_scene_maps_its_mesh_classes_only() -> None:
+    from msmem_core.plugins import get_plugin_manager
+    from msmem_core.run.runner import build_episode, run_episode
+
+    scene = suite_scenes("mesh25")[3]
+    small = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}, "steps": 3}
+    ep = build_episode(load_config("view-only", None, small), get_plugin_manager(), scene=scene)
+    metrics = run_episode(ep)
+    assert ep.workspace.num_classes == 1 + len(scene.classes) == 12
+    assert metrics["semantic_miou_2d"] > 0.1
+    assert metrics["occupancy_miou"] > 0.4

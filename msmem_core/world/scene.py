@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from pydantic import AfterValidator, BaseModel, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from msmem_core.errors import UserError
-from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Int, error_lines, load_json
+from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Bool, Int, error_lines, load_json
 from msmem_core.world.geometry import pose_matrix
 
 
@@ -345,6 +345,9 @@ class SceneSpec(BaseModel):
     name: str = "scene"
     seed: Int | None = None
     shelf: ShelfSpec = ShelfSpec()
+    builtin_classes: Bool = True
+    """The built-in classes are part of this scene's registry (False: only ``classes``, numbered from
+    1, so the belief holds no class that cannot occur)."""
     classes: tuple[ClassSpec, ...] = ()
     """Classes beyond the built-ins, numbered after them in this order (ids 15, 16, ...)."""
     objects: tuple[ObjectSpec, ...] = ()
@@ -365,10 +368,13 @@ class SceneSpec(BaseModel):
     def _resolve_classes(self) -> SceneSpec:
         """Number the scene's classes after the built-ins and give every object its class; refuse
         unknown or duplicate names, naming the field."""
-        known: dict[str, ObjectClass] = {c.name: c for c in OBJECT_CLASSES}
+        if not self.builtin_classes and not self.classes:
+            raise ValueError("classes: builtin_classes is false, so at least one class must be declared")
+        known: dict[str, ObjectClass] = {c.name: c for c in OBJECT_CLASSES} if self.builtin_classes else {}
+        builtin = {c.name for c in OBJECT_CLASSES}
         for i, c in enumerate(self.classes):
-            if c.name in known:
-                what = "a built-in class" if known[c.name] in OBJECT_CLASSES else "declared twice"
+            if c.name in known or c.name in builtin:
+                what = "a built-in class" if c.name in builtin else "declared twice"
                 raise ValueError(f"classes.{i}.name: {c.name!r} is {what}")
             try:
                 parts = c.geometry()

@@ -87,7 +87,8 @@ class SceneGenConfig(BaseModel):
     """Classes to draw from beside the built-ins (as a scene file declares them: parts or a mesh);
     every generated scene declares them all."""
     builtin_classes: Bool = True
-    """Draw the built-in classes too (False: only ``classes``)."""
+    """Draw the built-in classes too (False: only ``classes``, and the scenes' registries hold only
+    them: ``SceneSpec.builtin_classes``)."""
 
     @model_validator(mode="after")
     def _some_class(self) -> SceneGenConfig:
@@ -165,9 +166,7 @@ def _rasterise_footprint(cls_: ObjectClass, yaw: float, cell_m: float, grow_m: f
 @cache
 def _class_pool(cfg: SceneGenConfig) -> tuple[ObjectClass, ...]:
     """The classes objects are drawn from, numbered as a scene declaring ``cfg.classes`` numbers them."""
-    registry = SceneSpec(shelf=cfg.shelf, classes=cfg.classes).object_classes
-    own = {c.name for c in cfg.classes}
-    return tuple(c for c in registry if cfg.builtin_classes or c.name in own)
+    return SceneSpec(shelf=cfg.shelf, classes=cfg.classes, builtin_classes=cfg.builtin_classes).object_classes
 
 
 def _box_bodied(cls_: ObjectClass) -> bool:
@@ -594,6 +593,7 @@ def generate_scene(seed: int, cfg: SceneGenConfig | None = None) -> SceneSpec:
                 name=f"gen-{seed}",
                 seed=seed,
                 shelf=cfg.shelf,
+                builtin_classes=cfg.builtin_classes,
                 classes=cfg.classes,
                 objects=tuple(objects),
                 occupancy_fraction=round(fraction, 6),
