@@ -232,3 +232,42 @@ def test_cap_evidence_shrinks_disturbed_evidence_and_keeps_the_side_of_one_half(
     assert np.all(reset.beta[region] == 1)
     assert np.all(reset.eta[:, region] == 1)
     np.testing.assert_array_equal(reset.alpha[~region], b.alpha[~region])
+
+
+def test_a_delta_against_its_base_keeps_exactly_the_voxels_that_change():
+    """``BeliefDelta.against``: a voxel stays when any of alpha, beta or one class's evidence differs
+    from the base, and only then; applying the result gives the same map as applying the whole delta."""
+    from msmem_core.map.belief import BeliefDelta
+
+    base = EvidentialMap.empty(GridSpec(origin_m=(0.0, 0.0, 0.0), voxel_m=0.1, shape=(2, 2, 2)), 4)
+    base.alpha[:] = 2.0
+    flat = base.alpha.reshape(-1)
+    idx = np.array([0, 1, 2, 3, 5], dtype=np.int64)
+    alpha = flat[idx].copy()
+    beta = base.beta.reshape(-1)[idx].copy()
+    eta = base.eta.reshape(4, -1)[:, idx].copy()
+    alpha[1] = 3.0  # voxel 1: alpha changes
+    beta[2] = 4.0  # voxel 2: beta changes
+    eta[3, 3] = 7.0  # voxel 3: only the last class's evidence changes
+    delta = BeliefDelta(idx, alpha, beta, eta)  # voxels 0 and 5: unchanged
+    kept = delta.against(base)
+    np.testing.assert_array_equal(kept.idx, [1, 2, 3])
+    np.testing.assert_array_equal(kept.alpha, [3.0, 2.0, 2.0])
+    np.testing.assert_array_equal(kept.beta, [1.0, 4.0, 1.0])
+    np.testing.assert_array_equal(kept.eta[:, 2], [1.0, 1.0, 1.0, 7.0])
+    got, want = kept.apply(base), delta.apply(base)
+    np.testing.assert_array_equal(got.alpha, want.alpha)
+    np.testing.assert_array_equal(got.beta, want.beta)
+    np.testing.assert_array_equal(got.eta, want.eta)
+
+
+def test_entropies_are_computed_in_float64_whatever_the_input():
+    from msmem_core.map.belief import bernoulli_entropy, categorical_entropy
+
+    p = np.array([1e-4, 0.3, 0.5, 1.0], dtype=np.float32)
+    h = bernoulli_entropy(p)
+    assert h.dtype == np.float64
+    want = -(p.astype(np.float64) * np.log(p.astype(np.float64))
+             + np.where(p < 1, (1 - p.astype(np.float64)) * np.log(np.maximum(1 - p.astype(np.float64), 1e-300)), 0))
+    np.testing.assert_allclose(h, want, rtol=1e-12)
+    assert categorical_entropy(np.ones((3, 2), dtype=np.float32)).dtype == np.float64
