@@ -7,6 +7,7 @@ from collections.abc import Iterable
 import pluggy
 
 from msmem_core.plugins.types import BeliefModelSpec, CommandSpec, ObjectiveTermSpec, SimulatorSpec, SkillSpec
+from msmem_core.world.scene import ClassSpec
 
 PROJECT = "msmem"
 hookspec = pluggy.HookspecMarker(PROJECT)
@@ -61,6 +62,21 @@ class MsmemSpecs:
                 yield ObjectiveTermSpec(name="travel-cost", factory=TravelCost,
                                         config_model=TravelCostConfig,
                                         description="Penalise long gripper paths")
+        """
+        yield from ()
+
+    @hookspec
+    def msmem_object_classes(self) -> Iterable[ClassSpec]:
+        """Declare object classes any scene may name, declared as a scene file declares them::
+
+            @hookimpl
+            def msmem_object_classes():
+                yield ClassSpec(name="chips_can", parts=(Part(kind="cylinder", size_m=(0.038, 0.25),
+                                                               position_m=(0, 0, 0.125)),), mass_kg=0.2)
+
+        A scene whose objects name such a class gets it declared, after its own classes (ids after
+        the built-ins and the scene's), so the scene written to a run folder stands alone. A class
+        named like a built-in, or declared by two plugins, is left out with a warning naming the plugin.
         """
         yield from ()
 

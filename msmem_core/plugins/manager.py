@@ -25,6 +25,7 @@ from msmem_core.plugins.types import (
     _Spec,
 )
 from msmem_core.util.validation import MODEL_CONFIG, loose_scalar, non_finite
+from msmem_core.world.scene import CLASS_NAMES, ClassSpec
 
 ENTRY_POINT_GROUP = "msmem"
 BUILTIN_DISTRIBUTION = "msmem"
@@ -96,6 +97,9 @@ class MsmemPluginManager(pluggy.PluginManager):
         """Plugin name -> why its ``msmem_commands`` hook failed (its commands are left out)."""
         self._cache: dict[str, dict[str, Registered]] = {}
         self._commands: list[RegisteredCommand] | None = None
+        self._classes: dict[str, ClassSpec] | None = None
+        self.class_sources: dict[str, tuple[str, str]] = {}
+        """Object class name -> (plugin, distribution) that declared it."""
         if _flag("MSMEM_TRACE_PLUGINS"):
             self.trace.root.setwriter(lambda s: print(s, end="", file=sys.stderr))
             self.enable_tracing()
@@ -110,6 +114,7 @@ class MsmemPluginManager(pluggy.PluginManager):
         self.distributions[name] = distribution
         self._cache.clear()
         self._commands = None
+        self._classes = None
 
     def _skip(self, key: str, distribution: str, message: str, reason: str, stacklevel: int = 3) -> None:
         """Record why a plugin is left out (``load_errors``, listed by ``msmem plugins``) and warn."""
@@ -287,6 +292,40 @@ class MsmemPluginManager(pluggy.PluginManager):
         self._commands = list(out.values())
         return self._commands
 
+    def object_classes(self) -> dict[str, ClassSpec]:
+        """Every plugin's object classes by name, in registration order (``msmem_object_classes``).
+
+        A plugin whose hook raises or yields something that is not a ``ClassSpec``, and a class named
+        like a built-in or declared by an earlier plugin, are named in a ``PluginLoadWarning`` and left
+        out; everyone else's classes are kept.
+        """
+        if self._classes is not None:
+            return self._classes
+        out: dict[str, ClassSpec] = {}
+        for impl in self.hook.msmem_object_classes.get_hookimpls():  # registration order
+            plugin = impl.plugin_name
+            dist = self.distributions.get(plugin, "?")
+            try:
+                specs = list(impl.function() or ())
+                for spec in specs:
+                    if not isinstance(spec, ClassSpec):
+                        raise PluginError(f"msmem_object_classes() must yield ClassSpec records, got {spec!r}")
+            except Exception as e:
+                warnings.warn(f"msmem plugin {plugin!r} (from {dist}): its msmem_object_classes hook failed, its "
+                              f"classes are left out: {type(e).__name__}: {e}", PluginLoadWarning, stacklevel=2)
+                continue
+            for spec in specs:
+                if spec.name in CLASS_NAMES or spec.name in out:
+                    other = "a built-in class" if spec.name in CLASS_NAMES else \
+                        f"declared by plugin {self.class_sources[spec.name][0]!r} (kept)"
+                    warnings.warn(f"object class {spec.name!r} of plugin {plugin!r} (from {dist}) is left out: "
+                                  f"the name is {other}", PluginLoadWarning, stacklevel=2)
+                    continue
+                out[spec.name] = spec
+                self.class_sources[spec.name] = (plugin, dist)
+        self._classes = out
+        return out
+
     # ------------------------------------------------------------------------------------ building
     def build(self, kind: str, ref: ComponentRef | str, where: str | None = None, **extra: Any) -> Any:
         """Validate ``ref.params`` against the spec's config model and call its factory.
@@ -332,6 +371,11 @@ class MsmemPluginManager(pluggy.PluginManager):
                                    for k, v in props.items()},
                     }
                 )
+        for name, cls in self.object_classes().items():
+            plugin, dist = self.class_sources[name]
+            shape = f"mesh {cls.mesh.file}" if cls.mesh is not None else f"{len(cls.parts)} parts"
+            rows.append({"kind": "object-class", "name": name, "distribution": dist, "plugin": plugin,
+                         "description": f"object class: {shape}, {cls.mass_kg} kg", "config": {}})
         return rows
 
 

@@ -14,6 +14,7 @@ import inspect
 import os
 import time
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -47,7 +48,7 @@ from msmem_core.util.jsonable import dumps
 from msmem_core.util.threads import configure_threads
 from msmem_core.util.trace import Tracer
 from msmem_core.world.placement import load_scene
-from msmem_core.world.scene import SceneSpec, class_mismatch
+from msmem_core.world.scene import ClassSpec, SceneSpec, class_mismatch
 from msmem_core.world.scenegen import generate_scene
 from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
 from msmem_core.world.visibility import observable_mask
@@ -65,9 +66,10 @@ def set_threads(n: int) -> None:
     torch.set_num_threads(n)
 
 
-def resolve_scene(cfg: RunConfig) -> SceneSpec:
+def resolve_scene(cfg: RunConfig, offered: Mapping[str, ClassSpec] | None = None) -> SceneSpec:
+    """The run's scene: its file (objects may name classes plugins ``offered``), else generated."""
     if cfg.scene.file is not None:
-        return load_scene(str(cfg.scene.file))  # fields, then placement: refused with a one-line error
+        return load_scene(str(cfg.scene.file), offered)  # fields, then placement: one-line errors
     return generate_scene(cfg.scene.seed, cfg.scene.generator)
 
 
@@ -195,7 +197,7 @@ def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | Non
     terms = [(t.name, t.weight, pm.build("objective-term", t, where=f"objective.{i}", **common))
              for i, t in enumerate(cfg.objective)]
     sim = pm.build("simulator", cfg.simulator, where="simulator", **common)
-    scene = scene or resolve_scene(cfg)  # after the plugins, so a bad name fails fast
+    scene = scene or resolve_scene(cfg, pm.object_classes())  # after the plugins, so a bad name fails fast
     for where, name, model in models:
         if model.classes is not None and (why := class_mismatch(model.classes, scene.class_names)):
             raise PluginError(f"{where}: {name} was trained on {len(model.classes)} classes and scene "

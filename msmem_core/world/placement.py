@@ -12,13 +12,14 @@ prism), posed by the spec. Checks, each error naming the object's id and class:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from msmem_core.errors import UserError
-from msmem_core.world.scene import ObjectSpec, SceneSpec
+from msmem_core.world.scene import ClassSpec, ObjectSpec, SceneSpec
 from msmem_core.world.voxelize import _part_world_pose, _polytope
 
 INSIDE_TOLERANCE_M = 1e-3
@@ -143,6 +144,7 @@ def check_placement(scene: SceneSpec, source: str = "scene") -> SceneSpec:
     return scene
 
 
-def load_scene(path: str) -> SceneSpec:
-    """A scene file, validated field by field (``SceneSpec.from_json``) and then for placement."""
-    return check_placement(SceneSpec.from_json(path), f"scene file {path}")
+def load_scene(path: str, offered: Mapping[str, ClassSpec] | None = None) -> SceneSpec:
+    """A scene file, validated field by field (``SceneSpec.from_json``, with the classes plugins
+    ``offered``) and then for placement."""
+    return check_placement(SceneSpec.from_json(path, offered), f"scene file {path}")

@@ -9,14 +9,23 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from functools import cache
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import AfterValidator, BaseModel, Field, PrivateAttr, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from msmem_core.errors import UserError
 from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Bool, Int, error_lines, load_json
@@ -365,9 +374,18 @@ class SceneSpec(BaseModel):
         return v
 
     @model_validator(mode="after")
-    def _resolve_classes(self) -> SceneSpec:
+    def _resolve_classes(self, info: ValidationInfo) -> SceneSpec:
         """Number the scene's classes after the built-ins and give every object its class; refuse
-        unknown or duplicate names, naming the field."""
+        unknown or duplicate names, naming the field. Classes that plugins offer (validation context
+        ``offered_classes``: name -> ``ClassSpec``) are declared after the scene's own when an object
+        names one the scene does not know."""
+        offered: dict[str, ClassSpec] = (info.context or {}).get("offered_classes") or {}
+        if offered:
+            own = {c.name for c in self.classes} | ({c.name for c in OBJECT_CLASSES} if self.builtin_classes else set())
+            used = [o.class_name for o in self.objects if o.class_name not in own and o.class_name in offered]
+            extra = tuple(offered[n] for n in dict.fromkeys(used))
+            if extra:
+                object.__setattr__(self, "classes", self.classes + extra)
         if not self.builtin_classes and not self.classes:
             raise ValueError("classes: builtin_classes is false, so at least one class must be declared")
         known: dict[str, ObjectClass] = {c.name: c for c in OBJECT_CLASSES} if self.builtin_classes else {}
@@ -391,7 +409,8 @@ class SceneSpec(BaseModel):
         for i, o in enumerate(self.objects):
             if o.class_name not in known:
                 raise ValueError(f"objects.{i}.class_name: unknown object class {o.class_name!r}; known: "
-                                 f"{', '.join(known)} (declare a new one in the scene's classes)")
+                                 f"{', '.join(known)} (declare a new one in the scene's classes, or install a "
+                                 "plugin that declares it)")
             o = o.model_copy()
             o._class = known[o.class_name]
             objects.append(o)
@@ -427,8 +446,9 @@ class SceneSpec(BaseModel):
         Path(path).write_text(self.model_dump_json(indent=2))
 
     @classmethod
-    def from_json(cls, path: str | Path) -> SceneSpec:
-        """Load a scene file; failures raise a ``UserError`` naming the file and the field."""
+    def from_json(cls, path: str | Path, offered: Mapping[str, ClassSpec] | None = None) -> SceneSpec:
+        """Load a scene file; failures raise a ``UserError`` naming the file and the field. ``offered``:
+        classes plugins declare (``MsmemPluginManager.object_classes``), used when an object names one."""
         p = Path(path)
         try:
             data = load_json(p.read_text())
@@ -441,6 +461,6 @@ class SceneSpec(BaseModel):
         if isinstance(data, dict):
             relative_mesh_files(data.get("classes"), p.parent)
         try:
-            return cls.model_validate(data)
+            return cls.model_validate(data, context={"offered_classes": dict(offered or {})})
         except ValidationError as e:
             raise UserError(f"invalid scene file {p}: {error_lines(e, most=3)}") from e
