@@ -94,12 +94,18 @@ def test_os_and_memory_errors_are_one_line_rc_2(monkeypatch, capsys):
         assert capsys.readouterr().err == line + "\n"
 
 
+def _default_sigint() -> None:
+    """In the child before exec: Ctrl-C's default action. A test run started as a background job (``cmd &``
+    in a script) inherits SIGINT ignored, and Python then installs no KeyboardInterrupt handler."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_names_the_step_and_the_partial_run_and_exits_130(tmp_path, small_config):
     out = tmp_path / "run"
     env = {"PYTHONPATH": PYTHONPATH, "PATH": "/usr/bin:/bin"}
     proc = subprocess.Popen([MSMEM, "run", "-m", "view-only", "-c", str(small_config), "--scene-seed", "1", "-q",
                              "--steps", "40", "--out", str(out)], cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
     deadline = time.time() + 300
     steps = []
     while time.time() < deadline and proc.poll() is None:
@@ -140,7 +146,8 @@ except BaseException as e:
 
 def test_ctrl_c_during_the_numba_ig_sweep_is_a_keyboard_interrupt_between_kernels():
     res = subprocess.run([sys.executable, "-c", IG_LOOP], capture_output=True, text=True, timeout=300, cwd=ROOT,
-                         env={"PYTHONPATH": PYTHONPATH, "PATH": "/usr/bin:/bin"}, check=False)
+                         env={"PYTHONPATH": PYTHONPATH, "PATH": "/usr/bin:/bin"}, check=False,
+                         preexec_fn=_default_sigint)
     name, where = res.stdout.split()
     assert name == "KeyboardInterrupt", res.stdout + res.stderr
     assert where.endswith("msmem_core/util/interrupt.py"), where  # raised by msmem, not inside numba's glue
