@@ -123,6 +123,10 @@ class RunConfig(_Strict):
     simulator: ComponentRef = ComponentRef(name="pybullet")
     observation_model: ComponentRef = ComponentRef(name="analytic-observation")
     skills: list[SkillRef] = Field(default_factory=lambda: [SkillRef(name="view")], min_length=1)
+    effect_models: dict[str, ComponentRef] = Field(default_factory=dict)
+    """Per skill name, the effect model of that skill wherever the method uses it and its ``skills``
+    entry names none (e.g. ``{push: {name: push-analytic}}``): one file for every method, without
+    changing any method's skills. Names no registered skill has are refused."""
     objective: list[TermRef] = Field(default_factory=lambda: [TermRef(name="ig")], min_length=1)
     ig: IGConfig = IGConfig()
     msas: MSASConfig = MSASConfig()

@@ -214,3 +214,23 @@ def test_an_episode_on_a_mesh25_scene_maps_its_mesh_classes_only() -> None:
     assert ep.workspace.num_classes == 1 + len(scene.classes) == 12
     assert metrics["semantic_miou_2d"] > 0.1
     assert metrics["occupancy_miou"] > 0.4
+
+
+def test_one_effect_models_file_serves_every_method_without_changing_its_skills() -> None:
+    """``effect_models`` (examples/scenes/analytic-effects.yaml) sets the effect model of the skills a
+    method has: view-only stays view-only (a ``skills`` list in the file would have given it pushes)."""
+    from msmem_core.errors import PluginError
+    from msmem_core.plugins import get_plugin_manager
+    from msmem_core.run.runner import build_episode
+
+    path = Path(__file__).parents[1] / "examples" / "scenes" / "analytic-effects.yaml"
+    pm = get_plugin_manager()
+    small = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
+    view = build_episode(load_config("view-only", path, small), pm, scene=suite_scenes("mesh25")[0])
+    assert [s.name for s in view.skills] == ["view"]
+    ours = build_episode(load_config("ours", path, small), pm, scene=suite_scenes("mesh25")[0])
+    effects = {s.name: type(s.effect_model).__name__ for s in ours.skills if s.effect_model is not None}
+    assert set(effects) == {"push", "grasp"}
+    assert all("Analytic" in name for name in effects.values()), effects
+    with pytest.raises(PluginError, match=r"effect_models\.psuh: no skill named 'psuh'"):
+        build_episode(load_config("ours", None, {**small, "effect_models": {"psuh": {"name": "push-analytic"}}}), pm)

@@ -99,15 +99,30 @@ class Episode:
         return start if start is not None else default_start_view(self.cfg.viewpoints)
 
 
+def effect_ref(cfg: RunConfig, pm: MsmemPluginManager, i: int) -> tuple[ComponentRef | None, str]:
+    """The effect model of skill entry ``i`` and where the config names it: the entry's own, else
+    ``effect_models`` by skill name, else the skill's default (None for perception skills)."""
+    unknown = sorted(set(cfg.effect_models) - set(pm.skills()))
+    if unknown:
+        raise PluginError(f"effect_models.{unknown[0]}: no skill named {unknown[0]!r}; skills: "
+                          f"{', '.join(sorted(pm.skills()))}")
+    ref = cfg.skills[i]
+    if ref.effect_model is not None:
+        return ref.effect_model, f"skills.{i}.effect_model"
+    if ref.name in cfg.effect_models:
+        return cfg.effect_models[ref.name], f"effect_models.{ref.name}"
+    default = getattr(pm.skills().get(ref.name), "effect_model", None)
+    return (ComponentRef(name=default) if default else None), f"skills.{i}.effect_model"
+
+
 def component_refs(cfg: RunConfig, pm: MsmemPluginManager) -> list[tuple[str, ComponentRef, str]]:
     """Every component the config names, as (kind, reference, where in the config), effect models included."""
     refs = [("belief-model", cfg.observation_model, "observation_model"), ("simulator", cfg.simulator, "simulator")]
     for i, ref in enumerate(cfg.skills):
         refs.append(("skill", ref, f"skills.{i}"))
-        default = getattr(pm.skills().get(ref.name), "effect_model", None)
-        eref = ref.effect_model or (ComponentRef(name=default) if default else None)
+        eref, where = effect_ref(cfg, pm, i)
         if eref is not None:
-            refs.append(("belief-model", eref, f"skills.{i}.effect_model"))
+            refs.append(("belief-model", eref, where))
     refs += [("objective-term", t, f"objective.{i}") for i, t in enumerate(cfg.objective)]
     return refs
 
@@ -185,14 +200,13 @@ def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | Non
         skill = pm.build("skill", ref, where=f"skills.{i}", **common)
         effect = None
         if skill.category == "manipulation":
-            spec = pm.skills()[ref.name]
-            eref = ref.effect_model or (ComponentRef(name=spec.effect_model) if spec.effect_model else None)
+            eref, where = effect_ref(cfg, pm, i)
             if not eref:
                 raise PluginError(f"skill {ref.name!r} needs an effect_model in config (skills.{i}.effect_model)")
-            effect = pm.build("belief-model", eref, where=f"skills.{i}.effect_model", **common)
+            effect = pm.build("belief-model", eref, where=where, **common)
             if not isinstance(effect, EffectModel):
-                raise PluginError(f"belief model {eref.name!r} cannot predict effects (skills.{i}.effect_model)")
-            models.append((f"skills.{i}.effect_model", eref.name, effect))
+                raise PluginError(f"belief model {eref.name!r} cannot predict effects ({where})")
+            models.append((where, eref.name, effect))
         skills.append(BoundSkill(ref.name, skill, effect))
     terms = [(t.name, t.weight, pm.build("objective-term", t, where=f"objective.{i}", **common))
              for i, t in enumerate(cfg.objective)]
