@@ -142,8 +142,12 @@ def test_unknown_sim_is_a_one_line_error_naming_it(args, tmp_path):
 
 
 def test_sim_without_its_extra_says_what_to_install(tmp_path):
+    import warnings
+
     try:
-        import sapien  # noqa: F401
+        with warnings.catch_warnings():  # sapien warns at import when the system has no libvulkan
+            warnings.simplefilter("ignore")
+            import sapien  # noqa: F401
     except ImportError:
         pass
     else:
@@ -198,3 +202,26 @@ def test_grasp_datagen_and_bench_build_the_named_backend(recording, tmp_path):
                                           skill={"predictor": "geometric"}, simulator=ref)))
     assert len(rows) == 2
     assert [(c["seed"], c["label_noise"]) for c in built(recording)[1:]] == [(3000, 0.2), (3001, 0.2)]
+
+
+def test_a_command_registered_twice_keeps_the_first_registered_plugins():
+    """Two plugins add ``msmem eval dup-cmd``: the one registered first is kept, the warning names both
+    (pluggy calls hook implementations last-registered first; the registry reads them in registration
+    order)."""
+    from types import SimpleNamespace
+
+    from msmem_core.plugins import CommandSpec, get_plugin_manager, hookimpl
+    from msmem_core.plugins.manager import PluginLoadWarning
+
+    def plugin(tag: str) -> SimpleNamespace:
+        @hookimpl
+        def msmem_commands():
+            yield CommandSpec(name="dup-cmd", action=lambda: None, summary=tag, group="eval")
+
+        return SimpleNamespace(msmem_commands=msmem_commands)
+
+    pm = get_plugin_manager(extra_plugins=[("first", plugin("first")), ("second", plugin("second"))])
+    with pytest.warns(PluginLoadWarning, match=r"registered twice: by plugin 'first' from <code> \(kept\) and by "
+                                               r"plugin 'second' from <code> \(left out\)"):
+        kept = [c for c in pm.commands() if c.spec.name == "dup-cmd"]
+    assert [c.plugin for c in kept] == ["first"]

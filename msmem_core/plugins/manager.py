@@ -264,7 +264,7 @@ class MsmemPluginManager(pluggy.PluginManager):
             return self._commands
         out: dict[str, RegisteredCommand] = {}
         trace = _flag("MSMEM_TRACE_PLUGINS")
-        for impl in reversed(self.hook.msmem_commands.get_hookimpls()):  # registration order
+        for impl in self.hook.msmem_commands.get_hookimpls():  # registration order (pluggy calls them in reverse)
             plugin = impl.plugin_name
             dist = self.distributions.get(plugin, "?")
             try:
