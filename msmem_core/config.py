@@ -178,6 +178,20 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     return data
 
 
+def load_generator_config(path: str | Path | None) -> SceneGenConfig:
+    """Scene-generator settings from a YAML or JSON file (``SceneGenConfig`` fields; mesh paths relative
+    to the file), or the defaults for None; failures raise a ``UserError`` naming the file and the field."""
+    if path is None:
+        return SceneGenConfig()
+    p = Path(path)
+    data = read_config_file(p)
+    relative_mesh_files(data.get("classes"), p.parent)
+    try:
+        return SceneGenConfig.model_validate(data)
+    except ValidationError as e:
+        raise UserError(f"invalid generator settings in {p}: {error_lines(e)}") from e
+
+
 def preset(method: str) -> dict[str, Any]:
     """The shipped config of a method preset."""
     if method not in METHODS:

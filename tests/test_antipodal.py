@@ -10,6 +10,7 @@ import pytest
 import trimesh
 from msmem_grasp.antipodal import AntipodalConfig, GraspSet, Solids, class_grasps, grasps_in_scene, gripper_boxes
 
+from msmem_core.testing.builders import convex_copy
 from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.meshes import class_mesh
 from msmem_core.world.scene import OBJECT_CLASSES, ObjectSpec, SceneSpec, object_class
@@ -174,14 +175,6 @@ def test_the_cache_round_trips(tmp_path, monkeypatch):
     assert ap.cache_key(object_class("gelatin_box"), config, GRIPPER) in files[0].name
 
 
-def _as_hull(part):
-    from msmem_core.world.meshes import part_mesh_own_frame
-    from msmem_core.world.scene import Part
-
-    v = np.asarray(part_mesh_own_frame(part).vertices)
-    return Part(kind="convex", vertices_m=tuple(map(tuple, v)), position_m=part.position_m, quat_xyzw=part.quat_xyzw)
-
-
 def test_a_convex_hull_solid_is_the_box_it_spans_for_inside_and_collision_tests():
     """A mesh class's pieces (convex hulls) answer ``contains`` and the gripper collision test as the
     primitive they span does: the same points inside, the same colliding grasps."""
@@ -189,7 +182,7 @@ def test_a_convex_hull_solid_is_the_box_it_spans_for_inside_and_collision_tests(
     pose = np.eye(4)
     pose[:3, :3] = trimesh.transformations.rotation_matrix(0.4, [0.2, 0.3, 1.0])[:3, :3]
     pose[:3, 3] = [0.02, -0.01, 0.03]
-    prim, hull = Solids.from_parts([box], pose), Solids.from_parts([_as_hull(box)], pose)
+    prim, hull = Solids.from_parts([box], pose), Solids.from_parts([convex_copy(box)], pose)
     assert hull.hull[0] is not None
     assert prim.hull[0] is None
     rng = np.random.default_rng(3)

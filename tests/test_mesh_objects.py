@@ -15,9 +15,9 @@ from msmem_core.config import load_config
 from msmem_core.errors import UserError
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.run.runner import build_episode, run_episode
+from msmem_core.testing.builders import convex_copy
 from msmem_core.world.geometry import pose_matrix
 from msmem_core.world.grid import GridSpec
-from msmem_core.world.meshes import part_mesh_own_frame
 from msmem_core.world.meshparts import load_mesh, mesh_pieces
 from msmem_core.world.scene import ObjectSpec, Part, SceneSpec
 from msmem_core.world.voxelize import _part_voxels
@@ -27,25 +27,20 @@ POSE = pose_matrix((0.013, -0.021, 0.07), (0.2, -0.3, 0.1, 0.9))
 SMALL = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
 
 
-def _as_convex(part: Part) -> Part:
-    v = np.asarray(part_mesh_own_frame(part).vertices)
-    return Part(kind="convex", vertices_m=tuple(map(tuple, v)), position_m=part.position_m, quat_xyzw=part.quat_xyzw)
-
-
 @pytest.mark.parametrize("part", [
     Part(kind="box", size_m=(0.08, 0.05, 0.12), position_m=(0.01, 0.0, 0.06), quat_xyzw=(0.0, 0.0, 0.2, 0.98)),
     Part(kind="cylinder", size_m=(0.04, 0.1), position_m=(0.0, 0.02, 0.05)),
 ])
 def test_a_convex_part_voxelises_exactly_as_the_primitive_it_spans(part: Part) -> None:
     want = _part_voxels(part, POSE, GRID)
-    got = _part_voxels(_as_convex(part), POSE, GRID)
+    got = _part_voxels(convex_copy(part), POSE, GRID)
     assert len(want) > 100
     np.testing.assert_array_equal(np.sort(got), np.sort(want))
 
 
 def test_convex_part_volume_centroid_and_validation() -> None:
     box = Part(kind="box", size_m=(0.1, 0.2, 0.3), position_m=(0.01, 0.02, 0.15), quat_xyzw=(0, 0, 0.38, 0.92))
-    vol, c = _as_convex(box).volume_and_centroid()
+    vol, c = convex_copy(box).volume_and_centroid()
     assert vol == pytest.approx(0.006, rel=1e-9)
     np.testing.assert_allclose(c, box.position_m, atol=1e-12)
     with pytest.raises(ValueError, match="at least 4 vertices_m that are not coplanar"):

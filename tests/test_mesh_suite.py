@@ -192,14 +192,11 @@ def test_mesh_pieces_interpenetration_is_measured_by_the_inscribed_ball(overlap:
 
 @pytest.mark.slow
 def test_the_shipped_mesh25_suite_is_what_its_generator_file_makes() -> None:
-    from msmem_core.config import read_config_file
-    from msmem_core.world.scene import relative_mesh_files
+    from msmem_core.config import load_generator_config
 
     path = Path(__file__).parents[1] / "examples" / "suites" / "mesh25.generator.yaml"
-    data = read_config_file(path)
-    relative_mesh_files(data.get("classes"), path.parent)
     shipped = suite_scenes("mesh25")[0]
-    made = generate_scene(35000, SceneGenConfig.model_validate(data))
+    made = generate_scene(35000, load_generator_config(path))
     assert made.model_copy(update={"name": shipped.name}) == shipped
 
 

@@ -246,21 +246,10 @@ def scene_generate(
         "--name", help="Scene names: NAME-00, NAME-01, ... (default gen-<seed>).")] = None,
 ) -> None:
     """Generate hard shelf scenes from seeds and write them as SceneSpec JSON."""
-    from pydantic import ValidationError
+    from msmem_core.config import load_generator_config
+    from msmem_core.world.scenegen import generate_scene
 
-    from msmem_core.config import read_config_file
-    from msmem_core.util.validation import error_lines
-    from msmem_core.world.scene import relative_mesh_files
-    from msmem_core.world.scenegen import SceneGenConfig, generate_scene
-
-    data: dict = {}
-    if generator is not None:
-        data = read_config_file(generator)
-        relative_mesh_files(data.get("classes"), generator.parent)
-    try:
-        cfg = SceneGenConfig.model_validate(data)
-    except ValidationError as e:
-        raise UserError(f"invalid generator settings{f' in {generator}' if generator else ''}: {error_lines(e)}") from e
+    cfg = load_generator_config(generator)
     if count is not None and out.exists() and not out.is_dir():
         raise UserError(f"--out {out}: with --count it must be a folder")
     for i in range(count or 1):  # each scene is written as soon as it is made

@@ -29,7 +29,8 @@ from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import yaw_quat
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec
+from msmem_core.world.meshes import part_mesh_own_frame
+from msmem_core.world.scene import ObjectSpec, Part, SceneSpec, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 from msmem_core.world.voxelize import voxelize
 
@@ -254,3 +255,10 @@ __all__ = [
     "small_ig",
     "small_viewpoints",
 ]
+
+
+def convex_copy(part: Part) -> Part:
+    """The same solid as a ``convex`` part (the hull of its mesh, as a mesh class's pieces are), at the
+    same pose: for checking that convex pieces behave as the primitive they span."""
+    v = np.asarray(part_mesh_own_frame(part).vertices)
+    return Part(kind="convex", vertices_m=tuple(map(tuple, v)), position_m=part.position_m, quat_xyzw=part.quat_xyzw)
