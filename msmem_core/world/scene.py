@@ -267,11 +267,25 @@ class ClassSpec(BaseModel):
         """The class's convex parts: its own, or its mesh's pieces (decomposed once, then cached)."""
         if self.mesh is None:
             return self.parts
-        from msmem_core.world.meshparts import mesh_pieces
+        from msmem_core.world.meshparts import resolve
 
         m = self.mesh
-        pieces, _ = mesh_pieces(m.file, m.scale, m.max_hulls, m.threshold, quat_xyzw=m.quat_xyzw)
-        return tuple(Part(kind="convex", vertices_m=tuple(map(tuple, v))) for v in pieces)
+        try:  # a changed file (size or time) is read again
+            stat = resolve(m.file).stat()
+            stamp = (stat.st_size, stat.st_mtime_ns)
+        except (OSError, UserError):
+            return _mesh_parts(m, None)  # mesh_pieces names the file at fault
+        return _mesh_parts(m, stamp)
+
+
+@cache
+def _mesh_parts(mesh: MeshSpec, stamp: tuple[int, int] | None) -> tuple[Part, ...]:
+    """A mesh's convex pieces as parts, once per mesh settings and file version: every scene that
+    declares the class (a suite's 25 files) would otherwise read and hash the mesh and its cache again."""
+    from msmem_core.world.meshparts import mesh_pieces
+
+    pieces, _ = mesh_pieces(mesh.file, mesh.scale, mesh.max_hulls, mesh.threshold, quat_xyzw=mesh.quat_xyzw)
+    return tuple(Part(kind="convex", vertices_m=tuple(map(tuple, v))) for v in pieces)
 
 
 class ShelfSpec(BaseModel):
