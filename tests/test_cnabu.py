@@ -202,6 +202,33 @@ def test_effect_model_copies_the_prior_exactly_outside_the_changed_mask(tmp_path
     assert all(len(d.idx) == 0 for d in none.changes)
 
 
+@pytest.mark.parametrize("quantile", [0.25, 0.75])
+def test_change_epsilon_keeps_exactly_the_voxels_that_move_by_more_than_it(tmp_path, quantile):
+    net = tiny_net("push", change_bias=0.3)
+    w = tmp_path / "push.pt"
+    write_weights(net, w)
+    belief = random_belief(seed=3)
+    actions = push_actions()
+    full = CNABUPushEffect(CNABUEffectConfig(weights=w, change_threshold=0.5)).predict(belief, actions, WORKSPACE)
+    p0, q0 = belief.expected_occupancy(), belief.class_probs()
+    moves = [np.maximum(np.abs(b.expected_occupancy() - p0), np.abs(b.class_probs() - q0).max(0))
+             for b in full.beliefs]
+    epsilon = float(np.quantile(moves[0][full.changed[0]], quantile))  # some voxels on each side
+    sparse = CNABUPushEffect(CNABUEffectConfig(weights=w, change_threshold=0.5, change_epsilon=epsilon)
+                             ).predict(belief, actions, WORKSPACE)
+    for k, (bf, bs) in enumerate(zip(full.beliefs, sparse.beliefs, strict=True)):
+        want = full.changed[k] & (moves[k] > epsilon)
+        # float32 rounding of the two means: ignore voxels within 1e-5 of the boundary
+        edge = np.abs(moves[k] - epsilon) < 1e-5
+        assert np.array_equal(sparse.changed[k] & ~edge, want & ~edge)
+        keep = sparse.changed[k]  # kept voxels carry the full prediction, the rest the prior exactly
+        assert np.array_equal(bs.alpha[keep], bf.alpha[keep])
+        assert np.array_equal(bs.eta[:, keep], bf.eta[:, keep])
+        assert np.array_equal(bs.alpha[~keep], belief.alpha[~keep])
+        assert np.array_equal(bs.eta[:, ~keep], belief.eta[:, ~keep])
+    assert 0 < sparse.changed[0].sum() < full.changed[0].sum()
+
+
 def test_observation_model_changes_only_what_the_view_reached(tmp_path):
     w = tmp_path / "observe.pt"
     write_weights(tiny_net("observe"), w)

@@ -117,6 +117,9 @@ def eval_belief_models(
     weights: Annotated[Path | None, typer.Option("--weights", help="Weights file (default: the shipped ones).")] = None,
     change_threshold: Annotated[float, typer.Option(
         "--change-threshold", help="p_change threshold (the belief models' default).")] = 0.85,
+    change_epsilon: Annotated[float, typer.Option(
+        "--change-epsilon", help="Drop changed voxels whose expected probabilities move by at most this (the "
+                                 "belief models' change_epsilon; 0: keep every voxel whose evidence differs).")] = 0.0,
     timing: Annotated[bool, typer.Option("--timing/--no-timing", help="Also time predictions vs "
                                                                       "simulate-and-remap.")] = True,
     candidates: Annotated[int, typer.Option("--candidates", help="Candidates per timed prediction.")] = 40,
@@ -143,11 +146,12 @@ def eval_belief_models(
         check_simulator(sim)
     r = evaluate(kind, data, weights, change_threshold=change_threshold, timing=timing, candidates=candidates,
                  repeats=repeats, threads=threads, log=typer.echo, episodes=episodes,
-                 episode_steps=episode_steps, simulator=sim)
+                 episode_steps=episode_steps, simulator=sim, change_epsilon=change_epsilon)
     typer.echo(format_table(r))
     if threshold_check > 0:
         r["threshold_agreement"] = threshold_agreement(kind, weights, (change_threshold, 0.05), threshold_check,
-                                                       threads=threads, log=typer.echo, simulator=sim)
+                                                       threads=threads, log=typer.echo, simulator=sim,
+                                                       epsilon=change_epsilon)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(r, indent=2))

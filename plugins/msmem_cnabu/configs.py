@@ -35,6 +35,11 @@ class CNABUEffectConfig(BaseModel):
     """Weights file (None: the shipped ``msmem_cnabu/weights/cnabu_<kind>.pt``)."""
     change_threshold: float = Field(0.85, gt=0.0, lt=1.0)
     """A voxel changes where the predicted change probability exceeds this; elsewhere the prior is copied."""
+    change_epsilon: float = Field(0.0, ge=0.0, lt=1.0)
+    """Of those voxels, keep only the ones whose expected occupancy or an expected class probability
+    moves by more than this (0: every voxel whose evidence differs). With a low ``change_threshold``
+    the prediction is nearly dense but stays sparse: only moves of at most epsilon are dropped
+    (docs/cnabu.md, "The change threshold")."""
     batch: int = Field(80, ge=1, le=1000)
     """Candidates per forward pass (80: all of a push skill's samples in one; larger batches are
     faster per candidate and need more working memory: docs/cnabu.md)."""

@@ -122,7 +122,8 @@ class _ReplayObservation:
         return self.model.update(belief, None)  # type: ignore[arg-type]
 
 
-def build_models(kind: str, weights: Path | None, change_threshold: float) -> tuple[Any, Any]:
+def build_models(kind: str, weights: Path | None, change_threshold: float, change_epsilon: float = 0.0
+                 ) -> tuple[Any, Any]:
     """(learned, analytic twin) belief models of ``kind``."""
     from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
 
@@ -135,14 +136,14 @@ def build_models(kind: str, weights: Path | None, change_threshold: float) -> tu
 
         from msmem_cnabu.models import CNABUPushEffect
 
-        return CNABUPushEffect(CNABUEffectConfig(weights=weights, change_threshold=change_threshold)), \
-            AnalyticPushEffect()
+        return CNABUPushEffect(CNABUEffectConfig(weights=weights, change_threshold=change_threshold,
+                                                 change_epsilon=change_epsilon)), AnalyticPushEffect()
     from msmem_grasp.effect import AnalyticGraspEffect
 
     from msmem_cnabu.models import CNABUGraspEffect
 
-    return CNABUGraspEffect(CNABUEffectConfig(weights=weights, change_threshold=change_threshold)), \
-        AnalyticGraspEffect()
+    return CNABUGraspEffect(CNABUEffectConfig(weights=weights, change_threshold=change_threshold,
+                                              change_epsilon=change_epsilon)), AnalyticGraspEffect()
 
 
 def _predict_state(kind: str, learned: Any, twin: Any, shard: CNABUShard, samples: list[int], belief: Any
@@ -170,6 +171,7 @@ def evaluate(
     episodes: int = 2,
     episode_steps: int = 40,
     simulator: str | ComponentRef = "pybullet",
+    change_epsilon: float = 0.0,
 ) -> dict[str, Any]:
     """All metrics (see the module docstring) as a JSON-able dict. observe: also the rollout of each
     scene's recorded views and, with ``episodes`` > 0, closed-loop view-only episodes of
@@ -182,7 +184,8 @@ def evaluate(
         check_simulator(sim)  # a bad --sim fails now, not after the metrics
     torch.set_num_threads(threads)
     paths = list_shards(data_dir, kind)
-    learned, twin = build_models(kind, Path(weights) if weights is not None else None, change_threshold)
+    learned, twin = build_models(kind, Path(weights) if weights is not None else None, change_threshold,
+                                 change_epsilon)
     cal = {m: {r: Calibration() for r in REGIONS} for m in MODELS}
     changed = {m: 0.0 for m in MODELS}
     n_samples = n_scenes = 0
@@ -217,7 +220,7 @@ def evaluate(
     result: dict[str, Any] = {
         "kind": kind, "data": str(data_dir), "scenes": n_scenes, "samples": n_samples,
         "weights": str(learned.meta.get("weights")), "weights_sha256": learned.meta.get("sha256"),
-        "change_threshold": change_threshold, "simulator": sim.model_dump(),
+        "change_threshold": change_threshold, "change_epsilon": change_epsilon, "simulator": sim.model_dump(),
         "metrics": {m: {r: cal[m][r].result() for r in REGIONS} for m in MODELS},
         "changed_voxels_per_sample": {m: changed[m] / max(n_samples, 1) for m in MODELS},
     }
@@ -459,13 +462,16 @@ def threshold_agreement(
     threads: int = 2,
     log: Callable[[str], None] = print,
     simulator: str | ComponentRef = "pybullet",
+    epsilon: float = 0.0,
 ) -> dict[str, Any]:
     """How often ``change_threshold`` changes the chosen action (docs/cnabu.md, "The change threshold").
 
     On ``beliefs`` mid-episode beliefs (``msmem perf step``'s: generated scene ``scene_seed``, the
     start view plus ``views - 1`` seeded random views, seeds 0, 1, ...), method ``ours`` with the
     learned ``kind`` effect model decides once with each threshold (the MSAS's full ``decide``: views,
-    pushes and grasps through OIG and CDC). Returns per belief the two decisions and whether they agree,
+    pushes and grasps through OIG and CDC). The first threshold goes with ``change_epsilon`` =
+    ``epsilon``, the second (the nearly dense reference) with 0. Returns per belief the two
+    decisions and whether they agree,
     and the changed voxels per candidate of the manipulation batch at each threshold. The episode's
     world runs on ``simulator``.
     """
@@ -478,7 +484,7 @@ def threshold_agreement(
     if kind not in ("push", "grasp"):
         raise UserError(f"--threshold-check needs an effect model (push or grasp), not {kind!r}")
     torch.set_num_threads(threads)
-    params: dict[str, Any] = {"change_threshold": thresholds[0]}
+    params: dict[str, Any] = {"change_threshold": thresholds[0], "change_epsilon": epsilon}
     if weights is not None:
         params["weights"] = str(weights)
     cfg = load_config("ours", None, {"scene": {"seed": scene_seed}, "simulator": _sim_ref(simulator).model_dump()})
@@ -495,8 +501,8 @@ def threshold_agreement(
     for b in range(beliefs):
         st = mid_episode_state(ep, views, b)
         row: dict[str, Any] = {"belief": b}
-        for t in thresholds:
-            model.config = base_cfg.model_copy(update={"change_threshold": t})  # type: ignore[attr-defined]
+        for t, eps in zip(thresholds, (epsilon, 0.0), strict=True):
+            model.config = base_cfg.model_copy(update={"change_threshold": t, "change_epsilon": eps})  # type: ignore[attr-defined]
             ctx = decision_context(ep, st.belief, st.visited, st.step)
             d = decide(ctx, clone_skills(st.skills), ep.objective)
             batch = d.batch if d.skill.name == kind else None
@@ -508,11 +514,12 @@ def threshold_agreement(
                            "best_per_skill": {k: float(v) for k, v in d.best.items()}}
         a, c = (row[str(t)] for t in thresholds)
         row["same"] = a["skill"] == c["skill"] and a["action"] == c["action"]
-        log(f"belief {b}: threshold {thresholds[0]}: {a['skill']} #{a['index']}; threshold {thresholds[1]}: "
-            f"{c['skill']} #{c['index']} -> {'same' if row['same'] else 'DIFFERENT'}")
+        log(f"belief {b}: threshold {thresholds[0]} (epsilon {epsilon}): {a['skill']} #{a['index']}; "
+            f"threshold {thresholds[1]}: {c['skill']} #{c['index']} -> {'same' if row['same'] else 'DIFFERENT'}")
         rows.append(row)
     model.config = base_cfg  # type: ignore[attr-defined]
     same = sum(r["same"] for r in rows)
-    log(f"the change threshold {thresholds[0]} (vs {thresholds[1]}) changed the chosen action in "
-        f"{len(rows) - same} of {len(rows)} decisions")
-    return {"kind": kind, "thresholds": list(thresholds), "beliefs": rows, "same": same, "decisions": len(rows)}
+    log(f"the change threshold {thresholds[0]} with epsilon {epsilon} (vs {thresholds[1]}) changed the chosen "
+        f"action in {len(rows) - same} of {len(rows)} decisions")
+    return {"kind": kind, "thresholds": list(thresholds), "epsilon": epsilon, "beliefs": rows, "same": same,
+            "decisions": len(rows)}

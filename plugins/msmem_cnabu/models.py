@@ -8,8 +8,9 @@
   in batches of ``batch`` (the belief's share of the network's stem is computed once). The changed
   mask is ``p_change > change_threshold`` (outside the shelf's boards); there the new evidence is
   ``old * (1 - p_change) + pred * p_change``; outside it the prior is copied exactly. The result is
-  a sparse ``Prediction`` holding only the changed voxels (those whose evidence differs), so the
-  incremental IG stays incremental. ``cnabu-grasp`` reports the grasped object's believed region
+  a sparse ``Prediction`` holding only the changed voxels (those whose evidence differs, or with
+  ``change_epsilon`` > 0 those whose expected occupancy or a class probability moves by more than
+  it), so the incremental IG stays incremental. ``cnabu-grasp`` reports the grasped object's believed region
   (as ``grasp-analytic`` finds it) in ``Prediction.excluded`` for CDC. The shelf interior and the
   gripper (for the swept volumes) come from the ``Workspace``.
 
@@ -73,14 +74,15 @@ def _features(belief: EvidentialMap) -> torch.Tensor:
     return belief_features(to_tensor(belief.alpha)[None], to_tensor(belief.beta)[None], to_tensor(belief.eta)[None])
 
 
-def _deltas(belief: EvidentialMap, out: FlatPrediction) -> list[BeliefDelta]:
-    """Per action the blended change (``_blend``), keeping only voxels whose evidence differs."""
+def _deltas(belief: EvidentialMap, out: FlatPrediction, epsilon: float = 0.0) -> list[BeliefDelta]:
+    """Per action the blended change (``_blend``), keeping only voxels whose evidence differs (``epsilon``
+    0) or whose expected occupancy or a class probability moves by more than ``epsilon``."""
     c = belief.num_classes
     i = out.idx.numpy().astype(np.int64)  # a copy: _blend compacts it in place
     na, nb, ne, kept = _blend(belief.alpha.reshape(-1), belief.beta.reshape(-1), belief.eta.reshape(c, -1), i,
                               out.p.numpy().astype(np.float32, copy=False),
                               np.ascontiguousarray(out.residual.numpy(), dtype=np.float32),
-                              out.counts.numpy().astype(np.int64))
+                              out.counts.numpy().astype(np.int64), np.float32(epsilon))
     res, start = [], 0
     for n in kept:
         res.append(BeliefDelta(i[start:start + n], na[start:start + n], nb[start:start + n], ne[:, start:start + n]))
@@ -89,13 +91,14 @@ def _deltas(belief: EvidentialMap, out: FlatPrediction) -> list[BeliefDelta]:
 
 
 @njit(cache=True, parallel=True)
-def _blend(alpha, beta, eta, idx, p, ev, counts):  # type: ignore[no-untyped-def]
+def _blend(alpha, beta, eta, idx, p, ev, counts, epsilon):  # type: ignore[no-untyped-def]
     """``old * (1 - p) + pred * p`` per selected voxel in float32, floored at 1 (float rounding only),
     with the network's evidence ``pred = relu(old - 1 + res) + 1`` from its residual ``res``
-    ([2 + C, M]); voxels whose evidence equals the old one are dropped. Channel by channel in
-    parallel (each streaming through one of the belief's arrays), then compacted in input order:
-    ``idx`` is overwritten with the kept indices. Returns the new evidence and how many voxels each
-    action (``counts``) kept."""
+    ([2 + C, M]). With ``epsilon`` 0, voxels whose evidence equals the old one are dropped; above 0,
+    voxels whose expected occupancy and every expected class probability move by at most
+    ``epsilon``. Channel by channel in parallel (each streaming through one of the belief's arrays),
+    then compacted in input order: ``idx`` is overwritten with the kept indices. Returns the new
+    evidence and how many voxels each action (``counts``) kept."""
     m, c = idx.shape[0], eta.shape[0]
     one = np.float32(1.0)
     new = np.empty((2 + c, m), np.float32)
@@ -109,9 +112,22 @@ def _blend(alpha, beta, eta, idx, p, ev, counts):  # type: ignore[no-untyped-def
             new[ch, t] = x
             differs[ch, t] = x != o
     keep = np.zeros(m, np.bool_)
-    for ch in range(2 + c):
-        for t in range(m):
-            keep[t] |= differs[ch, t]
+    if epsilon > 0:
+        for t in prange(m):
+            v = idx[t]
+            a0, b0, a1, b1 = alpha[v], beta[v], new[0, t], new[1, t]
+            moved = abs(a1 / (a1 + b1) - a0 / (a0 + b0)) > epsilon
+            t0, t1 = np.float32(0.0), np.float32(0.0)
+            for k in range(c):
+                t0 += eta[k, v]
+                t1 += new[2 + k, t]
+            for k in range(c):
+                moved |= abs(new[2 + k, t] / t1 - eta[k, v] / t0) > epsilon
+            keep[t] = moved
+    else:
+        for ch in range(2 + c):
+            for t in range(m):
+                keep[t] |= differs[ch, t]
     kept = np.zeros(counts.shape[0], np.int64)
     n, t = 0, 0
     for o in range(counts.shape[0]):
@@ -195,7 +211,7 @@ class _CNABUEffect(EffectModel):
                 vox, nz = sparse_channels(grid, ind[start:stop])
                 parts.append(self.net.predict_flat(prep, None, vox, torch.from_numpy(scalars[start:stop]),
                                                    cfg.change_threshold, region=None, nonzero=nz))
-        return Prediction(belief, _deltas(belief, FlatPrediction.cat(parts)), excluded=regions)
+        return Prediction(belief, _deltas(belief, FlatPrediction.cat(parts), cfg.change_epsilon), excluded=regions)
 
     def _check_actions(self, actions: Sequence[Action]) -> None:
         from msmem_grasp.skill import GraspAction
