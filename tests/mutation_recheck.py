@@ -1,6 +1,6 @@
 """Re-run mutmut's unsettled mutants one at a time, each in its own plain pytest process.
 
-    .venv/bin/python tests/mutation_recheck.py [--status suspicious] [--module msmem_core.map.belief]
+    .venv/bin/python tests/mutation_recheck.py [--status suspicious] [--module msmem_core.map.belief] [--tests FILE ...]
 
 Inside mutmut 3's fork server some of this project's tests end with SIGTERM (exit -15, reported as
 "suspicious") though the same mutant run under plain pytest passes or fails cleanly (docs/
@@ -45,12 +45,14 @@ def main() -> None:
     ap.add_argument("--status", default="suspicious")
     ap.add_argument("--module", default="msmem_core.")
     ap.add_argument("--timeout", type=float, default=600.0, help="seconds per mutant")
+    ap.add_argument("--tests", nargs="*", default=None,
+                    help="run these test files instead of mutmut's mapping (for tests added since its run)")
     args = ap.parse_args()
     stats = json.loads((MUTANTS / "mutmut-stats.json").read_text())
     names = unsettled(args.status, args.module)
     counts: Counter[str] = Counter()
     for i, name in enumerate(names, 1):
-        tests = tests_of(name, stats)
+        tests = args.tests if args.tests is not None else tests_of(name, stats)
         env = {**os.environ, "MUTANT_UNDER_TEST": name}
         try:
             rc = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:randomly", *tests],
