@@ -117,7 +117,8 @@ def test_paper_metrics_per_scene_and_suite_cumulative():
     assert pair["occupancy_miou"]["scenes"] == 1
     assert pair["occupancy_iou"]["scenes"] == 2
     assert pair["semantic_miou_2d"]["mean"] == pytest.approx(1 - (1 + 0.5) / 2)
-    no_nll = {"occupancy_nll": 0, "semantic_nll": 0}  # the synthetic episodes predate the NLL metrics
+    # the synthetic episodes predate the NLL and fall metrics, and never grasp (grasp success NaN)
+    no_nll = {"occupancy_nll": 0, "semantic_nll": 0, "falls": 0, "fell": 0, "grasp_success": 0}
     assert b["counted"] == dict.fromkeys(PAPER_METRIC_KEYS, 1) | no_nll
     assert a["counted"] == no_nll
     text = table_markdown(summary)

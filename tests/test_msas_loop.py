@@ -249,3 +249,27 @@ def test_a_failed_manipulation_does_not_write_the_prediction_of_success(ig, succ
         assert np.all(a[:10] > b[:10]), "still believed occupied: only the confidence is gone"
         assert np.all(a[10:] == 30.0)
         assert np.all(b[10:] == 2.0)
+
+
+def test_an_episode_counts_its_falls_and_the_bench_table_reads_them(tmp_path):
+    """run_episode counts the manipulations after which an object fell or left; the bench turns them
+    into ``falls`` and ``fell`` (NaN for an episode that never manipulated)."""
+    from msmem_core.config import load_config
+    from msmem_core.plugins import get_plugin_manager
+    from msmem_core.run.bench import episode_metrics
+    from msmem_core.run.runner import build_episode, run_episode
+
+    over = {"steps": 3, "camera": {"width_px": 32, "height_px": 24}, "ig": {"ray_stride_px": 4},
+            "msas": {"manipulation_window": [0, 10], "mapped_fraction": 1.0}}
+    ep = build_episode(load_config("view-only", None, over), get_plugin_manager(), scene=SCENE)
+    ep.sim = FakeSimulator(ep.cfg.camera)
+    ep.skills = [*ep.skills, BoundSkill("topple", ToppleSkill(), NoChange())]
+    ep.objective = Objective([("constant", 1.0, Constant())])
+    final = run_episode(ep, tmp_path)
+    assert [r["skill"] for r in ep.records] == ["topple", "view", "view"]
+    assert final["falls"] == 1
+    m = episode_metrics(final, ep.records)
+    assert (m["falls"], m["fell"], m["pushes"], m["views"]) == (1, 1.0, 0, 2)
+    viewing = [{**r, "skill": "view", "fell_or_left": []} for r in ep.records]
+    assert np.isnan(episode_metrics({**final, "falls": 0}, viewing)["fell"])  # never manipulated
+    assert episode_metrics({**final, "falls": 0}, ep.records)["fell"] == 0.0

@@ -58,6 +58,8 @@ TABLE_METRICS = (
     ("pushes", "pushes", None),
     ("grasps", "grasps", None),
     ("grasp_success", "grasp success", None),
+    ("falls", "falls", "lower"),
+    ("fell", "episodes with a fall", "lower"),
 )
 COUNT_METRICS = (
     ("correctly_found", "correctly found"),
@@ -196,15 +198,8 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
         final = run_episode(ep, None)
         curves = {k: [r["metrics"][k] for r in ep.records] for k in CURVE_METRICS}
         kinds = [r["skill"] for r in ep.records]
-        grasp_ok = [r["success"] for r in ep.records if r["skill"] == "grasp"]
         record.update({
-            "scene": ep.scene.name, "status": "ok", "metrics": {
-                **{k: final[k] for k in ("occupancy_iou", "semantic_miou", "observable_iou", "semantic_miou_bev",
-                                         "position_change_m", "occupancy_nll", "semantic_nll", *PAPER_METRIC_KEYS)},
-                **{k: int(final[k]) for k, _ in COUNT_METRICS},
-                "views": kinds.count("view"), "pushes": kinds.count("push"), "grasps": kinds.count("grasp"),
-                "grasp_success": float(np.mean(grasp_ok)) if grasp_ok else float("nan"),
-            },
+            "scene": ep.scene.name, "status": "ok", "metrics": episode_metrics(final, ep.records),
             "paper_counts": final["paper_counts"], "curves": curves, "skills": kinds,
             "seconds": time.perf_counter() - t0,
         })
@@ -214,6 +209,29 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
         record = crash_record(task, f"{type(e).__name__}: {e}", traceback.format_exc(), time.perf_counter() - t0)
     write_atomic(Path(task.out_file), record)
     return record
+
+
+def episode_metrics(final: dict[str, Any], records: list[dict[str, Any]]) -> dict[str, Any]:
+    """An episode's table metrics from ``run_episode``'s final metrics and its step records. ``falls``:
+    manipulations after which an object fell or left the shelf; ``fell``: 1 if one did, 0 if not, NaN
+    for an episode that never manipulated (so a column's mean is the share of manipulating episodes
+    with a fall); ``grasp_success``: NaN without grasps."""
+    kinds = [r["skill"] for r in records]
+    grasp_ok = [r["success"] for r in records if r["skill"] == "grasp"]
+    return {
+        **{k: final[k] for k in ("occupancy_iou", "semantic_miou", "observable_iou", "semantic_miou_bev",
+                                 "position_change_m", "occupancy_nll", "semantic_nll", *PAPER_METRIC_KEYS)},
+        **{k: int(final[k]) for k, _ in COUNT_METRICS},
+        "views": kinds.count("view"), "pushes": kinds.count("push"), "grasps": kinds.count("grasp"),
+        "grasp_success": float(np.mean(grasp_ok)) if grasp_ok else float("nan"),
+        "falls": int(final["falls"]),
+        "fell": float(final["falls"] > 0) if len(kinds) > kinds.count("view") else float("nan"),
+    }
+
+
+def _counts(v: Any) -> bool:
+    """Whether a metric value enters its column's mean (present and not NaN)."""
+    return v is not None and not (isinstance(v, float) and math.isnan(v))
 
 
 def mean_ci(x: list[float]) -> tuple[float, float]:
@@ -245,8 +263,8 @@ def summarise(results: list[dict[str, Any]], methods: list[str]) -> dict[str, An
         rows = [r for r in ok if r["method"] == m]
         table[m] = {k: mean_ci([r["metrics"][k] for r in rows if k in r["metrics"]]) for k, _, _ in TABLE_METRICS}
         table[m]["episodes"] = len(rows)
-        table[m]["counted"] = {k: n for k, _, _ in TABLE_METRICS  # columns some (older) episodes lack
-                               if (n := sum(k in r["metrics"] for r in rows)) < len(rows)}
+        table[m]["counted"] = {k: n for k, _, _ in TABLE_METRICS  # columns some episodes lack (older files) or
+                               if (n := sum(_counts(r["metrics"].get(k)) for r in rows)) < len(rows)}  # leave NaN
         table[m]["cumulative"] = cumulative(rows)
         counted = [r for r in rows if all(k in r["metrics"] for k, _ in COUNT_METRICS)]  # older files lack them
         table[m]["counts"] = {
@@ -288,7 +306,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
         row = summary["table"][m]
         counted = row.get("counted", {})
         lines.append(f"| {m} | {row['episodes']} | " + " | ".join(
-            _fmt(tuple(row[k])) + (f" (n={counted[k]})" if k in counted else "") for k, _, _ in TABLE_METRICS) + " |")
+            _fmt(tuple(row[k])) + (f" (n={counted[k]})" if counted.get(k) else "") for k, _, _ in TABLE_METRICS) + " |")
     lines += ["", "Mean ± half-width of the 95% t-interval over scenes. \"(paper)\" and ECE: the paper's own metrics",
               "([MEM]'s `Cumulative_mIoU`; docs/concepts.md), per scene; episodes written before they existed are",
               "left out of those columns (n=: the episodes a column counts, where fewer than all).", ""]

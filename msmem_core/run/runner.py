@@ -348,6 +348,7 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
     final.update({
         "initial": initial,
         "actions": dict(counts),
+        "falls": sum(1 for r in ep.records if r["fell_or_left"]),  # manipulations after which an object fell or left
         "steps": len(ep.records),
         "seconds_total": time.perf_counter() - t0,
         "seconds_per_step": (time.perf_counter() - t0) / max(1, len(ep.records)),
