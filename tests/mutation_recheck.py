@@ -8,6 +8,13 @@ reliability.md, "Mutation testing of the math"). This runs each such mutant's te
 test mapping, ``mutants/mutmut-stats.json``) with ``MUTANT_UNDER_TEST`` set, in ``mutants/``, and
 prints killed (a test failed), survived (all passed) or timeout per mutant and a summary. Needs a
 finished ``mutmut run`` (``make mutation``).
+
+Plugin modules: mutmut names their mutants by path (``plugins.msmem_grasp.vmf.x_...``) and finds no
+tests for them, because the tests import the module as ``msmem_grasp.vmf`` and the trampoline
+compares the mutant's module with the function's ``__module__``. Here the ``plugins.`` prefix is
+dropped from ``MUTANT_UNDER_TEST`` (the test run imports ``mutants/plugins/*`` first, tests/conftest.py),
+so give their tests with ``--tests``, e.g. ``--status "no tests" --module plugins.msmem_grasp.vmf
+--tests tests/test_vmf.py``.
 """
 
 from __future__ import annotations
@@ -47,15 +54,17 @@ def main() -> None:
     ap.add_argument("--timeout", type=float, default=600.0, help="seconds per mutant")
     ap.add_argument("--tests", nargs="*", default=None,
                     help="run these test files instead of mutmut's mapping (for tests added since its run)")
+    ap.add_argument("-k", dest="keyword", default=None, help="pytest -k expression for --tests")
     args = ap.parse_args()
     stats = json.loads((MUTANTS / "mutmut-stats.json").read_text())
     names = unsettled(args.status, args.module)
     counts: Counter[str] = Counter()
     for i, name in enumerate(names, 1):
         tests = args.tests if args.tests is not None else tests_of(name, stats)
-        env = {**os.environ, "MUTANT_UNDER_TEST": name}
+        env = {**os.environ, "MUTANT_UNDER_TEST": name.removeprefix("plugins.")}
         try:
-            rc = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:randomly", *tests],
+            extra = ["-k", args.keyword] if args.keyword else []
+            rc = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:randomly", *extra, *tests],
                                 cwd=MUTANTS, env=env, capture_output=True, timeout=args.timeout).returncode
             verdict = "survived" if rc == 0 else "killed" if rc == 1 else f"error (rc {rc})"
         except subprocess.TimeoutExpired:

@@ -50,6 +50,8 @@ def test_empty_map_is_the_uninformed_prior() -> None:
     np.testing.assert_allclose(b.occupancy_entropy(), np.log(2))
     np.testing.assert_allclose(b.semantic_entropy(), np.log(NUM_CLASSES), rtol=1e-6)
     assert np.all(b.argmax_class(TAU_CHI) == -1)
+    assert b.argmax_class(TAU_CHI).dtype == np.int64
+    assert (b.alpha.dtype, b.beta.dtype, b.eta.dtype) == (np.float32,) * 3
 
 
 def test_entropies_are_shannon_entropies_of_the_expected_distributions() -> None:
@@ -74,6 +76,7 @@ def test_save_and_load_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-
     assert c.grid == b.grid
     for name in ("alpha", "beta", "eta"):
         np.testing.assert_array_equal(getattr(c, name), getattr(b, name))
+        assert getattr(c, name).dtype == np.float32  # the belief is float32 however the file stores it
 
 
 def test_weights_must_be_positive() -> None:
@@ -306,6 +309,7 @@ def test_memory_limit_is_half_the_physical_memory(monkeypatch):
     def no_sysconf(name: str) -> int:
         raise ValueError(name)
 
+    assert isinstance(belief_mod.memory_limit_bytes(), int)
     monkeypatch.setattr(belief_mod.os, "sysconf", no_sysconf)
     assert belief_mod.memory_limit_bytes() == 4 << 30
 
@@ -322,7 +326,37 @@ def test_grid_memory_check_refuses_only_grids_above_the_limit(monkeypatch):
     with pytest.raises(UserError, match=r"^grid of 10 x 10 x 10 = 1,000 voxels of 10 mm needs about 0\.0 GiB .* "
                                         r"limit of 0\.0 GiB \(half of physical memory\); use a larger grid\.voxel_m"):
         belief_mod.check_grid_memory(grid)
+    # the estimate is per class count: a 15-class grid at the limit is refused with 200 classes
+    monkeypatch.setattr(belief_mod, "memory_limit_bytes", lambda: need)
+    with pytest.raises(UserError, match="needs about"):
+        EvidentialMap.empty(grid, num_classes=200)
+    assert EvidentialMap.empty(grid).num_classes == NUM_CLASSES
     assert belief_mod._gib(2**30) == "1.0 GiB"
     assert belief_mod._gib(2**40 - 2**20) == "1024.0 GiB"
     assert belief_mod._gib(2**40) == "1.0 TiB"
     assert belief_mod._gib(3 * 2**41) == "6.0 TiB"
+
+
+def test_expected_distributions_vacuity_and_known_classes_of_hand_computed_voxels():
+    grid = GridSpec(voxel_m=0.1, shape=(2, 1, 1))
+    b = EvidentialMap(grid, np.array([3.0, 1.0], np.float32).reshape(2, 1, 1),
+                      np.array([1.0, 1.0], np.float32).reshape(2, 1, 1),
+                      np.array([[1.0, 1.0], [6.0, 1.0], [1.0, 1.0]], np.float32).reshape(3, 2, 1, 1))
+    np.testing.assert_allclose(b.expected_occupancy().ravel(), [0.75, 0.5])
+    np.testing.assert_allclose(b.class_probs().reshape(3, 2).T, [[1 / 8, 6 / 8, 1 / 8], [1 / 3, 1 / 3, 1 / 3]])
+    np.testing.assert_allclose(b.vacuity().ravel(), [3 / 8, 1.0])
+    assert b.argmax_class(0.9).ravel().tolist() == [1, -1]  # the prior's class is unknown
+    assert b.argmax_class(0.375).ravel().tolist() == [-1, -1]  # vacuity at tau_chi: unknown
+    assert b.argmax_class(0.376).ravel().tolist() == [1, -1]
+    np.testing.assert_allclose(b.semantic_entropy().ravel(),
+                               [scipy.stats.entropy([1, 6, 1]), np.log(3)], rtol=1e-6)
+
+
+@pytest.mark.parametrize("bad", ["alpha", "beta", "eta"])
+def test_evidence_whose_shape_does_not_match_the_grid_is_refused(bad):
+    grid = GridSpec(voxel_m=0.1, shape=(2, 3, 4))
+    arrays = {"alpha": np.ones((2, 3, 4), np.float32), "beta": np.ones((2, 3, 4), np.float32),
+              "eta": np.ones((5, 2, 3, 4), np.float32)}
+    arrays[bad] = np.ones((5, 2, 3, 5) if bad == "eta" else (2, 3, 5), np.float32)
+    with pytest.raises(ValueError, match=r"do not match grid \(2, 3, 4\)"):
+        EvidentialMap(grid, **arrays)
