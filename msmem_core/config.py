@@ -127,12 +127,23 @@ class RunConfig(_Strict):
     """Per skill name, the effect model of that skill wherever the method uses it and its ``skills``
     entry names none (e.g. ``{push: {name: push-analytic}}``): one file for every method, without
     changing any method's skills. Names no registered skill has are refused."""
+    skill_params: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    """Per skill name, parameters merged over that skill's ``params`` wherever the method uses it
+    (e.g. ``{push: {clearance_m: 0.01}}``): like ``effect_models``, one file for every method without
+    changing any method's skills. Names no registered skill has are refused."""
     objective: list[TermRef] = Field(default_factory=lambda: [TermRef(name="ig")], min_length=1)
     ig: IGConfig = IGConfig()
     msas: MSASConfig = MSASConfig()
     report_steps: list[Annotated[Int, Field(ge=0)]] | None = None
     """Steps after which the belief and ground truth are saved (``belief_step{N}.npz``) for the run
     report; None: the first, middle and last step (0, T/2, T-1). Steps >= ``steps`` are ignored."""
+
+    @model_validator(mode="after")
+    def _merge_skill_params(self) -> RunConfig:
+        if self.skill_params:
+            self.skills = [r.model_copy(update={"params": {**r.params, **self.skill_params[r.name]}})
+                           if r.name in self.skill_params else r for r in self.skills]
+        return self
 
     @model_validator(mode="after")
     def _start_view_exists(self) -> RunConfig:

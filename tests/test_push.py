@@ -197,6 +197,43 @@ def test_ups_targets_the_occluder_of_a_hidden_region() -> None:
     assert np.any(np.abs(dirs[:, 0]) > 0.8)
 
 
+def test_clearance_keeps_the_pushed_object_clear_of_its_neighbour() -> None:
+    """A wide box hides a region; a second box stands 6 cm to its right. With ``clearance_m`` no push
+    of the wide box moves its footprint to within the clearance of the second box (less a voxel of
+    rasterisation); without it some sideways pushes drive it into the second box."""
+    b = EvidentialMap.empty(GRID)
+    c = GRID.centers()
+    floor = c[..., 2] > 0
+    front = (c[..., 1] < 0.04) & (c[..., 1] > 0) & floor
+    b.beta[front], b.eta[0][front] = 21.0, 21.0
+    around = (np.abs(c[..., 0]) >= 0.08) & (c[..., 1] > 0) & floor
+    b.beta[around], b.eta[0][around] = 21.0, 21.0
+    boxes = {3: ((-0.08, 0.04), (0.08, 0.06)), 5: ((0.14, 0.03), (0.20, 0.07))}
+    for k, ((x0, y0), (x1, y1)) in boxes.items():
+        m = (c[..., 0] > x0) & (c[..., 0] < x1) & (c[..., 1] > y0) & (c[..., 1] < y1) & floor & (c[..., 2] < 0.15)
+        b.alpha[m], b.beta[m], b.eta[:, m] = 21.0, 1.0, 1.0
+        b.eta[k, m] = 21.0
+    (ax0, ay0), (ax1, ay1) = boxes[3]
+    (bx0, by0), (bx1, by1) = boxes[5]
+
+    def overlap_after(a: PushAction, margin: float) -> bool:
+        d = max(a.length_m - PushConfig().standoff_m, 0.0) * np.asarray(a.direction)
+        return bool(ax0 + d[0] < bx1 + margin and ax1 + d[0] > bx0 - margin
+                    and ay0 + d[1] < by1 + margin and ay1 + d[1] > by0 - margin)
+
+    clearance = 0.02
+    kept = [a for seed in range(4) for a in PushSkill(PushConfig(clearance_m=clearance)).propose(_ctx(b, seed=seed))
+            if a.target_class == 3]
+    free = [a for seed in range(4) for a in PushSkill().propose(_ctx(b, seed=seed)) if a.target_class == 3]
+    assert kept
+    assert free
+    assert any(overlap_after(a, 0.0) for a in free), "without a clearance some pushes hit the neighbour"
+    assert not any(overlap_after(a, clearance - 0.011) for a in kept)
+    toward = [a for a in kept if a.direction[0] > 0.8]
+    assert toward, "pushes toward the neighbour are shortened, not all dropped"
+    assert max(a.length_m for a in toward) <= 0.06 - clearance + PushConfig().standoff_m + 0.011
+
+
 # ------------------------------------------------------------------------------------ effect model
 def test_effect_model_moves_a_pushed_box_and_what_is_in_its_way() -> None:
     # box A (class 3) at y 0.10-0.16, box B (class 5) behind it at y 0.20-0.26, both 8 cm wide

@@ -102,10 +102,11 @@ class Episode:
 def effect_ref(cfg: RunConfig, pm: MsmemPluginManager, i: int) -> tuple[ComponentRef | None, str]:
     """The effect model of skill entry ``i`` and where the config names it: the entry's own, else
     ``effect_models`` by skill name, else the skill's default (None for perception skills)."""
-    unknown = sorted(set(cfg.effect_models) - set(pm.skills()))
-    if unknown:
-        raise PluginError(f"effect_models.{unknown[0]}: no skill named {unknown[0]!r}; skills: "
-                          f"{', '.join(sorted(pm.skills()))}")
+    for name in ("effect_models", "skill_params"):
+        unknown = sorted(set(getattr(cfg, name)) - set(pm.skills()))
+        if unknown:
+            raise PluginError(f"{name}.{unknown[0]}: no skill named {unknown[0]!r}; skills: "
+                              f"{', '.join(sorted(pm.skills()))}")
     ref = cfg.skills[i]
     if ref.effect_model is not None:
         return ref.effect_model, f"skills.{i}.effect_model"

@@ -177,6 +177,15 @@ class PushConfig(BaseModel):
     max_angle_deg: float = Field(30.0, ge=0.0, le=90.0)
     standoff_m: float = Field(0.01, ge=0.0, le=0.1)
     """Gap between the tool's leading face and the believed contour at the start."""
+    clearance_m: float | None = Field(None, ge=0.0, le=0.2)
+    """If set, a push is shortened so that the pushed object, its believed footprint moved along the
+    push, stops this far short of the next confidently occupied column of another object or a side
+    or back wall; a candidate left shorter than ``min_length_m`` is dropped. None: no check (the
+    object may be pushed into others, which then move or fall)."""
+    clear_into_unknown: bool = True
+    """With ``clearance_m``: whether the pushed object may move into columns not believed free
+    (unknown space, where hidden objects may stand). False: only into believed-free columns (every
+    interior voxel of the column at most ``free_threshold``)."""
     speed_mps: float = Field(0.1, gt=0.0, le=1.0)
     travel_speed_mps: float = Field(0.25, gt=0.0, le=2.0)
     """Speed of the approach and the retreat."""
@@ -258,12 +267,17 @@ class PushSkill(Skill):
         if not targets:
             return []
         occupied = (p > cfg.occupied_threshold).ravel()
+        blocked = None
+        if cfg.clearance_m is not None:
+            blocked = self._blocked(conf_bev, grid, shelf.interior_box)
+            if not cfg.clear_into_unknown:
+                blocked |= (interior & (p > cfg.free_threshold)).any(axis=2)
         per_target = max(2, math.ceil(2 * cfg.max_samples / len(targets)))
         groups: list[list[PushAction]] = [[] for _ in targets]
         interior_m = shelf.interior_box
         for _ in range(ROUNDS):  # in dense shelves most sideways pushes collide: sample again
             for g, t in zip(groups, targets, strict=True):
-                raw = (self._candidate(t, rng, grid, interior_m) for _ in range(per_target))
+                raw = (self._candidate(t, rng, grid, interior_m, blocked) for _ in range(per_target))
                 g += [a for a in raw if a is not None and self._valid(a, grid, walls, occupied, interior_m)]
             if sum(len(g) for g in groups) >= cfg.max_samples:
                 break
@@ -315,7 +329,34 @@ class PushSkill(Skill):
                 found[key] = _Target(foot, c, contact, seed, top_z, key)
         return list(found.values())
 
-    def _candidate(self, t: _Target, rng: np.random.Generator, grid: Any, interior_m: Interior) -> PushAction | None:
+    @staticmethod
+    def _blocked(conf_bev: NDArray[np.bool_], grid: Any, interior_m: Interior) -> NDArray[np.bool_]:
+        """[X, Y] BEV cells a pushed object must not enter: confidently occupied object columns and the
+        cells beyond the interior's sides and back (the front is open)."""
+        x_lo, _, _, x_hi, y_hi, _ = interior_m
+        c = grid.origin[:2] + (np.indices(grid.shape[:2]).transpose(1, 2, 0) + 0.5) * grid.voxel_m
+        return conf_bev | (c[..., 0] < x_lo) | (c[..., 0] > x_hi) | (c[..., 1] > y_hi)
+
+    def _object_room(self, t: _Target, u: NDArray[np.float64], grid: Any, blocked: NDArray[np.bool_]) -> float:
+        """How far the target's footprint can move along ``u`` before it enters a blocked cell, minus
+        ``clearance_m``; the target's own cells and their 8 neighbours (its believed contour, or an
+        object touching it) never count."""
+        s = grid.voxel_m
+        own = ndimage.binary_dilation(t.foot, structure=np.ones((3, 3), dtype=bool))
+        obstacle = blocked & ~own
+        steps = np.arange(s / 2, self.config.max_length_m + self.config.clearance_m + s, s / 2)
+        moved = (t.cells[None, :, :] + 0.5) + steps[:, None, None] * u[None, None, :] / s  # [T, N, 2] in cells
+        ij = np.floor(moved).astype(np.int64)
+        nx, ny = obstacle.shape
+        inside = (ij[..., 0] >= 0) & (ij[..., 0] < nx) & (ij[..., 1] >= 0) & (ij[..., 1] < ny)
+        hit = np.zeros(inside.shape, dtype=bool)
+        hit[inside] = obstacle[ij[inside][:, 0], ij[inside][:, 1]]
+        first = np.flatnonzero(hit.any(axis=1))
+        free = float(steps[first[0]] - s / 2) if len(first) else np.inf
+        return free - float(self.config.clearance_m)
+
+    def _candidate(self, t: _Target, rng: np.random.Generator, grid: Any, interior_m: Interior,
+                   blocked: NDArray[np.bool_] | None = None) -> PushAction | None:
         cfg = self.config
         s = grid.voxel_m
         o = grid.origin
@@ -355,6 +396,8 @@ class PushSkill(Skill):
             elif u[axis] < -1e-9 and lo_b is not None:
                 room = min(room, float((corners[:, axis].min() - lo_b) / -u[axis]))
         hi_len = min(cfg.max_length_m, room)
+        if blocked is not None:  # the object moves once the tool has closed the standoff gap
+            hi_len = min(hi_len, self._object_room(t, u, grid, blocked) + cfg.standoff_m)
         if hi_len < cfg.min_length_m:
             return None
         return PushAction(
