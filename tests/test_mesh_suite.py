@@ -213,45 +213,48 @@ def test_an_episode_on_a_mesh25_scene_maps_its_mesh_classes_only() -> None:
     assert metrics["occupancy_miou"] > 0.4
 
 
-def test_one_effect_models_file_serves_every_method_without_changing_its_skills() -> None:
-    """``effect_models`` (examples/scenes/analytic-effects.yaml) sets the effect model of the skills a
-    method has: view-only stays view-only (a ``skills`` list in the file would have given it pushes)."""
+def _both_methods(path: Path, suite: str):  # type: ignore[no-untyped-def]
+    """view-only and ours built with the config file ``path`` on the suite's scene 0 (small camera),
+    and a check that a config naming a skill ``psuh`` under ``field`` is refused."""
     from msmem_core.errors import PluginError
     from msmem_core.plugins import get_plugin_manager
     from msmem_core.run.runner import build_episode
 
-    path = Path(__file__).parents[1] / "examples" / "scenes" / "analytic-effects.yaml"
     pm = get_plugin_manager()
     small = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
-    view = build_episode(load_config("view-only", path, small), pm, scene=suite_scenes("mesh25")[0])
+    scene = suite_scenes(suite)[0]
+    built = [build_episode(load_config(m, path, small), pm, scene=scene) for m in ("view-only", "ours")]
+
+    def refuse(field: str, value: object) -> None:
+        with pytest.raises(PluginError, match=rf"{field}\.psuh: no skill named 'psuh'"):
+            build_episode(load_config("ours", None, {**small, field: value}), pm)
+
+    return built[0], built[1], refuse
+
+
+def test_one_effect_models_file_serves_every_method_without_changing_its_skills() -> None:
+    """``effect_models`` (examples/scenes/analytic-effects.yaml) sets the effect model of the skills a
+    method has: view-only stays view-only (a ``skills`` list in the file would have given it pushes)."""
+    view, ours, refuse = _both_methods(Path(__file__).parents[1] / "examples" / "scenes" / "analytic-effects.yaml",
+                                       "mesh25")
     assert [s.name for s in view.skills] == ["view"]
-    ours = build_episode(load_config("ours", path, small), pm, scene=suite_scenes("mesh25")[0])
     effects = {s.name: type(s.effect_model).__name__ for s in ours.skills if s.effect_model is not None}
     assert set(effects) == {"push", "grasp"}
     assert all("Analytic" in name for name in effects.values()), effects
-    with pytest.raises(PluginError, match=r"effect_models\.psuh: no skill named 'psuh'"):
-        build_episode(load_config("ours", None, {**small, "effect_models": {"psuh": {"name": "push-analytic"}}}), pm)
+    refuse("effect_models", {"psuh": {"name": "push-analytic"}})
 
 
 def test_one_skill_params_file_sets_a_skills_parameters_for_every_method() -> None:
     """``skill_params`` (examples/push/clearance.yaml) merges parameters into the skills a method has,
     without adding skills to a method that lacks them; a misspelt skill is refused."""
-    from msmem_core.errors import PluginError
-    from msmem_core.plugins import get_plugin_manager
-    from msmem_core.run.runner import build_episode
-
-    path = Path(__file__).parents[1] / "examples" / "push" / "clearance-known-free.yaml"
-    pm = get_plugin_manager()
-    small = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
-    view = build_episode(load_config("view-only", path, small), pm, scene=suite_scenes("hard25")[0])
+    view, ours, refuse = _both_methods(Path(__file__).parents[1] / "examples" / "push" / "clearance-known-free.yaml",
+                                       "hard25")
     assert [s.name for s in view.skills] == ["view"]
-    ours = build_episode(load_config("ours", path, small), pm, scene=suite_scenes("hard25")[0])
     push = next(s.skill for s in ours.skills if s.name == "push")
     assert (push.config.clearance_m, push.config.clear_into_unknown) == (0.01, False)
     assert [s.name for s in ours.skills] == ["view", "push", "grasp"]
-    over = {**small, "skills": [{"name": "view"}, {"name": "push", "params": {"max_samples": 7, "clearance_m": 0.05}}],
+    over = {"skills": [{"name": "view"}, {"name": "push", "params": {"max_samples": 7, "clearance_m": 0.05}}],
             "skill_params": {"push": {"clearance_m": 0.02}}}
     merged = load_config("push-only", None, over).skills[1].params
     assert merged == {"max_samples": 7, "clearance_m": 0.02}  # merged over the entry's own params
-    with pytest.raises(PluginError, match=r"skill_params\.psuh: no skill named 'psuh'"):
-        build_episode(load_config("ours", None, {**small, "skill_params": {"psuh": {"clearance_m": 0.01}}}), pm)
+    refuse("skill_params", {"psuh": {"clearance_m": 0.01}})
