@@ -234,6 +234,28 @@ def test_clearance_keeps_the_pushed_object_clear_of_its_neighbour() -> None:
     assert max(a.length_m for a in toward) <= 0.06 - clearance + PushConfig().standoff_m + 0.011
 
 
+def test_max_height_ratio_refuses_pushes_through_a_thin_tall_side() -> None:
+    """A 16 x 2 cm box 15 cm tall: pushed straight into the shelf (through its 2 cm side) it would tip;
+    with ``max_height_ratio`` 3 every push left has the box at least 5 cm deep along the push."""
+    b = EvidentialMap.empty(GRID)
+    c = GRID.centers()
+    floor = c[..., 2] > 0
+    known = ((c[..., 1] < 0.04) | (np.abs(c[..., 0]) >= 0.08)) & (c[..., 1] > 0) & floor
+    b.beta[known], b.eta[0][known] = 21.0, 21.0
+    m = (np.abs(c[..., 0]) < 0.08) & (c[..., 1] > 0.04) & (c[..., 1] < 0.06) & floor & (c[..., 2] < 0.15)
+    b.alpha[m], b.beta[m], b.eta[:, m] = 21.0, 1.0, 1.0
+    b.eta[3, m] = 21.0
+
+    def depth(a: PushAction) -> float:  # the box's extent along the push
+        return 0.16 * abs(a.direction[0]) + 0.02 * abs(a.direction[1])
+
+    free = [a for seed in range(4) for a in PushSkill().propose(_ctx(b, seed=seed))]
+    ratio = [a for seed in range(4) for a in PushSkill(PushConfig(max_height_ratio=3.0)).propose(_ctx(b, seed=seed))]
+    assert any(3.0 * depth(a) < 0.14 for a in free), "without the check some pushes go through the thin side"
+    assert ratio
+    assert all(3.0 * (depth(a) + 0.02) >= 0.14 for a in ratio)  # a voxel of rasterisation either side
+
+
 # ------------------------------------------------------------------------------------ effect model
 def test_effect_model_moves_a_pushed_box_and_what_is_in_its_way() -> None:
     # box A (class 3) at y 0.10-0.16, box B (class 5) behind it at y 0.20-0.26, both 8 cm wide
