@@ -183,9 +183,9 @@ class PushConfig(BaseModel):
     or back wall; a candidate left shorter than ``min_length_m`` is dropped. None: no check (the
     object may be pushed into others, which then move or fall)."""
     max_height_ratio: float | None = Field(None, gt=0.0)
-    """If set, an object is not pushed along a direction in which its believed height exceeds this
-    multiple of its believed footprint's extent (a thin, tall object pushed through its thin side
-    tips over at the first obstacle). None: no check."""
+    """If set, an object whose believed height exceeds this multiple of its believed footprint's
+    narrowest width is not pushed (a thin, tall object turns under an oblique push and tips over its
+    thin side; measured in docs/push.md, "Falls"). None: no check."""
     clear_into_unknown: bool = True
     """With ``clearance_m``: whether the pushed object may move into columns not believed free
     (unknown space, where hidden objects may stand). False: only into believed-free columns (every
@@ -221,6 +221,12 @@ class _Target:
         self.foot, self.cls, self.contact, self.seed, self.top_z, self.key = foot, cls, contact, seed, top_z, key
         ij = np.argwhere(foot)
         self.cells = ij
+
+    def width(self, voxel_m: float) -> float:
+        """The footprint's narrowest extent (m) over 36 directions, 5 degrees apart."""
+        a = np.radians(np.arange(0, 180, 5))
+        along = self.cells @ np.stack([np.cos(a), np.sin(a)])  # [N, 36]
+        return float((along.max(axis=0) - along.min(axis=0)).min() + 1.0) * voxel_m
 
 
 class PushSkill(Skill):
@@ -400,11 +406,8 @@ class PushSkill(Skill):
             elif u[axis] < -1e-9 and lo_b is not None:
                 room = min(room, float((corners[:, axis].min() - lo_b) / -u[axis]))
         hi_len = min(cfg.max_length_m, room)
-        if cfg.max_height_ratio is not None:
-            along = t.cells @ u
-            extent = float(along.max() - along.min() + 1.0) * s
-            if t.top_z - interior_m[2] > cfg.max_height_ratio * extent:
-                return None
+        if cfg.max_height_ratio is not None and t.top_z - interior_m[2] > cfg.max_height_ratio * t.width(s):
+            return None
         if blocked is not None:  # the object moves once the tool has closed the standoff gap
             hi_len = min(hi_len, self._object_room(t, u, grid, blocked) + cfg.standoff_m)
         if hi_len < cfg.min_length_m:
