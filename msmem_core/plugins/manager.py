@@ -197,7 +197,8 @@ class MsmemPluginManager(pluggy.PluginManager):
         for impl in reversed(hook.get_hookimpls()):  # registration order
             dist = self.distributions.get(impl.plugin_name, "?")
             try:
-                specs = list(impl.function() or ())
+                found: Any = impl.function()
+                specs = list(found or ())
             except KeyboardInterrupt:
                 raise
             except BaseException as e:  # a plugin whose hook fails is skipped, the others are kept
@@ -306,7 +307,8 @@ class MsmemPluginManager(pluggy.PluginManager):
             plugin = impl.plugin_name
             dist = self.distributions.get(plugin, "?")
             try:
-                specs = list(impl.function() or ())
+                found: Any = impl.function()
+                specs = list(found or ())
                 for spec in specs:
                     if not isinstance(spec, ClassSpec):
                         raise PluginError(f"msmem_object_classes() must yield ClassSpec records, got {spec!r}")

@@ -356,7 +356,7 @@ def relative_mesh_files(classes: Any, folder: Path) -> None:
     for c in classes if isinstance(classes, list) else []:
         mesh = c.get("mesh") if isinstance(c, dict) else None
         file = mesh.get("file") if isinstance(mesh, dict) else None
-        if isinstance(file, str) and not Path(file).is_absolute() and ":" not in file:
+        if isinstance(mesh, dict) and isinstance(file, str) and not Path(file).is_absolute() and ":" not in file:
             mesh["file"] = str((folder / file).resolve())
 
 
