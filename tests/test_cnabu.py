@@ -510,3 +510,28 @@ def test_datagen_require_hard_makes_hard_scenes(tmp_path):
     for hard, match in ((True, True), (False, False)):
         occ, _ = voxelize(generate_scene(300000, SceneGenConfig(require_hard=hard)).objects, shard.grid)
         assert np.array_equal(occ, shard.gt_occ[0]) is match
+
+
+def test_dirichlet_expected_ce_against_monte_carlo_and_the_misleading_evidence_kl():
+    """psi(S) - psi(eta_y) is E[-log q_y] under Dir(eta) (scipy samples); the misleading-evidence KL
+    is the KL of eta with the true class's evidence set to 1, on a [B, C, X] batch."""
+    import scipy.stats
+    from msmem_cnabu.losses import blend, dirichlet_expected_ce, evidential_dirichlet_loss
+
+    rng = np.random.default_rng(0)
+    eta = np.array([[2.0, 5.0, 1.5], [1.0, 1.0, 9.0]])  # [B=2, C=3]
+    y = np.array([1, 0])
+    ce = dirichlet_expected_ce(torch.tensor(eta)[..., None], torch.tensor(y)[:, None])[:, 0].numpy()
+    for b in range(2):
+        q = scipy.stats.dirichlet(eta[b]).rvs(size=200_000, random_state=rng)
+        mc = -np.log(q[:, y[b]]).mean()
+        assert ce[b] == pytest.approx(mc, rel=0.01)
+    got_ce, kl = evidential_dirichlet_loss(torch.tensor(eta)[..., None], torch.tensor(y)[:, None], 0.5)
+    np.testing.assert_allclose(got_ce[:, 0].numpy(), ce)
+    misleading = eta.copy()
+    misleading[np.arange(2), y] = 1.0
+    want = 0.5 * dirichlet_kl_uniform(torch.tensor(misleading)).numpy()
+    np.testing.assert_allclose(kl[:, 0].numpy(), want, rtol=1e-12)
+    assert kl[1, 0].item() > kl[0, 0].item() > 0  # more evidence on wrong classes, a larger penalty
+    old, pred, p = torch.tensor([1.0, 4.0]), torch.tensor([3.0, 2.0]), torch.tensor([0.25, 0.5])
+    np.testing.assert_allclose(blend(old, pred, p).numpy(), [1.5, 3.0])
