@@ -101,7 +101,8 @@ class Episode:
 
 def effect_ref(cfg: RunConfig, pm: MsmemPluginManager, i: int) -> tuple[ComponentRef | None, str]:
     """The effect model of skill entry ``i`` and where the config names it: the entry's own, else
-    ``effect_models`` by skill name, else the skill's default (None for perception skills)."""
+    ``effect_models`` by skill name, else the skill's default (None for perception skills). Refuses
+    ``effect_models`` and ``skill_params`` keys that name no registered skill."""
     for name in ("effect_models", "skill_params"):
         unknown = sorted(set(getattr(cfg, name)) - set(pm.skills()))
         if unknown:

@@ -42,6 +42,7 @@ shape comes from the run's gripper and the shelf interior from the workspace (``
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, ClassVar, Literal
 
@@ -222,11 +223,17 @@ class _Target:
         ij = np.argwhere(foot)
         self.cells = ij
 
-    def width(self, voxel_m: float) -> float:
-        """The footprint's narrowest extent (m) over 36 directions, 5 degrees apart."""
+    @functools.cached_property
+    def width_cells(self) -> float:
+        """The footprint's narrowest extent (cells) over 36 directions, 5 degrees apart."""
         a = np.radians(np.arange(0, 180, 5))
         along = self.cells @ np.stack([np.cos(a), np.sin(a)])  # [N, 36]
-        return float((along.max(axis=0) - along.min(axis=0)).min() + 1.0) * voxel_m
+        return float((along.max(axis=0) - along.min(axis=0)).min() + 1.0)
+
+    @functools.cached_property
+    def own(self) -> NDArray[np.bool_]:
+        """The footprint and its 8 neighbours: its believed contour, or an object touching it."""
+        return ndimage.binary_dilation(self.foot, structure=np.ones((3, 3), dtype=bool))
 
 
 class PushSkill(Skill):
@@ -352,8 +359,7 @@ class PushSkill(Skill):
         ``clearance_m``; the target's own cells and their 8 neighbours (its believed contour, or an
         object touching it) never count."""
         s = grid.voxel_m
-        own = ndimage.binary_dilation(t.foot, structure=np.ones((3, 3), dtype=bool))
-        obstacle = blocked & ~own
+        obstacle = blocked & ~t.own  # the target's own cells never count
         steps = np.arange(s / 2, self.config.max_length_m + self.config.clearance_m + s, s / 2)
         moved = (t.cells[None, :, :] + 0.5) + steps[:, None, None] * u[None, None, :] / s  # [T, N, 2] in cells
         ij = np.floor(moved).astype(np.int64)
@@ -406,7 +412,7 @@ class PushSkill(Skill):
             elif u[axis] < -1e-9 and lo_b is not None:
                 room = min(room, float((corners[:, axis].min() - lo_b) / -u[axis]))
         hi_len = min(cfg.max_length_m, room)
-        if cfg.max_height_ratio is not None and t.top_z - interior_m[2] > cfg.max_height_ratio * t.width(s):
+        if cfg.max_height_ratio is not None and t.top_z - interior_m[2] > cfg.max_height_ratio * t.width_cells * s:
             return None
         if blocked is not None:  # the object moves once the tool has closed the standoff gap
             hi_len = min(hi_len, self._object_room(t, u, grid, blocked) + cfg.standoff_m)
