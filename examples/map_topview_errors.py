@@ -12,7 +12,9 @@ mean without the absent classes' zeros. Then two changes to cnabu-map's final ha
 on the same belief (offline checks, not models): ``smooth3``, each voxel's object-class
 distribution averaged with its 3x3x3 neighbours' (weighted by believed occupancy); ``raysD``, a
 class kept only within D voxels of one the analytic update has object-class evidence for
-(background elsewhere). The last line sums intersections and unions over the scenes (suite-cumulative).
+(background elsewhere); ``confT``, background where the object-class distribution's top probability
+is at most T; ``seen``, only object classes the analytic update has class evidence for anywhere
+(``seen+confT``: both). The last line sums intersections and unions over the scenes (suite-cumulative).
 """
 
 from __future__ import annotations
@@ -99,6 +101,16 @@ def _variants(bn: EvidentialMap, ba: EvidentialMap, walls: np.ndarray) -> dict[s
     dist = ndimage.distance_transform_edt(~known)
     for d in (0, 1, 4):
         out[f"rays{d}"] = np.where(dist > d, 0, cls)
+    r = q[1:] / q[1:].sum(0, keepdims=True)  # object class given occupied
+    for tau in (0.4, 0.6, 0.8):
+        out[f"conf{tau}"] = np.where(r.max(0) > tau, cls, 0)
+    seen = np.zeros(q.shape[0], dtype=bool)  # object classes the rays gave evidence for, anywhere
+    seen[1:] = (ba.eta[1:] - ba.eta[1:].min()).reshape(q.shape[0] - 1, -1).max(1) > 1.0
+    q3 = np.where(seen[:, None, None, None] | (np.arange(q.shape[0]) == 0)[:, None, None, None], q, 0.0)
+    _, out["seen"] = prediction_from_belief(p, q3 + 1e-12)
+    r3 = q3[1:] / (q3[1:].sum(0, keepdims=True) + 1e-12)
+    for tau in (0.5, 0.7):
+        out[f"seen+conf{tau}"] = np.where(r3.max(0) > tau, out["seen"], 0)
     for c in out.values():
         c[walls] = 0
     return out

@@ -609,3 +609,84 @@ def test_the_object_head_class_loss_hardly_depends_on_the_occupancy():
 
     assert abs(loss(0.0) - loss(3.0)) < 0.02
     assert abs(loss(0.0) - loss(3.0)) < 0.05 * math.log((1 / (1 + math.exp(-3.0))) / 0.5)
+
+
+def _log_q(p: np.ndarray, r: np.ndarray) -> torch.Tensor:
+    """[1, C, N, 1, 1] log class probabilities ``[1 - p, p r]`` of per-voxel p [N] and object classes r [C-1, N]."""
+    q = np.concatenate([(1 - p)[None], p[None] * r])
+    return torch.log(torch.from_numpy(q))[None, :, :, None, None]
+
+
+def test_a_class_is_known_from_the_belief_or_from_a_ray_that_hits_it():
+    # 3 voxels, classes 0 (background) .. 3; voxel 0 occupied and class 1, voxel 1 free with class 2 on top
+    r_prev = np.array([[0.5, 0.1, 0.3], [0.3, 0.8, 0.3], [0.2, 0.1, 0.4]])
+    prev = _log_q(np.array([0.9, 0.2, 0.9]), r_prev)
+    prev_logit = torch.logit(torch.tensor([0.9, 0.2, 0.9]))[None, :, None, None]
+    valid = torch.ones(3, 1, 1, dtype=torch.bool)
+    r_out = np.array([[0.3, 0.1, 0.2], [0.3, 0.1, 0.2], [0.4, 0.8, 0.6]])
+    out = _log_q(np.array([0.9, 0.9, 0.9]), r_out)
+    seen = torch.zeros(1, 4, 3, 1, 1, dtype=torch.bool)
+    from msmem_cnabu.mapnet import known_object_classes
+
+    # classes 1 and 3: top at an occupied voxel; class 2 tops only a free voxel
+    assert known_object_classes(prev_logit, prev, out, seen, valid)[0].tolist() == [False, True, False, True]
+    prev_logit[0, 2] = -1.0  # voxel 2 no longer believed occupied
+    assert known_object_classes(prev_logit, prev, out, seen, valid)[0].tolist() == [False, True, False, False]
+    seen[0, 3, 0] = True  # a ray hits class 3 where the new belief's top object class is 3
+    assert known_object_classes(prev_logit, prev, out, seen, valid)[0].tolist() == [False, True, False, True]
+    seen[0, 3, 0], seen[0, 2, 2] = False, True  # a hit of class 2 where the new belief says class 3
+    assert known_object_classes(prev_logit, prev, out, seen, valid)[0].tolist() == [False, True, False, False]
+    seen[0, 2, 2], seen[0, 3, 1] = False, True  # a hit of class 3 where the new belief says class 3 ...
+    assert known_object_classes(prev_logit, prev, out, seen, valid)[0].tolist() == [False, True, False, True]
+    valid[1] = False  # ... on a board voxel names nothing
+    assert known_object_classes(prev_logit, prev, out, seen, valid)[0].tolist() == [False, True, False, False]
+    valid[0] = False  # nor does a board voxel believed occupied
+    assert known_object_classes(prev_logit, prev, out, seen, valid)[0].tolist() == [False, False, False, False]
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(1e-4, 1.0))
+def test_restricting_classes_keeps_the_occupancy_and_the_known_classes_ratios(seed, weight):
+    from msmem_cnabu.mapnet import restrict_classes
+
+    g = torch.Generator().manual_seed(seed)
+    logits = 3 * torch.randn(1, 5, 4, 2, 2, generator=g)
+    known = torch.tensor([[False, True, False, True, False]])
+    out = restrict_classes(logits, known, weight).exp()
+    q = torch.softmax(logits, 1)
+    assert torch.allclose(out.sum(1), torch.ones(()), atol=1e-5)
+    assert torch.allclose(out[:, 0], q[:, 0], atol=1e-5)  # background, hence the occupancy, unchanged
+    assert torch.allclose(out[:, 1] / out[:, 3], q[:, 1] / q[:, 3], rtol=1e-4)  # known classes keep their ratio
+    assert torch.allclose(out[:, 2] / out[:, 1], weight * q[:, 2] / q[:, 1], rtol=1e-3)  # unknown ones scaled
+    none = restrict_classes(logits, torch.zeros_like(known), weight).exp()
+    assert torch.allclose(none, q, atol=1e-5)  # nothing known: nothing restricted
+
+
+def test_the_restriction_removes_a_class_no_ray_showed_from_the_map(shard):
+    net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for prm in net.head[-1].parameters():
+            prm.normal_(0, 0.5)  # a network that guesses classes everywhere
+    seq = sequence(shard)
+    valid = torch.from_numpy(seq.valid)
+    steps, first = {}, {}
+    for w in (1.0, 1e-3):
+        b = EvidentialMap.empty(shard.grid, seq.seen.shape[1])
+        for t in range(3):
+            with torch.no_grad():
+                a, bb, e = net.step(*(torch.from_numpy(x)[None] for x in (b.alpha, b.beta, b.eta, seq.free[t],
+                                                                             seq.occ[t], seq.seen[t])), valid, w)
+            b = EvidentialMap(b.grid, a[0].numpy(), bb[0].numpy(), e[0].numpy())
+            first.setdefault(w, b)
+        steps[w] = b
+    hit = np.flatnonzero(seq.seen[:3, 1:].any(axis=(0, 2, 3, 4))) + 1
+    q = steps[1e-3].class_probs()
+    occ = steps[1e-3].expected_occupancy() > 0.5
+    named = np.unique(np.argmax(q[1:], 0)[occ & seq.valid] + 1)
+    assert set(named) <= set(hit.tolist())  # only classes a ray showed are named
+    q1 = steps[1.0].class_probs()
+    assert not set(np.unique(np.argmax(q1[1:], 0)[(steps[1.0].expected_occupancy() > 0.5) & seq.valid] + 1)) <= set(
+        hit.tolist())  # without it the guessing network names others
+    # a step's occupancy is unchanged (later steps differ: the classes are the next step's input)
+    np.testing.assert_allclose(first[1e-3].expected_occupancy(), first[1.0].expected_occupancy(), atol=1e-5)

@@ -200,6 +200,8 @@ def eval_map(
     scenes: Annotated[int | None, typer.Option("--scenes", help="At most this many shards.")] = None,
     threads: Annotated[int, typer.Option("--threads", help="torch threads.")] = 2,
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the results as JSON here.")] = None,
+    unseen_class_weight: Annotated[float, typer.Option(
+        "--unseen-class-weight", help="cnabu-map's unseen_class_weight (1: off).", min=1e-9, max=1.0)] = 1.0,
 ) -> None:
     """Rollouts of recorded views: cnabu-map against analytic-observation and column-fill (paper metrics, NLL, ECE)."""
     import torch
@@ -210,7 +212,7 @@ def eval_map(
 
     torch.set_num_threads(threads)
     net, meta = load_map_net(weights or SHIPPED)
-    r = evaluate_rollouts(net, data, max_scenes=scenes, log=typer.echo)
+    r = evaluate_rollouts(net, data, max_scenes=scenes, log=typer.echo, unseen_class_weight=unseen_class_weight)
     r["weights"], r["weights_sha256"] = str(weights or SHIPPED), meta["sha256"]
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)

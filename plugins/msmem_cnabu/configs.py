@@ -64,3 +64,6 @@ class CNABUMapConfig(BaseModel):
     """Pixels without a return mark free space up to this z-depth."""
     threads: int | None = Field(None, ge=1)
     """torch threads while predicting (None: leave the process's setting)."""
+    unseen_class_weight: float = Field(1.0, gt=0.0, le=1.0)
+    """Object classes the map does not know are in the scene (no ray has shown them where the map
+    believes them) are down-weighted by this everywhere; 1: off (``mapnet.restrict_classes``)."""

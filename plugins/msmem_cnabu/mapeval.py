@@ -84,11 +84,12 @@ def twins() -> dict[str, Any]:
 
 def evaluate_rollouts(net: Any, data_dir: str | Path, models: dict[str, Callable[..., EvidentialMap]] | None = None,
                       max_scenes: int | None = None, log: Callable[[str], None] = print,
-                      steps: Sequence[int] | None = None, effects: Effects | None = None) -> dict[str, Any]:
+                      steps: Sequence[int] | None = None, effects: Effects | None = None,
+                      unseen_class_weight: float = 1.0) -> dict[str, Any]:
     """Roll out ``cnabu-map`` (``net``: a ``MapNet``, or None to score only ``models``) and the twins on
     every held-out sequence; the scores of the final beliefs (and of the beliefs after ``steps`` views).
     ``effects``: the effect models of post-manipulation sequences (default ``Effects()``, built when a
-    sequence needs it)."""
+    sequence needs it); ``unseen_class_weight``: ``cnabu-map``'s (``MapNet.step``)."""
     import torch
 
     paths = list_shards(data_dir, "observe")[:max_scenes]
@@ -99,7 +100,7 @@ def evaluate_rollouts(net: Any, data_dir: str | Path, models: dict[str, Callable
             t = torch.from_numpy
             with torch.no_grad():
                 a, bb, e = net.step(t(b.alpha)[None], t(b.beta)[None], t(b.eta)[None], t(f)[None], t(o)[None],
-                                    t(s)[None], valid_t)
+                                    t(s)[None], valid_t, unseen_class_weight)
             return EvidentialMap(b.grid, a[0].numpy(), bb[0].numpy(), e[0].numpy())
 
         def learned_after(effects: Effects, b: EvidentialMap, action: Any, workspace: Any) -> EvidentialMap:

@@ -62,7 +62,8 @@ class CNABUMapObservationModel(ObservationModel):
         try:
             t = torch.from_numpy
             a, b, e = self.net.step(t(belief.alpha)[None], t(belief.beta)[None], t(belief.eta)[None],
-                                    t(free)[None], t(occ)[None], t(seen)[None], valid)
+                                    t(free)[None], t(occ)[None], t(seen)[None], valid,
+                                    self.config.unseen_class_weight)
         finally:
             torch.set_num_threads(old)
         return EvidentialMap(belief.grid, a[0].numpy(), b[0].numpy(), e[0].numpy())

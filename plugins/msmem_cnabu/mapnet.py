@@ -141,6 +141,33 @@ def bounded_evidence(occ_logit: Tensor, cls_logit: Tensor, s_max: float, t_max: 
     return p * s, (1 - p) * s, q * t, p, q
 
 
+def known_object_classes(prev_logit: Tensor, prev_cls: Tensor, out_cls: Tensor, seen: Tensor, valid: Tensor
+                         ) -> Tensor:
+    """[B, C] bool: the object classes the map knows are in the scene (index 0, background, False).
+
+    A class is known if the previous belief already names it somewhere (it is the top object class of
+    a valid voxel believed occupied), or if this view's rays hit it (``seen``) at a voxel whose new top
+    object class, before any restriction, is it. ``prev_logit`` [B, X, Y, Z]: the previous occupancy
+    logit; ``prev_cls`` and ``out_cls`` [B, C, X, Y, Z]: log class probabilities (or log evidence) of
+    the previous and the new belief. A class the segmentation reports only by a one-view confusion on
+    an object already named is not made known: the voxel keeps its class."""
+    def named(log_q: Tensor, where: Tensor) -> Tensor:
+        top = F.one_hot(log_q[:, 1:].argmax(1), log_q.shape[1] - 1).permute(0, 4, 1, 2, 3).bool() & where
+        return torch.cat([torch.zeros_like(top[:, :1, 0, 0, 0]), top.flatten(2).any(2)], 1)
+
+    return named(prev_cls, ((prev_logit > 0) & valid)[:, None]) | named(out_cls, seen[:, 1:].bool() & valid)
+
+
+def restrict_classes(cls_logit: Tensor, known: Tensor, weight: float) -> Tensor:
+    """Class log probabilities with the object classes not ``known`` [B, C] down-weighted by ``weight``:
+    ``r'_c ∝ r_c w_c`` (``w_c`` = 1 if known, else ``weight``) at the same background probability
+    ``q_0``, so the occupancy is unchanged. Where no class is known the classes are left alone."""
+    log_q = torch.log_softmax(cls_logit, 1)
+    w = torch.where(known[:, 1:], 0.0, float(np.log(weight))).to(log_q.dtype)[:, :, None, None, None]
+    obj = torch.log_softmax(log_q[:, 1:] + w, 1)  # nothing known: every class scaled alike, no change
+    return torch.cat([log_q[:, :1], torch.log1p(-log_q[:, :1].exp().clamp(max=1 - 1e-7)) + obj], 1)
+
+
 class MapNet(nn.Module):
     """One observation step over the whole map (module docstring)."""
 
@@ -210,9 +237,15 @@ class MapNet(nn.Module):
         return o, torch.cat([F.logsigmoid(-o)[:, None], F.logsigmoid(o)[:, None] + r], 1)
 
     def step(self, alpha: Tensor, beta: Tensor, eta: Tensor, free: Tensor, occ: Tensor, seen: Tensor,
-             valid: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The next belief's bounded evidence (alpha, beta, eta)."""
+             valid: Tensor, unseen_class_weight: float = 1.0) -> tuple[Tensor, Tensor, Tensor]:
+        """The next belief's bounded evidence (alpha, beta, eta). With ``unseen_class_weight`` < 1 the
+        object classes the map does not know are in the scene (``known_object_classes``) are
+        down-weighted by it everywhere (``restrict_classes``)."""
         o, c = self(alpha, beta, eta, free, occ, seen, valid)
+        if unseen_class_weight < 1.0:
+            prev_logit = (torch.log(alpha) - torch.log(beta)).clamp(-LOGIT_CLIP, LOGIT_CLIP)
+            known = known_object_classes(prev_logit, torch.log(eta), c, seen, valid)
+            c = restrict_classes(c, known, unseen_class_weight)
         a, b, e, _, _ = bounded_evidence(o, c, self.config.s_max, self.config.t_max)
         return a, b, e
 
