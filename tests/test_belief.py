@@ -360,3 +360,34 @@ def test_evidence_whose_shape_does_not_match_the_grid_is_refused(bad):
     arrays[bad] = np.ones((5, 2, 3, 5) if bad == "eta" else (2, 3, 5), np.float32)
     with pytest.raises(ValueError, match=r"do not match grid \(2, 3, 4\)"):
         EvidentialMap(grid, **arrays)
+
+
+def test_the_ray_record_is_copied_saved_cleared_by_predictions_and_read_as_never_seen(tmp_path):
+    from msmem_core.map.belief import BeliefDelta
+
+    grid = GridSpec(origin_m=(0.0, 0.0, 0.0), voxel_m=0.1, shape=(3, 2, 2))
+    b = EvidentialMap.empty(grid, 4)
+    b.eta[1, 0, 0, 0] = 30.0  # one voxel seen often: low vacuity
+    np.testing.assert_array_equal(b.never_seen(0.9), b.vacuity() >= 0.9)  # no record: the vacuity decides
+    assert b.never_seen(0.9).sum() == 11
+    obs = np.zeros(grid.shape, dtype=bool)
+    obs[2, 1, 1] = True
+    rec = EvidentialMap(grid, b.alpha, b.beta, b.eta, obs)
+    np.testing.assert_array_equal(rec.never_seen(0.9), ~obs)  # with one, the record decides
+    c = rec.copy()
+    c.observed[0, 0, 0] = True
+    assert not rec.observed[0, 0, 0]  # a copy owns its record
+    rec.save(tmp_path / "b.npz")
+    np.testing.assert_array_equal(EvidentialMap.load(tmp_path / "b.npz").observed, obs)
+    b.save(tmp_path / "a.npz")
+    assert EvidentialMap.load(tmp_path / "a.npz").observed is None
+    flat = np.ravel_multi_index((2, 1, 1), grid.shape)
+    d = BeliefDelta(np.array([flat]), np.array([5.0], np.float32), np.array([1.0], np.float32),
+                    np.ones((4, 1), np.float32))
+    assert not d.apply(rec).observed[2, 1, 1]  # a predicted change is not an observation
+    assert rec.observed[2, 1, 1]
+    assert d.apply(b).observed is None
+    with pytest.raises(ValueError, match="observed"):
+        EvidentialMap(grid, b.alpha, b.beta, b.eta, np.zeros((3, 2), dtype=bool))
+    with pytest.raises(ValueError, match="observed"):
+        EvidentialMap(grid, b.alpha, b.beta, b.eta, np.zeros(grid.shape, dtype=np.uint8))

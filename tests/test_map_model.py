@@ -690,3 +690,28 @@ def test_the_restriction_removes_a_class_no_ray_showed_from_the_map(shard):
         hit.tolist())  # without it the guessing network names others
     # a step's occupancy is unchanged (later steps differ: the classes are the next step's input)
     np.testing.assert_allclose(first[1e-3].expected_occupancy(), first[1.0].expected_occupancy(), atol=1e-5)
+
+
+def test_cnabu_map_keeps_the_ray_record_and_ups_finds_hidden_space_on_its_completed_belief(shard):
+    import dataclasses
+
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+    from msmem_push.skill import PushSkill
+
+    seq = sequence(shard)
+    model = CNABUMapObservationModel()
+    b = EvidentialMap.empty(shard.grid, seq.seen.shape[1])
+    reached = np.zeros(shard.grid.shape, dtype=bool)
+    for t in range(3):
+        b = model.update_masks(b, seq.free[t], seq.occ[t], seq.seen[t])
+        reached |= seq.free[t] | seq.occ[t] | seq.seen[t].any(axis=0)
+        np.testing.assert_array_equal(b.observed, reached)  # the union of every view's rays, nothing else
+    completed = (b.expected_occupancy() > 0.9) & ~b.observed
+    assert completed.sum() > 1000  # confident voxels no ray reached: the completion
+    assert b.never_seen(0.9)[completed].all()  # never seen, though confident
+    rng = np.random.default_rng(0)
+    assert len(PushSkill().sample(b, shard.workspace.shelf, rng)) > 0
+    # read from the vacuity instead, the completed belief has nothing hidden: no push at all
+    blind = dataclasses.replace(b, observed=None)
+    assert not blind.never_seen(0.9)[completed].any()
+    assert PushSkill().sample(blind, shard.workspace.shelf, np.random.default_rng(0)) == []

@@ -12,7 +12,7 @@ import os
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import overload
+from typing import Any, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -83,6 +83,12 @@ class EvidentialMap:
     alpha: NDArray[np.float32]
     beta: NDArray[np.float32]
     eta: NDArray[np.float32]
+    observed: NDArray[np.bool_] | None = None
+    """``[X, Y, Z]``: which voxels a camera ray has reached (passed through or hit), kept by an
+    observation model whose evidence is a prediction rather than a ray count (``cnabu-map`` completes
+    voxels no ray reached, confidently); a predicted change (``BeliefDelta.apply``) clears it where it
+    writes. None: the evidence itself is the ray record (the analytic update), and *never seen* is
+    read from the vacuity (:meth:`never_seen`)."""
 
     def __post_init__(self) -> None:
         shape = tuple(self.grid.shape)
@@ -90,6 +96,9 @@ class EvidentialMap:
             raise ValueError(
                 f"evidence shapes {self.alpha.shape}, {self.beta.shape}, {self.eta.shape} do not match grid {shape}"
             )
+        if self.observed is not None and (self.observed.shape != shape or self.observed.dtype != np.bool_):
+            raise ValueError(f"observed must be a bool array of the grid's shape {shape}, got "
+                             f"{self.observed.dtype} {self.observed.shape}")
 
     @classmethod
     def empty(cls, grid: GridSpec, num_classes: int = NUM_CLASSES) -> EvidentialMap:
@@ -108,7 +117,8 @@ class EvidentialMap:
         return int(self.eta.shape[0])
 
     def copy(self) -> EvidentialMap:
-        return EvidentialMap(self.grid, self.alpha.copy(), self.beta.copy(), self.eta.copy())
+        return EvidentialMap(self.grid, self.alpha.copy(), self.beta.copy(), self.eta.copy(),
+                             None if self.observed is None else self.observed.copy())
 
     # ------------------------------------------------------------------ expected distributions
     def expected_occupancy(self) -> NDArray[np.float32]:
@@ -135,6 +145,15 @@ class EvidentialMap:
         """H(Phi) of the Delta-H term: semantic entropy summed over all voxels (nats)."""
         return float(self.semantic_entropy().sum())
 
+    def never_seen(self, vacuity_threshold: float) -> NDArray[np.bool_]:
+        """``[X, Y, Z]`` voxels no camera ray has reached: ``~observed`` where the map keeps that
+        record, else where the semantic vacuity is at or above ``vacuity_threshold`` (prior: 1; the
+        analytic update's first view: 0.6). Skills that look for hidden space read this, so a
+        completed prediction does not count as seen."""
+        if self.observed is not None:
+            return ~self.observed
+        return self.vacuity() >= vacuity_threshold
+
     def argmax_class(self, tau_chi: float) -> NDArray[np.int64]:
         """Most likely class per voxel, -1 (*unknown*) where vacuity >= tau_chi."""
         cls = np.argmax(self.eta, axis=0).astype(np.int64)
@@ -143,9 +162,11 @@ class EvidentialMap:
 
     # ------------------------------------------------------------------------------- storage
     def save(self, path: str | Path) -> None:
-        np.savez_compressed(
-            path, grid=np.array(self.grid.model_dump_json()), alpha=self.alpha, beta=self.beta, eta=self.eta
-        )
+        arrays: dict[str, Any] = {"grid": np.array(self.grid.model_dump_json()), "alpha": self.alpha,
+                                  "beta": self.beta, "eta": self.eta}
+        if self.observed is not None:
+            arrays["observed"] = self.observed
+        np.savez_compressed(path, **arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> EvidentialMap:
@@ -156,6 +177,7 @@ class EvidentialMap:
                 f["alpha"].astype(np.float32),
                 f["beta"].astype(np.float32),
                 f["eta"].astype(np.float32),
+                f["observed"].astype(bool) if "observed" in f.files else None,
             )
 
 
@@ -188,6 +210,8 @@ class BeliefDelta:
         out.alpha.reshape(-1)[self.idx] = self.alpha
         out.beta.reshape(-1)[self.idx] = self.beta
         out.eta.reshape(out.num_classes, -1)[:, self.idx] = self.eta
+        if out.observed is not None:  # a prediction is not an observation
+            out.observed.reshape(-1)[self.idx] = False
         return out
 
 

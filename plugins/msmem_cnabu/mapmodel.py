@@ -66,4 +66,6 @@ class CNABUMapObservationModel(ObservationModel):
                                     self.config.unseen_class_weight)
         finally:
             torch.set_num_threads(old)
-        return EvidentialMap(belief.grid, a[0].numpy(), b[0].numpy(), e[0].numpy())
+        ray = free | occ | seen.any(axis=0)
+        observed = ray if belief.observed is None else belief.observed | ray
+        return EvidentialMap(belief.grid, a[0].numpy(), b[0].numpy(), e[0].numpy(), observed)

@@ -196,10 +196,12 @@ def voxel_centres(grid: GridSpec, flat: I64) -> F64:
 def blocked_mask(belief: EvidentialMap, shelf: ShelfSpec, occupied_threshold: float = 0.5,
                  unknown_vacuity: float = 0.9, unknown_band: float = 0.1) -> NDArray[np.bool_]:
     """[X, Y, Z]: voxels a gripper may not enter: believed occupied (p > ``occupied_threshold``),
-    unknown (semantic vacuity >= ``unknown_vacuity`` and |p - 0.5| < ``unknown_band``: never seen),
-    or the shelf's boards (``ig.shelf_wall_mask``)."""
+    unknown (never seen, ``EvidentialMap.never_seen(unknown_vacuity)``, and |p - 0.5| < ``unknown_band``),
+    or the shelf's boards (``ig.shelf_wall_mask``). On a completed belief (``cnabu-map``) a voxel no
+    ray reached is unknown only where the prediction is not confident either: a confidently predicted
+    free voxel may be entered, a predicted occupied one may not."""
     p = belief.expected_occupancy()
-    unknown = (belief.vacuity() >= unknown_vacuity) & (np.abs(p - 0.5) < unknown_band)
+    unknown = belief.never_seen(unknown_vacuity) & (np.abs(p - 0.5) < unknown_band)
     return (p > occupied_threshold) | unknown | shelf_wall_mask(belief.grid, shelf)
 
 

@@ -4,8 +4,10 @@ push execution composed from the ``Simulator`` vocabulary.
 Proposal (``PushSkill.propose``), all from the belief, never from ground truth:
 
 1. *Hidden regions*: bird's-eye-view (BEV) columns of the shelf interior holding at least
-   ``min_hidden_voxels`` voxels that are not believed free (p > ``free_threshold``) and whose
-   semantic vacuity is >= ``vacuity_threshold`` (never seen), and no confidently occupied voxel.
+   ``min_hidden_voxels`` voxels that are not believed free (p > ``free_threshold``) and never seen
+   (``EvidentialMap.never_seen``: no ray reached them where the belief keeps that record, as
+   ``cnabu-map``'s does, else semantic vacuity >= ``vacuity_threshold``), and no confidently
+   occupied voxel.
 2. *Seeds*: up to ``seeds`` such columns, drawn without replacement with probability proportional
    to their hidden-voxel count.
 3. *Occluders*: from the shelf front (y = 0) a line is traced to each seed (straight along +y, and
@@ -270,7 +272,7 @@ class PushSkill(Skill):
         # confident object surfaces; occupied voxels of class background are shelf boards seen in
         # the interior's boundary layer, not objects
         conf = (p >= cfg.confidence_threshold) & interior & (cls != 0)
-        hidden = interior & (p > cfg.free_threshold) & (belief.vacuity() >= cfg.vacuity_threshold)
+        hidden = interior & (p > cfg.free_threshold) & belief.never_seen(cfg.vacuity_threshold)
         conf_bev = conf.any(axis=2)
         count = hidden.sum(axis=2)
         seed_mask = (count >= cfg.min_hidden_voxels) & ~conf_bev
