@@ -24,12 +24,12 @@ METRICS = ("occupancy_miou", "semantic_miou_2d", "observable_iou", "occupancy_io
 
 
 def episodes(folder: Path) -> dict[tuple[str, int], dict]:
-    out = {}
-    for f in sorted((folder / "episodes").glob("*.json")):
-        r = json.loads(f.read_text())
-        if r.get("status") == "ok":
-            out[(r["method"], r["scene_index"])] = r["metrics"]
-    return out
+    """Per (method, scene) the metrics of the ok episodes: from ``episodes/*.json``, or, in a folder
+    kept without them, from the episodes ``results.json`` holds."""
+    files = sorted((folder / "episodes").glob("*.json"))
+    records = ([json.loads(f.read_text()) for f in files] if files
+               else json.loads((folder / "results.json").read_text()).get("episodes", []))
+    return {(r["method"], r["scene_index"]): r["metrics"] for r in records if r.get("status") == "ok"}
 
 
 def main(folders: list[str]) -> None:
