@@ -1,5 +1,6 @@
-"""The vMF distribution on S^2: exact against scipy from kappa = 1e-6 to 1e4, sampling in
-distribution, finite gradients at kappa -> 0."""
+"""The vMF distribution on S^2: exact against scipy from kappa = 1e-6 to 1e4 and against mpmath from 0 to
+1e300 (both sides of the series switches), sampling as the exact inverse CDF and in distribution, right-handed
+frames for every mu, broadcasting and dtypes, finite gradients at kappa -> 0."""
 
 from __future__ import annotations
 
@@ -117,38 +118,44 @@ def test_mean_resultant_limits():
     assert a[5] == 1.0
 
 
-# --- high-precision references (mpmath, 50 digits) -------------------------------------------------
+# --- high-precision references (mpmath, 50 digits; mp.workdps leaves mpmath's global precision alone) --
 
-mp.mp.dps = 50
-
-
-def _mp_log_c(k: float) -> float:
-    """log C(kappa) = log(kappa / (4 pi sinh kappa)), -log 4pi at kappa = 0."""
-    k = mp.mpf(k)
-    return float(-mp.log(4 * mp.pi) if k == 0 else mp.log(k) - mp.log(4 * mp.pi) - mp.log(mp.sinh(k)))
+_DPS = 50
 
 
-def _mp_log_c_exact(k: mp.mpf) -> mp.mpf:
+def _mp_log_c_exact(k: float | mp.mpf) -> mp.mpf:
+    """log C(kappa) = log kappa - log 4pi - log sinh kappa, at the caller's precision."""
     k = mp.mpf(k)
     return mp.log(k) - mp.log(4 * mp.pi) - mp.log(mp.sinh(k))
 
 
+def _mp_log_c(k: float) -> float:
+    """log C(kappa), -log 4pi at kappa = 0."""
+    with mp.workdps(_DPS):
+        return float(-mp.log(4 * mp.pi) if k == 0 else _mp_log_c_exact(k))
+
+
 def _mp_a(k: float) -> float:
-    """A(kappa) = coth kappa - 1/kappa."""
-    k = mp.mpf(k)
-    return float(0 if k == 0 else mp.coth(k) - 1 / k)
+    """A(kappa) = coth kappa - 1/kappa (with enough digits for the cancellation at tiny kappa)."""
+    if k == 0:
+        return 0.0
+    with mp.workdps(_DPS + 2 * max(0, -math.floor(math.log10(k)))):
+        k = mp.mpf(k)
+        return float(mp.coth(k) - 1 / k)
 
 
 def _mp_cdf(w: float, k: float) -> float:
     """F(w) = (e^{kappa (w+1)} - 1) / (e^{2 kappa} - 1) on [-1, 1], (w+1)/2 at kappa = 0."""
-    w, k = mp.mpf(w), mp.mpf(k)
-    return float((w + 1) / 2 if k == 0 else mp.expm1(k * (w + 1)) / mp.expm1(2 * k))
+    with mp.workdps(_DPS):
+        w, k = mp.mpf(w), mp.mpf(k)
+        return float((w + 1) / 2 if k == 0 else mp.expm1(k * (w + 1)) / mp.expm1(2 * k))
 
 
 def _mp_quantile(u: float, k: float) -> float:
     """The w with F(w) = u: w = -1 + log(1 + u (e^{2 kappa} - 1)) / kappa."""
-    u, k = mp.mpf(u), mp.mpf(k)
-    return float(2 * u - 1 if k == 0 else -1 + mp.log1p(u * mp.expm1(2 * k)) / k)
+    with mp.workdps(_DPS):
+        u, k = mp.mpf(u), mp.mpf(k)
+        return float(2 * u - 1 if k == 0 else -1 + mp.log1p(u * mp.expm1(2 * k)) / k)
 
 
 # --- log C -----------------------------------------------------------------------------------------
@@ -253,8 +260,9 @@ def test_mean_resultant_float32_series_is_accurate_up_to_its_switch_at_0_3():
 def test_mean_resultant_is_the_derivative_of_log_sinh_k_over_k():
     # A = d/dk log(sinh k / k) = -d log C / dk; central differences of the mpmath log C
     for k in (3e-3, 0.05, 0.7, 4.0):
-        h = mp.mpf(k) * mp.mpf("1e-12")
-        fd = -(_mp_log_c_exact(k + h) - _mp_log_c_exact(k - h)) / (2 * h)
+        with mp.workdps(_DPS):
+            h = mp.mpf(k) * mp.mpf("1e-12")
+            fd = -(_mp_log_c_exact(k + h) - _mp_log_c_exact(k - h)) / (2 * h)
         assert vmf.mean_resultant(torch.tensor(k, dtype=F64)).item() == pytest.approx(float(fd), rel=1e-10)
 
 
@@ -310,7 +318,7 @@ def test_orthonormal_basis_is_a_right_handed_frame_for_every_direction(dtype):
 def test_orthonormal_basis_is_computed_per_row():
     # each batch row gets the same frame as alone (no mixing across the batch)
     mus = torch.tensor(_frame_mus(), dtype=F64)
-    e1, e2 = vmf.orthonormal_basis(mus.reshape(3, -1, 3))
+    e1, e2 = vmf.orthonormal_basis(mus.reshape(2, -1, 3))
     for i, mu in enumerate(mus):
         f1, f2 = vmf.orthonormal_basis(mu)
         torch.testing.assert_close(e1.reshape(-1, 3)[i], f1, atol=1e-15, rtol=0)
@@ -348,6 +356,36 @@ def test_sample_is_the_exact_inverse_cdf_of_the_generator_uniforms(dtype):
     e1, e2 = e1[None, :, None], e2[None, :, None]
     tangent = r[..., None] * (torch.cos(phi)[..., None] * e1 + torch.sin(phi)[..., None] * e2)
     torch.testing.assert_close(x64 - w[..., None] * mu[None, :, None], tangent, atol=10 * tol, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_sample_maps_a_zero_uniform_draw_to_the_antipode(dtype, monkeypatch):
+    """torch.rand can return exactly 0 (p = 2^-24 per float32 draw). u = 0 is F^{-1}(0) = -1: the sample is
+    -mu, finite and of unit norm for every kappa, also where e^{-2 kappa} underflows."""
+    real_rand = torch.rand
+    calls = []
+
+    def rand_with_a_zero(*args, **kwargs):
+        out = real_rand(*args, **kwargs)
+        out[0] = 0.0  # the first sample's uniforms (both draws, so the order of the draws does not matter)
+        calls.append(out.shape)
+        return out
+
+    monkeypatch.setattr(torch, "rand", rand_with_a_zero)
+    mu = torch.tensor([0.0, 0.6, -0.8], dtype=dtype)
+    huge = 1e300 if dtype == F64 else 1e30
+    kappa = torch.tensor([0.0, 1e-13, 0.5, 5.0, 100.0, 1e5, huge], dtype=dtype)
+    x = vmf.sample(mu, kappa, 8, generator=torch.Generator().manual_seed(2))
+    monkeypatch.undo()
+    assert calls == [(8, 7), (8, 7)]
+    assert torch.isfinite(x).all()
+    tol = 1e-6 if dtype == torch.float32 else 1e-14
+    torch.testing.assert_close(x.norm(dim=-1), torch.ones(8, 7, dtype=dtype), atol=tol, rtol=0)
+    # w = -1 up to rounding (F^{-1} is ill-conditioned at u = 0: ~eps e^{2 kappa} / kappa for moderate
+    # kappa), the tangent part is sqrt(1 - w^2) ~ sqrt(2 (1 + w))
+    tol_w = 1e-3 if dtype == torch.float32 else 1e-11
+    torch.testing.assert_close(x[0] @ mu, -torch.ones(7, dtype=dtype), atol=tol_w, rtol=0)
+    torch.testing.assert_close(x[0], -mu.expand(7, 3), atol=2 * math.sqrt(tol_w), rtol=0)
 
 
 def test_sample_is_exact_for_huge_kappa():
