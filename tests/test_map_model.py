@@ -580,6 +580,22 @@ def test_train_map_on_post_manipulation_data_records_the_effect_model(postmanip_
     assert side["train"]["effect_models"] == side["effect_models"]
 
 
+def test_train_map_mixes_folders_of_different_sequence_lengths(postmanip_dir, tmp_path):
+    """Two folders (12-view sequences, and 4 views with a push): every batch from one folder, both used."""
+    side = train_map([HELDOUT, postmanip_dir], tmp_path / "m.pt", MapTrainConfig(batches=3, batch=1),
+                     MapNetConfig(grid_shape=(78, 40, 30), width=8, embed=2, context=2, hidden=8, levels=2),
+                     log=lambda _: None)
+    assert side["data"]["scenes"] == 3
+    assert side["data"]["folders"] == {str(HELDOUT): 2, str(postmanip_dir): 1}
+    assert side["post_manipulation_scenes"] == 1
+    from msmem_core.errors import UserError
+
+    with pytest.raises(UserError, match="no folder holds a batch of 3"):
+        train_map([HELDOUT, postmanip_dir], tmp_path / "n.pt", MapTrainConfig(batches=1, batch=3),
+                  MapNetConfig(grid_shape=(78, 40, 30), width=8, embed=2, context=2, hidden=8, levels=2),
+                  log=lambda _: None)
+
+
 def test_the_shipped_network_settings_file_is_valid():
     from msmem_core.config import read_config_file
 

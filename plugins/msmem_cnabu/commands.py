@@ -159,7 +159,9 @@ def eval_belief_models(
 
 
 def train_cnabu_map(
-    data: Annotated[Path, typer.Option("--data", help="Observe shards made with --min-views 0 --max-views 0.")],
+    data: Annotated[list[Path], typer.Option(
+        "--data", help="Observe shards made with --min-views 0 --max-views 0; repeat for several folders "
+        "(each batch from one folder, folders drawn in proportion to their scenes).")],
     out: Annotated[Path, typer.Option("--out", help="Weights file (.pt); a .json sidecar is written beside it.")],
     heldout: Annotated[Path | None, typer.Option(
         "--heldout", help="Held-out shards (other seeds): rollouts scored against the twins at the end.")] = None,

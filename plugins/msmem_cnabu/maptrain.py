@@ -299,20 +299,50 @@ def write_weights(net: MapNet, out: Path, record: dict[str, Any]) -> dict[str, A
     return write_sidecar(out, head, {"model": net.config.model_dump(), "parameters": parameter_count(net), **record})
 
 
-def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_cfg: MapNetConfig | None = None,
-              heldout_dir: str | Path | None = None, log: Callable[[str], None] = print,
-              init: str | Path | None = None, arch: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Train on the observe shards of ``data_dir`` (see the module docstring); returns the sidecar.
-    ``arch``: network settings (``MapNetConfig`` fields) when ``model_cfg`` is not given; the grid and
-    the class count come from the data."""
+def _folders(dirs: Sequence[Path], max_scenes: int | None) -> list[list[Path]]:
+    """The observe shards of each data folder (the first ``max_scenes`` of each)."""
+    return [list_shards(d, "observe")[:max_scenes] for d in dirs]
+
+
+def _batches(listing: Sequence[Sequence[Path]], size: int, rng: np.random.Generator) -> list[list[Path]]:
+    """One pass: each folder's shards in a random order, cut into batches of ``size`` (a batch never
+    mixes folders, whose sequences may differ in length), the batches of all folders shuffled together."""
+    out: list[list[Path]] = []
+    for paths in listing:
+        order = rng.permutation(len(paths))
+        out += [[paths[i] for i in order[s:s + size]] for s in range(0, len(order) - size + 1, size)]
+    if not out:
+        raise UserError(f"no folder holds a batch of {size} scenes")
+    if len(listing) == 1:  # one folder: the order of the permutation (as before several folders were allowed)
+        return out
+    return [out[i] for i in rng.permutation(len(out))]
+
+
+def train_map(data_dir: str | Path | Sequence[str | Path], out: str | Path, cfg: MapTrainConfig,
+              model_cfg: MapNetConfig | None = None, heldout_dir: str | Path | None = None,
+              log: Callable[[str], None] = print, init: str | Path | None = None,
+              arch: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Train on the observe shards of ``data_dir``, one folder or several (see the module docstring);
+    returns the sidecar. With several folders (e.g. 40-view hard scenes and post-manipulation
+    sequences of 12 views) each batch comes from one folder, and folders are drawn in proportion to
+    their number of scenes; they must share the grid and the classes. ``arch``: network settings
+    (``MapNetConfig`` fields) when ``model_cfg`` is not given; the grid and the class count come from
+    the data."""
     torch.manual_seed(cfg.seed)
     torch.set_num_threads(cfg.threads)
     rng = np.random.default_rng(cfg.seed)
-    paths = list_shards(data_dir, "observe")
-    if cfg.max_scenes is not None:
-        paths = paths[: cfg.max_scenes]
-    first = sequence(load_shard(paths[0]))
+    dirs = [Path(data_dir)] if isinstance(data_dir, str | Path) else [Path(d) for d in data_dir]
+    if not dirs:
+        raise UserError("no training data folder given")
+    listing = _folders(dirs, cfg.max_scenes)
+    firsts = [sequence(load_shard(paths[0])) for paths in listing]
+    first = max(firsts, key=len)
     shape = first.gt_occ.shape
+    for d, f in zip(dirs, firsts, strict=True):
+        if f.gt_occ.shape != shape or f.seen.shape[1] != first.seen.shape[1]:
+            raise UserError(f"{d}: grid {f.gt_occ.shape} with {f.seen.shape[1]} classes, but {dirs[0]} has "
+                            f"{shape} with {first.seen.shape[1]}: the folders must share the grid and the classes")
+    paths = [p for ps in listing for p in ps]
     if model_cfg is None:
         try:
             model_cfg = MapNetConfig(grid_shape=shape, num_classes=first.seen.shape[1], **(arch or {}))
@@ -328,6 +358,7 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
     total_batches = cfg.batches or max(1, int(cfg.epochs * len(paths) / cfg.batch))
     used: set[Path] = set()
     manipulated: set[int] = set()
+    # the schedule steps once per view: sized for the longest sequences (shorter ones end it early)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=cfg.lr, total_steps=total_batches * len(first) + 1,
                                                 pct_start=0.05)
     effects = Effects(cfg.effect_models)
@@ -336,16 +367,15 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
     done = 0
     stopped = "epochs"
     out = Path(out)
-    log(f"train cnabu-map: {len(paths)} scenes x {len(first)} views, {parameter_count(net)} parameters, "
-        f"{total_batches} batches of {cfg.batch}")
+    views = " + ".join(f"{len(ps)} scenes x {len(f)} views" for ps, f in zip(listing, firsts, strict=True))
+    log(f"train cnabu-map: {views}, {parameter_count(net)} parameters, {total_batches} batches of {cfg.batch}")
 
     while done < total_batches:
         if cfg.batches is not None and done:  # a growing folder: take its new shards too
-            paths = list_shards(data_dir, "observe")[: cfg.max_scenes]
-        order = rng.permutation(len(paths))
-        for s in range(0, len(order) - cfg.batch + 1, cfg.batch):
-            used.update(paths[i] for i in order[s:s + cfg.batch])
-            seqs = [sequence(load_shard(paths[i])) for i in order[s:s + cfg.batch]]
+            listing = _folders(dirs, cfg.max_scenes)
+        for chosen in _batches(listing, cfg.batch, rng):
+            used.update(chosen)
+            seqs = [sequence(load_shard(p)) for p in chosen]
             flips = [bool(rng.integers(2)) and q.mirror_ok for q in seqs]
             manipulated.update(q.seed for q in seqs if q.manipulations)
             batch = _batch(seqs, flips)
@@ -384,10 +414,16 @@ def train_map(data_dir: str | Path, out: str | Path, cfg: MapTrainConfig, model_
 def _record(cfg: MapTrainConfig, paths: Sequence[Path], history: list[dict[str, Any]], seconds: float,
             stopped: str, manipulated: set[int]) -> dict[str, Any]:
     seeds = sorted(int(p.stem.split("_")[1]) for p in paths)
+    folders: dict[str, int] = {}
+    for p in paths:
+        folders[str(Path(p).parent)] = folders.get(str(Path(p).parent), 0) + 1
+    data: dict[str, Any] = {"scenes": len(paths), "seed_min": seeds[0], "seed_max": seeds[-1],
+                            "folder": next(iter(folders))}
+    if len(folders) > 1:
+        data["folders"] = folders
     return {"effect_models": {k: r.model_dump() for k, r in cfg.effect_models.items()},
             "post_manipulation_scenes": len(manipulated),
-            "train": cfg.model_dump(), "data": {"scenes": len(paths), "seed_min": seeds[0], "seed_max": seeds[-1],
-                                                "folder": str(Path(paths[0]).parent)},
+            "train": cfg.model_dump(), "data": data,
             "seeds": seeds, "seconds": seconds, "stopped": stopped, "history": history[-2000:]}
 
 
