@@ -121,6 +121,9 @@ class RunConfig(_Strict):
     viewpoints: ViewpointConfig = ViewpointConfig()
     scene: SceneConfig = SceneConfig()
     simulator: ComponentRef = ComponentRef(name="pybullet")
+    robot: ComponentRef = ComponentRef(name="floating")
+    """The arm that carries the camera and the gripper (docs/robots.md): ``floating`` (no arm, everything
+    reachable) or ``panda`` (the view skill proposes only the views its wrist camera reaches)."""
     observation_model: ComponentRef = ComponentRef(name="analytic-observation")
     skills: list[SkillRef] = Field(default_factory=lambda: [SkillRef(name="view")], min_length=1)
     effect_models: dict[str, ComponentRef] = Field(default_factory=dict)

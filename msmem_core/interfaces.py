@@ -1,6 +1,6 @@
-"""The interfaces plugins implement: Simulator, Skill, BeliefModel (two roles) and objective Term,
-and what they are given: the ``Workspace`` (grid, shelf, gripper) and, at each MSAS step, the
-``DecisionContext``.
+"""The interfaces plugins implement: Simulator, Robot, Skill, BeliefModel (two roles) and objective
+Term, and what they are given: the ``Workspace`` (grid, shelf, gripper, robot) and, at each MSAS step,
+the ``DecisionContext``.
 
 Core code depends only on these; it never imports a simulator library or a plugin package.
 """
@@ -38,14 +38,17 @@ SHELF_ID = -2
 @dataclass(frozen=True)
 class Workspace:
     """The physical setting actions are planned, predicted and executed in: the belief's voxel grid,
-    the shelf and the run's gripper. Fixed over an episode. Actions do not carry it: effect models
-    and ``Action.swept_volume`` receive it."""
+    the shelf, the run's gripper and robot. Fixed over an episode. Actions do not carry it: effect
+    models and ``Action.swept_volume`` receive it."""
 
     grid: GridSpec
     shelf: ShelfSpec
     gripper: GripperSpec = field(default_factory=GripperSpec)
     num_classes: int = NUM_CLASSES
     """Classes of the belief (background and every object class of the scene)."""
+    robot: Robot | None = None
+    """The run's robot (config ``robot``): what the camera and the gripper can reach. None: no arm,
+    everything is reachable (as the ``floating`` robot)."""
 
     @property
     def interior_box(self) -> tuple[float, float, float, float, float, float]:
@@ -189,6 +192,86 @@ class Simulator(ABC):
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release the backend's resources."""
+
+
+# ----------------------------------------------------------------------------------------------- robot
+@dataclass(frozen=True)
+class RobotModel:
+    """What a robot is: its description, where its base stands and its joints (all in the world frame,
+    which is the shelf's: x along the shelf, y into it from its open front at y = 0, z up from its floor)."""
+
+    name: str
+    """The robot's registered name."""
+    urdf: str | None
+    """Path of its URDF (None: no arm, as the ``floating`` robot)."""
+    base_pose: NDArray[np.float64]
+    """4x4 pose of the robot's base in the shelf (world) frame."""
+    joint_names: tuple[str, ...] = ()
+    """The joints IK solves for, in order (a ``Reach``'s ``joints`` follow it)."""
+    joint_lower: tuple[float, ...] = ()
+    """Lower joint limits (rad or m), from the URDF."""
+    joint_upper: tuple[float, ...] = ()
+    """Upper joint limits (rad or m), from the URDF."""
+    flange_link: str | None = None
+    """The link whose pose ``Robot.ik`` reaches; the camera mount is relative to it."""
+
+
+@dataclass(frozen=True)
+class Reach:
+    """A reachability answer: a verified joint configuration, or why there is none."""
+
+    reachable: bool
+    """The pose is reached within tolerance, inside the joint limits, without collisions."""
+    joints: tuple[float, ...] | None = None
+    """The configuration (``RobotModel.joint_names`` order) when reachable; () for a robot without joints."""
+    position_error_m: float = 0.0
+    """Distance between the asked flange position and the forward kinematics of the answer (of the best
+    attempt when unreachable)."""
+    orientation_error_deg: float = 0.0
+    """Angle between the asked flange orientation and the answer's (of the best attempt when unreachable)."""
+    collisions: tuple[str, ...] = ()
+    """What the best attempt hit, e.g. ``panda_hand-top`` (link and shelf board)."""
+    reason: str = ""
+    """One line when unreachable."""
+
+
+class Robot(ABC):
+    """An arm that carries the camera and the gripper: its model, inverse kinematics with a verified
+    reachability answer, collision checks against the shelf, and the camera mount.
+
+    The shelf (``ShelfSpec``) is passed to every call: it is the scene's, and fixed over an episode, so
+    implementations may build their collision geometry once per shelf.
+    """
+
+    @abstractmethod
+    def model(self) -> RobotModel:
+        """URDF, base pose relative to the shelf, joint names and limits."""
+
+    @abstractmethod
+    def camera_mount(self) -> NDArray[np.float64]:
+        """4x4 camera-to-flange pose of the wrist camera (camera frame in the OpenCV convention)."""
+
+    @abstractmethod
+    def ik(self, flange_pose: NDArray[np.float64], shelf: ShelfSpec) -> Reach:
+        """A configuration whose flange is at ``flange_pose`` (4x4, world), within the joint limits,
+        checked by forward kinematics and free of collisions with the shelf; else why not."""
+
+    @abstractmethod
+    def collisions(self, joints: Sequence[float], shelf: ShelfSpec) -> list[str]:
+        """What the arm in configuration ``joints`` touches or comes too close to (``link-board``
+        names); empty: collision-free."""
+
+    def reach_camera(self, camera_to_world: NDArray[np.float64], shelf: ShelfSpec) -> Reach:
+        """``ik`` of the flange pose that puts the wrist camera at ``camera_to_world``."""
+        return self.ik(np.asarray(camera_to_world, dtype=np.float64) @ np.linalg.inv(self.camera_mount()), shelf)
+
+    def reachable_views(self, viewpoints: NDArray[np.float64], shelf: ShelfSpec) -> NDArray[np.bool_]:
+        """[V] which camera poses ``viewpoints`` [V, 4, 4] the wrist camera reaches collision-free. The view
+        skill asks at every step: implementations cache the answer per shelf and viewpoint set."""
+        return np.array([self.reach_camera(t, shelf).reachable for t in viewpoints], dtype=bool)
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Release the robot's resources (e.g. its kinematics client)."""
 
 
 # ---------------------------------------------------------------------------------------- belief model

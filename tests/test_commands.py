@@ -36,7 +36,7 @@ def test_builtin_plugins_register_their_commands(plugin_manager):
     assert where == {"datagen grasp": "grasp", "train fe-vmf": "grasp", "eval fe-vmf": "grasp",
                      "bench-grasp": "grasp", "datagen cnabu": "cnabu", "train cnabu": "cnabu",
                      "eval belief-models": "cnabu", "train cnabu-map": "cnabu", "eval map": "cnabu",
-                     "perf push": "push"}
+                     "perf push": "push", "robot": "robots"}
 
 
 def test_plugin_command_appears_in_help_and_runs():

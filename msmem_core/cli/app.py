@@ -91,6 +91,7 @@ def run(
     method: MethodOpt = None,
     config: ConfigOpt = None,
     sim: Annotated[str | None, typer.Option("--sim", help="Simulator plugin name (e.g. pybullet, sapien).")] = None,
+    robot: Annotated[str | None, typer.Option("--robot", help="Robot plugin name (e.g. floating, panda).")] = None,
     scene: Annotated[Path | None, typer.Option("--scene", help="SceneSpec JSON file.")] = None,
     scene_seed: Annotated[int | None, typer.Option("--scene-seed", help="Generate the scene from this seed.")] = None,
     steps: Annotated[int | None, typer.Option("--steps", help="T_max: number of actions.")] = None,
@@ -109,7 +110,7 @@ def run(
     leaves the partial folder and names it (docs/reliability.md)."""
     import shutil
 
-    from msmem_core.config import load_config
+    from msmem_core.config import RunConfig, load_config
     from msmem_core.run.runfolder import commit_run_dir, stage_run_dir
     from msmem_core.run.runner import build_episode, resolve_scene, run_episode
 
@@ -118,6 +119,8 @@ def run(
     over: dict[str, Any] = {}
     if sim:
         over["simulator"] = {"name": sim, "params": {}}
+    if robot:
+        over["robot"] = {"name": robot, "params": {}}
     if scene is not None:
         over["scene"] = {"file": str(scene)}
     if scene_seed is not None:
@@ -140,6 +143,9 @@ def run(
     hidden = f", {ep.scene.hidden_objects} hidden" if ep.scene.hidden_objects is not None else ""
     typer.echo(f"msmem run: method {cfg.method}, scene {ep.scene.name} ({len(ep.scene.objects)} objects{hidden}), "
                f"simulator {cfg.simulator.name}, {cfg.steps} steps -> {out_dir}")
+    if ep.robot is not None and cfg.robot != RunConfig.model_fields["robot"].default:  # not the floating gripper
+        reach = ep.robot.reachable_views(ep.viewpoints, ep.scene.shelf)
+        typer.echo(f"robot {cfg.robot.name}: {int(reach.sum())} of {len(reach)} viewpoints reachable")
     if quiet:
         final = run_episode(ep, staged)
     else:

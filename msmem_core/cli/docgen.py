@@ -219,8 +219,8 @@ def config_reference() -> str:
     parts += ["## Built-in component parameters (`params`)", "",
               "Components are named in config by `name` and configured by `params` (`skills[].params`, "
               "`skills[].effect_model.params`, `objective[].params`, `observation_model.params`, "
-              "`simulator.params`). Fields named `camera`, `gripper` or `seed` that are left unset take the "
-              "run's values. Third-party components document their own; `msmem plugins` lists what is "
+              "`simulator.params`, `robot.params`). Fields named `camera`, `gripper` or `seed` that are left unset "
+              "take the run's values. Third-party components document their own; `msmem plugins` lists what is "
               "installed.", ""]
     for kind in KINDS:
         for name, reg in sorted(pm.registered(kind).items()):
@@ -325,7 +325,7 @@ API_HEADER = """# API reference for plugin authors
 The public types a plugin works with, by where they are imported from. Guides:
 [plugins.md](plugins.md) (the hooks and spec records), [write-a-skill.md](write-a-skill.md),
 [write-an-objective-term.md](write-an-objective-term.md), [write-a-simulator.md](write-a-simulator.md),
-[concepts.md](concepts.md) (how the pieces meet in an episode).
+[robots.md](robots.md) (write a robot), [concepts.md](concepts.md) (how the pieces meet in an episode).
 """
 
 API_SECTIONS: tuple[tuple[str, str, tuple[str, ...]], ...] = (
@@ -341,12 +341,13 @@ API_SECTIONS: tuple[tuple[str, str, tuple[str, ...]], ...] = (
         "msmem_core.interfaces.BeliefModel", "msmem_core.interfaces.EffectModel",
         "msmem_core.interfaces.ObservationModel", "msmem_core.interfaces.DecisionContext",
         "msmem_core.interfaces.CandidateBatch", "msmem_core.interfaces.Term", "msmem_core.interfaces.Simulator",
-        "msmem_core.interfaces.Contact", "msmem_core.interfaces.Capabilities")),
+        "msmem_core.interfaces.Contact", "msmem_core.interfaces.Capabilities", "msmem_core.interfaces.Robot",
+        "msmem_core.interfaces.RobotModel", "msmem_core.interfaces.Reach")),
     ("Spec records and the plugin manager", "msmem_core.plugins", (
         "msmem_core.plugins.types.SkillSpec", "msmem_core.plugins.types.BeliefModelSpec",
         "msmem_core.plugins.types.ObjectiveTermSpec", "msmem_core.plugins.types.SimulatorSpec",
-        "msmem_core.plugins.types.CommandSpec", "msmem_core.plugins.manager.ComponentRef",
-        "msmem_core.plugins.manager.get_plugin_manager")),
+        "msmem_core.plugins.types.RobotSpec", "msmem_core.plugins.types.CommandSpec",
+        "msmem_core.plugins.manager.ComponentRef", "msmem_core.plugins.manager.get_plugin_manager")),
     ("MSAS", "msmem_core.msas", (
         "msmem_core.msas.BoundSkill", "msmem_core.msas.Objective", "msmem_core.msas.Decision",
         "msmem_core.msas.decide", "msmem_core.msas.execute_measured")),

@@ -6,7 +6,14 @@ from collections.abc import Iterable
 
 import pluggy
 
-from msmem_core.plugins.types import BeliefModelSpec, CommandSpec, ObjectiveTermSpec, SimulatorSpec, SkillSpec
+from msmem_core.plugins.types import (
+    BeliefModelSpec,
+    CommandSpec,
+    ObjectiveTermSpec,
+    RobotSpec,
+    SimulatorSpec,
+    SkillSpec,
+)
 from msmem_core.world.scene import ClassSpec
 
 PROJECT = "msmem"
@@ -62,6 +69,17 @@ class MsmemSpecs:
                 yield ObjectiveTermSpec(name="travel-cost", factory=TravelCost,
                                         config_model=TravelCostConfig,
                                         description="Penalise long gripper paths")
+        """
+        yield from ()
+
+    @hookspec
+    def msmem_robots(self) -> Iterable[RobotSpec]:
+        """Register robots (the arm that carries the camera and the gripper; config ``robot``), e.g.::
+
+            @hookimpl
+            def msmem_robots():
+                yield RobotSpec(name="ur5", factory=UR5Robot, config_model=UR5Config,
+                                description="UR5 with a wrist camera")
         """
         yield from ()
 

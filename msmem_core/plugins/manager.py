@@ -20,6 +20,7 @@ from msmem_core.plugins.types import (
     BeliefModelSpec,
     CommandSpec,
     ObjectiveTermSpec,
+    RobotSpec,
     SimulatorSpec,
     SkillSpec,
     _Spec,
@@ -34,6 +35,7 @@ KINDS: dict[str, str] = {
     "belief-model": "msmem_belief_models",
     "simulator": "msmem_simulators",
     "objective-term": "msmem_objective_terms",
+    "robot": "msmem_robots",
 }
 S = TypeVar("S", bound=_Spec)
 
@@ -186,7 +188,7 @@ class MsmemPluginManager(pluggy.PluginManager):
 
     # ------------------------------------------------------------------------------------ results
     def registered(self, kind: str) -> dict[str, Registered]:
-        """All specs of one kind ('skill', 'belief-model', 'simulator', 'objective-term') by name."""
+        """All specs of one kind ('skill', 'belief-model', 'simulator', 'objective-term', 'robot') by name."""
         if kind not in KINDS:
             raise PluginError(f"unknown component kind {kind!r}; kinds: {', '.join(KINDS)}")
         if kind in self._cache:
@@ -252,6 +254,9 @@ class MsmemPluginManager(pluggy.PluginManager):
 
     def objective_terms(self) -> dict[str, ObjectiveTermSpec]:
         return {n: r.spec for n, r in self.registered("objective-term").items()}  # type: ignore[misc]
+
+    def robots(self) -> dict[str, RobotSpec]:
+        return {n: r.spec for n, r in self.registered("robot").items()}  # type: ignore[misc]
 
     def commands(self) -> list[RegisteredCommand]:
         """Every plugin's command specs, in registration order.

@@ -67,6 +67,13 @@ class ObjectiveTermSpec(_Spec):
 
 
 @dataclass(frozen=True)
+class RobotSpec(_Spec):
+    """A robot (``msmem_core.interfaces.Robot``): the arm that carries the camera and the gripper."""
+
+    kind = "robot"
+
+
+@dataclass(frozen=True)
 class CommandSpec:
     """A command a plugin adds to the ``msmem`` command line (conda's ``CondaSubcommand``)::
 

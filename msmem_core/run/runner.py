@@ -23,8 +23,8 @@ import numpy as np
 from pydantic import ValidationError
 
 from msmem_core.config import RunConfig
-from msmem_core.errors import Interrupted, PluginError
-from msmem_core.interfaces import BeliefModel, EffectModel, ObservationModel, Outcome, Simulator, Workspace
+from msmem_core.errors import Interrupted, PluginError, UserError
+from msmem_core.interfaces import BeliefModel, EffectModel, ObservationModel, Outcome, Robot, Simulator, Workspace
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.map.ig import IGService, shelf_interior_mask, shelf_wall_mask
 from msmem_core.msas import BoundSkill, Decision, Objective, run_msas
@@ -86,11 +86,13 @@ class Episode:
     ig: IGService
     viewpoints: np.ndarray
     records: list[dict[str, Any]] = field(default_factory=list)
+    robot: Robot | None = None
+    """The config's robot (None: no arm, everything reachable)."""
 
     @property
     def workspace(self) -> Workspace:
-        """The grid, shelf and gripper every skill, effect model and term of the episode works in."""
-        return Workspace(self.ig.grid, self.scene.shelf, self.cfg.gripper, self.scene.num_classes)
+        """The grid, shelf, gripper and robot every skill, effect model and term of the episode works in."""
+        return Workspace(self.ig.grid, self.scene.shelf, self.cfg.gripper, self.scene.num_classes, self.robot)
 
     @property
     def start_view(self) -> int:
@@ -119,7 +121,8 @@ def effect_ref(cfg: RunConfig, pm: MsmemPluginManager, i: int) -> tuple[Componen
 
 def component_refs(cfg: RunConfig, pm: MsmemPluginManager) -> list[tuple[str, ComponentRef, str]]:
     """Every component the config names, as (kind, reference, where in the config), effect models included."""
-    refs = [("belief-model", cfg.observation_model, "observation_model"), ("simulator", cfg.simulator, "simulator")]
+    refs = [("belief-model", cfg.observation_model, "observation_model"), ("simulator", cfg.simulator, "simulator"),
+            ("robot", cfg.robot, "robot")]
     for i, ref in enumerate(cfg.skills):
         refs.append(("skill", ref, f"skills.{i}"))
         eref, where = effect_ref(cfg, pm, i)
@@ -212,6 +215,9 @@ def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | Non
         skills.append(BoundSkill(ref.name, skill, effect))
     terms = [(t.name, t.weight, pm.build("objective-term", t, where=f"objective.{i}", **common))
              for i, t in enumerate(cfg.objective)]
+    robot = pm.build("robot", cfg.robot, where="robot", **common)
+    if not isinstance(robot, Robot):
+        raise PluginError(f"robot {cfg.robot.name!r} is not a msmem_core.interfaces.Robot")
     sim = pm.build("simulator", cfg.simulator, where="simulator", **common)
     scene = scene or resolve_scene(cfg, pm.object_classes())  # after the plugins, so a bad name fails fast
     for where, name, model in models:
@@ -220,8 +226,14 @@ def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | Non
                               f"{scene.name!r} has {scene.num_classes}: {why}; use an analytic model there or "
                               "train one on scenes with these classes")
     viewpoints = generate_viewpoints(cfg.viewpoints, scene.shelf)
+    start = cfg.msas.start_view if cfg.msas.start_view is not None else default_start_view(cfg.viewpoints)
+    reach = robot.reach_camera(viewpoints[start], scene.shelf)
+    if not reach.reachable:
+        where = "msas.start_view" if cfg.msas.start_view is not None else "the default start view"
+        raise UserError(f"robot {cfg.robot.name!r} cannot reach {where} ({start}): {reach.reason}; "
+                        "set msas.start_view to a view it reaches (`msmem robot reach --json` lists them)")
     ig = IGService(cfg.grid_spec(scene.shelf), cfg.camera, viewpoints, scene.shelf, cfg.ig)
-    return Episode(cfg, scene, sim, observe_model, skills, Objective(terms), ig, viewpoints)
+    return Episode(cfg, scene, sim, observe_model, skills, Objective(terms), ig, viewpoints, robot=robot)
 
 
 class MetricTracker:

@@ -5,7 +5,9 @@ added ([MEM]'s two-step view value). Manipulations: max_v IG(v | predicted belie
 incrementally (``IGService.view_ig_delta``): per view, only the rays crossing a candidate's changed
 voxels are re-scored, which equals a full re-score of every predicted belief. By default the
 candidates are first screened at a quarter of the rays (every 2nd ray in u and v, as [MEM] screens
-at a coarser density) and the 8 best re-scored at full density.
+at a coarser density) and the 8 best re-scored at full density. With a robot that cannot reach every
+view (``ctx.workspace.robot``), the second view and the best view after a manipulation are chosen among
+the views it reaches, as the view skill's candidates are.
 """
 
 from __future__ import annotations
@@ -36,6 +38,22 @@ class IGTermConfig(BaseModel):
     """Candidates re-scored at full density after screening."""
 
 
+def reachable_mask(ctx: Any) -> NDArray[np.bool_] | None:
+    """[V] the views the run's robot reaches (cached by the robot); None when it reaches them all."""
+    robot = getattr(getattr(ctx, "workspace", None), "robot", None)
+    if robot is None:
+        return None
+    mask = np.asarray(robot.reachable_views(ctx.viewpoints, ctx.shelf), dtype=bool)
+    return None if mask.all() else mask
+
+
+def best_view(values: NDArray[np.float64], mask: NDArray[np.bool_] | None) -> NDArray[np.float64]:
+    """Per row of ``values`` [K, V], the largest value over the views in ``mask`` (all views: None)."""
+    if mask is None or not mask.any():
+        return values.max(axis=1)
+    return values[:, mask].max(axis=1)
+
+
 def ig_deltas(ctx: Any, batch: CandidateBatch) -> list[IGDelta]:
     """The IG-field change of each manipulation candidate (from its ``Prediction.changes``)."""
     assert batch.prediction is not None
@@ -48,25 +66,26 @@ def _manipulation_state(ctx: Any, batch: CandidateBatch, cfg: IGTermConfig) -> d
     key = ("manipulation_ig", id(batch.prediction), cfg.incremental, cfg.screen_ray_step, cfg.finalists)
     if key in ctx.cache:
         return ctx.cache[key]
-    state: dict[str, Any] = {"deltas": None}
+    state: dict[str, Any] = {"deltas": None, "mask": reachable_mask(ctx)}
+    mask = state["mask"]
     if not cfg.incremental:
         fields = [ctx.ig.prepare(b) for b in batch.prediction.beliefs]
-        out = np.asarray(ctx.ig.view_ig(fields), dtype=np.float64).max(axis=1)
+        out = best_view(np.asarray(ctx.ig.view_ig(fields), dtype=np.float64), mask)
         exact = np.ones(len(out), dtype=bool)
     else:
         deltas = state["deltas"] = ig_deltas(ctx, batch)
         exact = np.ones(len(deltas), dtype=bool)
         if cfg.screen_ray_step > 1 and len(deltas) > cfg.finalists:
-            coarse = ctx.ig.view_ig_delta(ctx.field, deltas, ray_step=cfg.screen_ray_step).max(axis=1)
+            coarse = best_view(ctx.ig.view_ig_delta(ctx.field, deltas, ray_step=cfg.screen_ray_step), mask)
             top = np.argsort(-coarse, kind="stable")[: cfg.finalists]
-            full = ctx.ig.view_ig_delta(ctx.field, [deltas[i] for i in top]).max(axis=1)
+            full = best_view(ctx.ig.view_ig_delta(ctx.field, [deltas[i] for i in top]), mask)
             ratio = float(np.median(full / np.maximum(coarse[top], 1e-12)))
             out = np.minimum(coarse * ratio, full.min())
             out[top] = full
             exact[:] = False
             exact[top] = True
         else:
-            out = ctx.ig.view_ig_delta(ctx.field, deltas).max(axis=1)
+            out = best_view(ctx.ig.view_ig_delta(ctx.field, deltas), mask)
     state["values"], state["exact"] = out, exact
     ctx.cache[key] = state
     return state
@@ -98,7 +117,9 @@ class IGTerm(Term):
             ig = ctx.cache["view_ig"]
             scores = ig[batch.view_indices]
             if self.config.two_step and len(scores):
-                v1, _ig1, _v2, ig2 = ctx.ig.best_two_step(ctx.field, set(ctx.visited), first=ig)
+                mask = reachable_mask(ctx)
+                out_of_reach = set() if mask is None else set(np.flatnonzero(~mask).tolist())
+                v1, _ig1, _v2, ig2 = ctx.ig.best_two_step(ctx.field, set(ctx.visited) | out_of_reach, first=ig)
                 scores[batch.view_indices == v1] += ig2
             return scores
         if not batch.actions:
@@ -113,7 +134,7 @@ class IGTerm(Term):
         todo = [int(i) for i in indices if not state["exact"][i]]
         if not todo:
             return None
-        full = ctx.ig.view_ig_delta(ctx.field, [state["deltas"][i] for i in todo]).max(axis=1)
+        full = best_view(ctx.ig.view_ig_delta(ctx.field, [state["deltas"][i] for i in todo]), state["mask"])
         state["values"][todo] = full
         state["exact"][todo] = True
         return state["values"][np.asarray(indices)].copy()

@@ -1,4 +1,5 @@
-"""Next-best-view skill: proposes every viewpoint not visited since the last manipulation."""
+"""Next-best-view skill: proposes every viewpoint not visited since the last manipulation that the run's
+robot reaches (its wrist camera, collision-free; every viewpoint without an arm)."""
 
 from __future__ import annotations
 
@@ -26,7 +27,10 @@ class ViewSkill(Skill):
         self.config = config or ViewConfig()
 
     def propose(self, ctx: Any) -> list[Action]:
-        return [ViewAction(view=v) for v in range(len(ctx.viewpoints)) if v not in ctx.visited]
+        robot = getattr(getattr(ctx, "workspace", None), "robot", None)
+        reach = None if robot is None else robot.reachable_views(ctx.viewpoints, ctx.shelf)  # cached by the robot
+        return [ViewAction(view=v) for v in range(len(ctx.viewpoints))
+                if v not in ctx.visited and (reach is None or reach[v])]
 
     def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
         assert isinstance(action, ViewAction)

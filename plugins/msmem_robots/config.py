@@ -1,0 +1,48 @@
+"""Config models of the built-in robots (importable without pybullet)."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, Field
+
+from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Bool, Int
+
+Vec3 = tuple[float, float, float]
+
+
+class FloatingConfig(BaseModel):
+    """The floating gripper and camera: no arm, no parameters."""
+
+    model_config = FROZEN_MODEL_CONFIG
+
+
+class PandaConfig(BaseModel):
+    """The Franka Panda of ``pybullet_data`` (``franka_panda/panda.urdf``) with a wrist camera."""
+
+    model_config = FROZEN_MODEL_CONFIG
+
+    base_position_m: Vec3 = (0.0, -0.55, -0.3)
+    """Base position in the shelf frame (x along the shelf, y into it from its open front at y = 0, z up
+    from its floor): centred, 55 cm in front of the shelf, 30 cm below its floor (docs/robots.md has the
+    sweep this was chosen from)."""
+    base_yaw_deg: float = Field(90.0, ge=-180.0, le=180.0)
+    """Rotation of the base about z; 90 faces the shelf (+y)."""
+    camera_offset_m: Vec3 = (0.0, 0.06, 0.03)
+    """Wrist camera position in the flange frame (``panda_link8``: z along the last joint's axis, out of
+    the flange)."""
+    camera_rpy_deg: Vec3 = (0.0, 0.0, 0.0)
+    """Wrist camera orientation in the flange frame (roll, pitch, yaw about x, y, z); zero: the camera
+    looks along the flange's z (OpenCV: x right, y down, z forward)."""
+    collision_margin_m: float = Field(0.01, ge=0.0, le=0.2)
+    """An arm link closer than this to a shelf board collides."""
+    position_tolerance_m: float = Field(0.005, gt=0.0, le=0.1)
+    """Largest flange position error (forward kinematics of the IK answer) counted as reached."""
+    orientation_tolerance_deg: float = Field(2.0, gt=0.0, le=45.0)
+    """Largest flange orientation error counted as reached."""
+    ik_iterations: Int = Field(100, ge=1, le=10000)
+    """pybullet IK iterations per call."""
+    ik_rounds: Int = Field(4, ge=1, le=100)
+    """IK calls per start configuration, each from the previous answer (clipped to the joint limits)."""
+    ik_starts: Int = Field(8, ge=1, le=8)
+    """Start configurations tried in turn (the first ones of a fixed list; docs/robots.md)."""
+    disk_cache: Bool = True
+    """Keep reachable-view answers in ``$MSMEM_CACHE_DIR/reach`` (default ``~/.cache/msmem/reach``)."""

@@ -1,0 +1,211 @@
+"""``panda``: the Franka Panda that ships with ``pybullet_data`` (``franka_panda/panda.urdf``, Apache 2.0),
+with a wrist camera on its flange.
+
+Inverse kinematics is pybullet's own (``calculateInverseKinematics``, damped least squares with the
+null-space variant that pulls towards a rest pose within the joint limits), run in a DIRECT-mode client
+of the robot's own, never the simulator's. pybullet is already a dependency, its IK is in C (about a
+millisecond per call here) and the same client answers the collision queries (``getClosestPoints``
+against the shelf's boards as boxes), so nothing else is installed or fetched. Its answers are not
+trusted as they are: each is clipped to the joint limits and accepted only when forward kinematics puts
+the flange within ``position_tolerance_m`` and ``orientation_tolerance_deg`` of the asked pose and no
+link comes within ``collision_margin_m`` of a board. docs/robots.md.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.metadata as md
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from msmem_core.interfaces import Reach, Robot, RobotModel
+from msmem_core.util.artifacts import sha256_file
+from msmem_core.util.quiet import quiet_stdio
+
+with quiet_stdio():  # pybullet prints its build time on import
+    import pybullet
+    import pybullet_data
+    from pybullet_utils.bullet_client import BulletClient
+from msmem_core.world.geometry import matrix_to_quat, pose_matrix, rotation_angle_deg, yaw_quat
+from msmem_core.world.scene import ShelfSpec
+from msmem_robots.config import PandaConfig
+from msmem_robots.reach import ReachInfo, cached_reach, reach_key
+
+URDF = Path(pybullet_data.getDataPath()) / "franka_panda" / "panda.urdf"
+ARM_JOINTS = 7
+FLANGE_LINK = "panda_link8"
+FINGER_OPEN_M = 0.04
+BOARDS = ("bottom", "top", "left", "right", "back")
+"""Names of ``ShelfSpec.boards()`` in its order."""
+STARTS: tuple[tuple[float, ...], ...] = (  # chosen greedily from 48 candidates by views and shelf-interior poses
+    (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.0),  # Franka's "ready" pose, hand rolled level
+    (0.6, -0.785, 0.0, -2.356, 0.0, 1.571, -0.785),  # ready, turned to its left
+    (-0.6, -0.785, 0.0, -2.356, 0.0, 1.571, -0.785),  # ready, turned to its right
+    (0.0, -0.3, 0.0, -2.4, 0.0, 3.67, 0.785),  # hand level, pointing forward, high
+    (-0.6, 0.3, 0.0, -1.9, 0.0, 3.77, -0.785),  # hand level, forward and low, to its right
+    (0.6, 0.3, 0.0, -1.9, 0.0, 3.77, -0.785),  # the same to its left
+    (0.6, -0.3, 0.0, -2.4, 0.0, 3.67, -0.785),
+    (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 2.356),  # ready, hand rolled the other way
+)
+"""Start configurations (and null-space rest poses) of the IK, tried in this order; ``ik_starts`` of them."""
+
+
+@functools.cache
+def _library_identity() -> dict[str, str]:
+    return {"urdf_sha256": sha256_file(URDF), "pybullet": md.version("pybullet")}
+
+
+class PandaRobot(Robot):
+    """Franka Panda with a wrist camera; base in front of the shelf (``PandaConfig``)."""
+
+    def __init__(self, config: PandaConfig | None = None) -> None:
+        self.config = config or PandaConfig()
+        self._client: Any = None
+        self._shelf: ShelfSpec | None = None
+        self._boards: list[int] = []
+        self.last_reach: ReachInfo | None = None
+        """Where the last ``reachable_views`` answer came from and how long it took."""
+        c = self.config
+        self._base = pose_matrix(c.base_position_m, yaw_quat(np.radians(c.base_yaw_deg)))
+        mount = np.eye(4)
+        mount[:3, :3] = Rotation.from_euler("xyz", c.camera_rpy_deg, degrees=True).as_matrix()
+        mount[:3, 3] = c.camera_offset_m
+        self._mount = mount
+
+    # ------------------------------------------------------------------------------ pybullet client
+    def _connect(self) -> Any:
+        if self._client is not None:
+            return self._client
+        with quiet_stdio():  # pybullet prints argv on connecting, and the URDF's missing inertias
+            client = BulletClient(connection_mode=pybullet.DIRECT)
+            body = client.loadURDF(str(URDF), self.config.base_position_m,
+                                   tuple(yaw_quat(np.radians(self.config.base_yaw_deg))), useFixedBase=True)
+        names, lower, upper, movable, links = [], [], [], [], {-1: client.getBodyInfo(body)[0].decode()}
+        for j in range(client.getNumJoints(body)):
+            info = client.getJointInfo(body, j)
+            links[j] = info[12].decode()
+            if info[2] != pybullet.JOINT_FIXED:
+                movable.append(j)
+                names.append(info[1].decode())
+                lower.append(float(info[8]))
+                upper.append(float(info[9]))
+        self._body, self._movable, self._links = body, movable, links
+        self._flange = next(j for j, n in links.items() if n == FLANGE_LINK)
+        self._names = tuple(names[:ARM_JOINTS])
+        self._lower, self._upper = np.array(lower), np.array(upper)
+        self._client = client
+        return client
+
+    def _set(self, arm: NDArray[np.float64]) -> None:
+        c = self._client
+        for j, q in zip(self._movable, [*arm, FINGER_OPEN_M, FINGER_OPEN_M], strict=True):
+            c.resetJointState(self._body, j, float(q))
+
+    def _use_shelf(self, shelf: ShelfSpec) -> None:
+        """The shelf's boards as static boxes in the robot's client (rebuilt when the shelf changes)."""
+        c = self._connect()
+        if shelf == self._shelf:
+            return
+        for b in self._boards:
+            c.removeBody(b)
+        self._boards = []
+        for centre, half in shelf.boards():
+            shape = c.createCollisionShape(pybullet.GEOM_BOX, halfExtents=[float(h) for h in half])
+            self._boards.append(c.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=shape,
+                                                  basePosition=[float(x) for x in centre]))
+        self._shelf = shelf
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.disconnect()
+            self._client = None
+            self._shelf, self._boards = None, []
+
+    # ------------------------------------------------------------------------------------ interface
+    def model(self) -> RobotModel:
+        self._connect()
+        return RobotModel(name="panda", urdf=str(URDF), base_pose=self._base.copy(), joint_names=self._names,
+                          joint_lower=tuple(self._lower[:ARM_JOINTS]), joint_upper=tuple(self._upper[:ARM_JOINTS]),
+                          flange_link=FLANGE_LINK)
+
+    def camera_mount(self) -> NDArray[np.float64]:
+        return self._mount.copy()
+
+    def flange_pose(self, joints: Sequence[float]) -> NDArray[np.float64]:
+        """Forward kinematics: the flange's world pose in configuration ``joints``."""
+        c = self._connect()
+        self._set(np.asarray(joints, dtype=np.float64))
+        state = c.getLinkState(self._body, self._flange, computeForwardKinematics=True)
+        return pose_matrix(state[4], state[5])
+
+    def collisions(self, joints: Sequence[float], shelf: ShelfSpec) -> list[str]:
+        self._use_shelf(shelf)
+        self._set(np.asarray(joints, dtype=np.float64))
+        return self._hits()
+
+    def _hits(self) -> list[str]:
+        c, margin = self._client, self.config.collision_margin_m
+        out = []
+        for name, board in zip(BOARDS, self._boards, strict=True):
+            links = sorted({p[3] for p in c.getClosestPoints(self._body, board, distance=margin) if p[8] < margin})
+            out += [f"{self._links[i]}-{name}" for i in links]
+        return out
+
+    def ik(self, flange_pose: NDArray[np.float64], shelf: ShelfSpec) -> Reach:
+        cfg = self.config
+        self._use_shelf(shelf)
+        c = self._client
+        target = np.asarray(flange_pose, dtype=np.float64)
+        pos, orn = [float(x) for x in target[:3, 3]], [float(x) for x in matrix_to_quat(target[:3, :3])]
+        lo, hi = self._lower, self._upper
+        span = list(hi - lo)
+        tol_m, tol_deg = cfg.position_tolerance_m, cfg.orientation_tolerance_deg
+        best, best_score = Reach(False, reason="no IK start configuration"), np.inf
+        for start in STARTS[: cfg.ik_starts]:
+            rest = [*start, FINGER_OPEN_M, FINGER_OPEN_M]
+            q = np.array(start)
+            self._set(q)
+            for _ in range(cfg.ik_rounds):  # each call starts from the previous answer
+                sol = c.calculateInverseKinematics(self._body, self._flange, pos, orn, lowerLimits=list(lo),
+                                                   upperLimits=list(hi), jointRanges=span, restPoses=rest,
+                                                   maxNumIterations=cfg.ik_iterations, residualThreshold=1e-6)
+                q = np.clip(np.asarray(sol[:ARM_JOINTS]), lo[:ARM_JOINTS], hi[:ARM_JOINTS])
+                self._set(q)
+                perr, aerr = self._error(target)
+                if perr <= tol_m and aerr <= tol_deg:
+                    break
+            reached = perr <= tol_m and aerr <= tol_deg
+            hits = self._hits() if reached else []
+            if reached and not hits:
+                return Reach(True, tuple(float(x) for x in q), perr, aerr)
+            score = 0.0 if reached else max(perr / tol_m, aerr / tol_deg)  # colliding answers first
+            if score < best_score:
+                why = (f"every IK answer that reaches it collides with the shelf ({', '.join(hits[:3])})" if hits
+                       else f"no IK answer within {tol_m * 1000:g} mm and {tol_deg:g} deg (best: "
+                       f"{perr * 1000:.1f} mm, {aerr:.1f} deg)")
+                best, best_score = Reach(False, None, perr, aerr, tuple(hits), why), score
+        return best
+
+    def _error(self, target: NDArray[np.float64]) -> tuple[float, float]:
+        state = self._client.getLinkState(self._body, self._flange, computeForwardKinematics=True)
+        got = pose_matrix(state[4], state[5])
+        return float(np.linalg.norm(got[:3, 3] - target[:3, 3])), rotation_angle_deg(got, target)
+
+    # ------------------------------------------------------------------------------------ cached views
+    def identity(self) -> dict[str, Any]:
+        """What its answers depend on: config (the cache switch aside), URDF content, pybullet's version."""
+        return {"robot": "panda", "config": self.config.model_dump(mode="json", exclude={"disk_cache"}),
+                **_library_identity()}
+
+    def reachable_views(self, viewpoints: NDArray[np.float64], shelf: ShelfSpec) -> NDArray[np.bool_]:
+        """Computed once per shelf and viewpoint set (in memory, and on disk unless ``disk_cache`` is off)."""
+        views = np.asarray(viewpoints, dtype=np.float64)
+        key = reach_key(self.identity(), views, shelf)
+        mask, self.last_reach = cached_reach(key, "panda", lambda: Robot.reachable_views(self, views, shelf),
+                                             disk=self.config.disk_cache)
+        return mask

@@ -1,0 +1,269 @@
+"""Robots (docs/robots.md): the plugin kind, the Panda's IK and collision checks (real pybullet, no mocks),
+the reachable views and their cache, the config reference, and the view skill and IG term respecting
+what the robot reaches."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from msmem_objectives.ig import IGTerm
+from msmem_robots import reach
+from msmem_robots.config import PandaConfig
+from msmem_robots.floating import FloatingRobot
+from msmem_robots.panda import PandaRobot
+from msmem_view.skill import ViewSkill
+from typer.testing import CliRunner
+
+from msmem_core.cli import build_app
+from msmem_core.config import RunConfig, load_config
+from msmem_core.errors import PluginError
+from msmem_core.interfaces import CandidateBatch, DecisionContext, Reach, Robot, RobotModel, Workspace
+from msmem_core.run.runner import check_components
+from msmem_core.testing.builders import decision_context, default_workspace
+from msmem_core.world.scene import ShelfSpec
+from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
+
+SHELF = ShelfSpec()
+VIEWS = generate_viewpoints(ViewpointConfig(), SHELF)
+INTO_SHELF = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+"""Flange orientation pointing into the shelf (+y), its x along the shelf."""
+
+
+def flange(position: tuple[float, float, float]) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, :3], t[:3, 3] = INTO_SHELF, position
+    return t
+
+
+@pytest.fixture(scope="module")
+def panda() -> PandaRobot:
+    robot = PandaRobot(PandaConfig(disk_cache=False))
+    yield robot
+    robot.close()
+
+
+@pytest.fixture
+def cache_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("MSMEM_CACHE_DIR", str(tmp_path))
+    reach.clear_memory()
+    yield tmp_path / "reach"
+    reach.clear_memory()
+
+
+def test_both_robots_register_as_a_plugin_kind(plugin_manager):
+    robots = plugin_manager.robots()
+    assert {"floating", "panda"} <= set(robots)
+    assert robots["panda"].kind == "robot"
+    assert robots["panda"].config_model is PandaConfig
+    assert {r["name"] for r in plugin_manager.listing() if r["kind"] == "robot"} >= {"floating", "panda"}
+    assert isinstance(plugin_manager.build("robot", "panda"), PandaRobot)
+    assert RunConfig().robot.name == "floating"
+
+
+def test_panda_reaches_a_pose_in_front_of_it_and_refuses_one_3m_away(panda):
+    model = panda.model()
+    assert isinstance(model, RobotModel)
+    assert model.urdf is not None
+    assert model.urdf.endswith("franka_panda/panda.urdf")
+    assert len(model.joint_names) == 7
+    assert all(lo < hi for lo, hi in zip(model.joint_lower, model.joint_upper, strict=False))
+    base = model.base_pose[:3, 3]
+    near = flange((base[0], base[1] + 0.45, base[2] + 0.45))  # 45 cm in front of the base, 45 cm up
+    got = panda.ik(near, SHELF)
+    assert got.reachable, got.reason
+    assert got.position_error_m <= 0.005
+    assert got.orientation_error_deg <= 2.0
+    q = np.array(got.joints)
+    assert np.all(q >= np.array(model.joint_lower) - 1e-9)
+    assert np.all(q <= np.array(model.joint_upper) + 1e-9)
+    fk = panda.flange_pose(q)  # forward kinematics of the answer, independently of ik's own check
+    assert np.linalg.norm(fk[:3, 3] - near[:3, 3]) <= 0.005
+    assert np.degrees(np.arccos(np.clip((np.trace(fk[:3, :3].T @ near[:3, :3]) - 1) / 2, -1, 1))) <= 2.0
+    assert panda.collisions(q, SHELF) == []
+
+    far = flange((base[0], base[1] + 3.0, base[2] + 0.45))
+    miss = panda.ik(far, SHELF)
+    assert not miss.reachable
+    assert miss.joints is None
+    assert miss.position_error_m > 1.5
+    assert "no IK answer" in miss.reason
+
+
+def test_a_configuration_inside_a_shelf_board_collides(panda):
+    # leaning into the shelf (default base): by joint 2 the hand ends in the top board, between the boards
+    # (3 cm from the nearest, clear at the default 1 cm margin) or in the bottom board
+    lean = lambda q2: (0.0, q2, 0.0, -1.2, 0.0, 3.0, 0.785)  # noqa: E731
+    assert 0.2 < panda.flange_pose(lean(0.8))[1, 3] < SHELF.depth_m  # the flange is inside the shelf
+    assert panda.collisions(lean(0.8), SHELF) == []
+    top, bottom = panda.collisions(lean(0.6), SHELF), panda.collisions(lean(1.0), SHELF)
+    assert "panda_hand-top" in top, top
+    assert not any(h.endswith("-bottom") for h in top), top
+    assert "panda_hand-bottom" in bottom, bottom
+    assert not any(h.endswith("-top") for h in bottom), bottom
+    wide = PandaRobot(PandaConfig(collision_margin_m=0.1, disk_cache=False))  # the margin counts
+    try:
+        assert any(h.endswith("-bottom") for h in wide.collisions(lean(0.8), SHELF))
+    finally:
+        wide.close()
+
+
+def test_ik_refuses_a_pose_it_reaches_only_through_a_board(panda):
+    # inside the top board, 5 cm into the shelf: kinematically easy, but the hand is in the board
+    inside_top = flange((0.0, 0.05, SHELF.height_m + SHELF.wall_m / 2))
+    got = panda.ik(inside_top, SHELF)
+    assert not got.reachable
+    assert any(h.endswith("-top") for h in got.collisions), got
+    assert "collides" in got.reason
+
+
+def test_reachable_view_count_is_between_1_and_300_and_deterministic(cache_dir):
+    first = PandaRobot(PandaConfig())
+    mask = first.reachable_views(VIEWS, SHELF)
+    assert first.last_reach is not None
+    assert first.last_reach.source == "computed"
+    assert mask.shape == (300,)
+    assert mask.dtype == bool
+    assert 1 <= mask.sum() < 300
+    assert first.reach_camera(VIEWS[155], SHELF).reachable == mask[155]  # the default start view
+    # cached: the same answer from memory, then from disk for a new process (memory cleared)
+    assert np.array_equal(first.reachable_views(VIEWS, SHELF), mask)
+    assert first.last_reach.source == "memory"
+    assert len(list(cache_dir.glob("panda-*.npy"))) == 1
+    reach.clear_memory()
+    assert np.array_equal(first.reachable_views(VIEWS, SHELF), mask)
+    assert first.last_reach.source == "disk"
+    first.close()
+    # computed again from scratch by another robot: the same views
+    again = PandaRobot(PandaConfig(disk_cache=False))
+    assert np.array_equal(Robot.reachable_views(again, VIEWS, SHELF), mask)  # the uncached computation
+    # another viewpoint set, another base: other cache entries
+    assert again.reachable_views(VIEWS[:10], SHELF).shape == (10,)
+    assert again.last_reach.source == "computed"
+    moved = PandaRobot(PandaConfig(base_position_m=(0.0, -0.75, -0.3), disk_cache=False))
+    moved.reachable_views(VIEWS[:10], SHELF)
+    assert moved.last_reach is not None
+    assert moved.last_reach.source == "computed"
+    again.close()
+    moved.close()
+
+
+def test_robot_reach_command_reports_the_count(cache_dir):
+    out = CliRunner().invoke(build_app(), ["robot", "reach", "--json"])
+    assert out.exit_code == 0, out.output
+    got = json.loads(out.output)
+    assert got["robot"] == "panda"
+    assert got["views"] == 300
+    assert got["reachable"] == len(got["reachable_views"])
+    assert 1 <= got["reachable"] < 300
+    text = CliRunner().invoke(build_app(), ["robot", "reach", "--robot", "floating"])
+    assert text.exit_code == 0
+    assert "robot floating: 300 of 300 viewpoints reachable" in text.output
+
+
+@pytest.mark.parametrize(("robot", "message"), [
+    ({"name": "ur5"}, "no robot named 'ur5'; available: floating, panda"),
+    ({"name": "panda", "params": {"base_position_m": [0.0, -0.5]}}, "robot 'panda': robot.params.base_position_m"),
+    ({"name": "panda", "params": {"base_yaw_deg": 400}}, "robot 'panda': robot.params.base_yaw_deg"),
+    ({"name": "panda", "params": {"gripper_colour": "red"}}, "robot 'panda': robot.params.gripper_colour"),
+])
+def test_config_errors_name_the_field(plugin_manager, robot, message):
+    cfg = load_config("view-only", None, {"robot": robot})
+    with pytest.raises(PluginError) as err:
+        check_components(cfg, plugin_manager)
+    assert message in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_config_names_the_robot(plugin_manager):
+    cfg = load_config("view-only", None, {"robot": {"name": "panda", "params": {"base_position_m": [0, -0.6, -0.3]}}})
+    assert cfg.robot.name == "panda"
+    check_components(cfg, plugin_manager)  # accepted
+    robot = plugin_manager.build("robot", cfg.robot, where="robot")
+    assert robot.model().base_pose[:3, 3].tolist() == pytest.approx([0.0, -0.6, -0.3])
+
+
+def test_floating_robot_allows_everything():
+    robot = FloatingRobot()
+    assert robot.reachable_views(VIEWS, SHELF).all()
+    assert robot.ik(flange((0.0, 3.0, 0.1)), SHELF).reachable  # 3 m away: no arm, no limit
+    assert robot.reach_camera(VIEWS[0], SHELF).reachable
+    assert robot.collisions((), SHELF) == []
+    assert robot.model().urdf is None
+    ws = Workspace(default_workspace().grid, SHELF)
+    with_floating, without = (_view_ctx(Workspace(ws.grid, SHELF, robot=r), visited={3, 155}) for r in (robot, None))
+    assert [a.view for a in ViewSkill().propose(with_floating)] == [a.view for a in ViewSkill().propose(without)]
+    assert len(ViewSkill().propose(with_floating)) == 298
+
+
+def _view_ctx(ws: Workspace, visited: set[int]) -> DecisionContext:
+    base = decision_context(workspace=ws)
+    return DecisionContext(1, base.belief, base.ig, VIEWS, visited, ws, np.random.default_rng(0), True, 0.5)
+
+
+def test_view_skill_proposes_only_reachable_views(cache_dir):
+    robot = PandaRobot(PandaConfig(disk_cache=False))
+    ws = Workspace(default_workspace().grid, SHELF, robot=robot)
+    mask = robot.reachable_views(VIEWS, SHELF)
+    visited = {int(np.flatnonzero(mask)[0]), int(np.flatnonzero(~mask)[0])}
+    proposed = [a.view for a in ViewSkill().propose(_view_ctx(ws, visited))]
+    assert proposed == [v for v in range(300) if mask[v] and v not in visited]
+    robot.close()
+
+
+class _Reaches(FloatingRobot):
+    """A robot that reaches only the views in ``views`` (the IG term's test)."""
+
+    def __init__(self, views: set[int]) -> None:
+        super().__init__()
+        self.views = views
+
+    def reachable_views(self, viewpoints, shelf):
+        return np.array([v in self.views for v in range(len(viewpoints))])
+
+    def ik(self, flange_pose, shelf) -> Reach:
+        return Reach(False, reason="test robot")
+
+
+def test_ig_term_looks_ahead_among_reachable_views_only():
+    free = decision_context(visited={0})
+    ig = free.ig.view_ig(free.field)
+    order = [int(v) for v in np.argsort(-ig) if v != 0]
+    _best, runner_up = order[0], order[1]
+    ws = free.workspace
+    bound = Workspace(ws.grid, ws.shelf, ws.gripper, ws.num_classes, _Reaches(set(order[1:])))
+    ctx = decision_context(free.belief, workspace=bound, ig=free.ig, visited={0})
+    views = np.array(order[1:], dtype=np.int64)
+    scores = IGTerm().score(ctx, CandidateBatch("view", "perception", [], view_indices=views))
+    # the best reachable view gets the two-step bonus (the unreachable best view is no candidate)
+    assert scores[0] > ig[runner_up] + 1e-9
+    assert np.allclose(scores[1:], ig[views[1:]])
+
+
+def test_an_episode_carries_its_robot_and_refuses_a_start_view_out_of_reach(plugin_manager):
+    from msmem_core.errors import UserError
+    from msmem_core.run.runner import build_episode
+    from msmem_core.testing.builders import conformance_scene
+
+    scene = conformance_scene()
+    ep = build_episode(load_config("view-only", None, {"robot": {"name": "panda"}}), plugin_manager, scene=scene)
+    assert isinstance(ep.workspace.robot, PandaRobot)
+    assert isinstance(build_episode(load_config("view-only"), plugin_manager, scene=scene).workspace.robot,
+                      FloatingRobot)
+    low = 104  # middle grid, lowest row: the camera right in front of the base, looking up
+    cfg = load_config("view-only", None, {"robot": {"name": "panda"}, "msas": {"start_view": low}})
+    with pytest.raises(UserError, match=r"robot 'panda' cannot reach msas.start_view \(104\): no IK answer"):
+        build_episode(cfg, plugin_manager, scene=scene)
+
+
+def test_bench_fingerprints_ignore_the_default_robot_only():
+    from msmem_core.run.bench import fingerprint, sha256_text
+    from msmem_core.testing.builders import conformance_scene
+
+    scene = conformance_scene()
+    default = load_config("view-only")
+    before_robots = json.dumps(default.model_dump(mode="json", exclude={"threads", "robot"}), sort_keys=True)
+    assert fingerprint(default, "s", scene, {})["config_sha256"] == sha256_text(before_robots)  # old results match
+    panda = load_config("view-only", None, {"robot": {"name": "panda"}})
+    assert fingerprint(panda, "s", scene, {})["config_sha256"] != fingerprint(default, "s", scene, {})["config_sha256"]
