@@ -7,13 +7,17 @@ The first folder is compared with each of the others on the scenes both finished
 scene index), metric by metric: mean of (first - other) and the half-width of its 95% t-interval
 (`msmem_core.run.bench.mean_ci`); an interval excluding 0 is marked *. Suite-cumulative paper metrics
 of each folder are printed too (from `results.json`).
+
+    .venv/bin/python examples/paired_benches.py --within ours view-only runs/t-ours
+
+``--within A B``: in each folder given, method A minus method B on the scenes both finished.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
-import sys
 from pathlib import Path
 
 from msmem_core.run.bench import mean_ci
@@ -64,5 +68,29 @@ def main(folders: list[str]) -> None:
         print(f"| {first.name} - {folder.name} | {len(keys)} | " + " | ".join(cells) + " |")
 
 
+def within(a: str, b: str, folders: list[str]) -> None:
+    print(f"Paired differences, {a} minus {b} in each folder (mean ± 95% CI over scenes; * = interval excludes 0):")
+    print()
+    print("| folder | scenes | " + " | ".join(METRICS) + " |")
+    print("|---|---|" + "---|" * len(METRICS))
+    for f in folders:
+        eps = episodes(Path(f))
+        scenes = sorted({s for m, s in eps if m == a} & {s for m, s in eps if m == b})
+        cells = []
+        for k in METRICS:
+            d = [eps[(a, s)][k] - eps[(b, s)][k] for s in scenes if k in eps[(a, s)] and k in eps[(b, s)]]
+            m, c = mean_ci(d)
+            star = "*" if not math.isnan(c) and abs(m) > c else ""
+            cells.append(f"{m:+.3f} ± {c:.3f}{star}")
+        print(f"| {Path(f).name} | {len(scenes)} | " + " | ".join(cells) + " |")
+
+
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("folders", nargs="+", help="`msmem bench --out` folders; the first is compared with the others")
+    ap.add_argument("--within", nargs=2, metavar=("A", "B"), help="compare method A with method B inside each folder")
+    args = ap.parse_args()
+    if args.within:
+        within(*args.within, args.folders)
+    else:
+        main(args.folders)
