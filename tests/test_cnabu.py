@@ -494,6 +494,7 @@ def test_dirichlet_kl_uniform_against_scipy_at_large_evidence_in_float32():
         assert float(dirichlet_kl_uniform(e)[0]) == pytest.approx(want, rel=1e-5, abs=1e-4)
 
 
+@pytest.mark.slow  # 23 s: a hard scene needs several generator attempts (CI runs the slow tests too)
 def test_datagen_require_hard_makes_hard_scenes(tmp_path):
     """`--require-hard` reaches the scene generator: the shard's scene is the hard one of its seed."""
     from msmem_core.cli import build_app
