@@ -24,6 +24,7 @@ from msmem_cnabu.weights import WeightsError, load_cnabu
 from pydantic import ValidationError
 from typer.testing import CliRunner
 
+from msmem_core.errors import UserError
 from msmem_core.interfaces import Workspace
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.grid import GridSpec
@@ -344,6 +345,21 @@ def test_push_datagen_writes_a_valid_shard(push_data):
     assert not again.generated
 
 
+def test_push_data_on_the_beliefs_of_another_observation_model(push_data, tmp_path):
+    from msmem_core.plugins import ComponentRef
+
+    cfg = TINY_PUSH.model_copy(update={"observation_model": ComponentRef(name="column-fill")})
+    summary = generate_dataset(tmp_path, [3], cfg, workers=1, progress=False, log=NOLOG)
+    assert not summary.failed, summary.failed
+    filled, plain = load_shard(shard_path(tmp_path, 3)), load_shard(shard_path(push_data, 3))
+    # the same scene and views; column-fill adds occupied evidence below what the rays saw
+    assert np.array_equal(filled.gt_occ_before, plain.gt_occ_before)
+    assert filled.state_view.tolist() == plain.state_view.tolist()
+    assert filled.alpha.astype(float).sum() > plain.alpha.astype(float).sum()
+    with pytest.raises(ValidationError, match="observe samples are the analytic ray masks"):
+        CNABUDataConfig(kind="observe", observation_model=ComponentRef(name="cnabu-map"))
+
+
 def test_observe_datagen_resumes_and_regenerates_a_corrupt_shard(observe_data):
     s = load_shard(shard_path(observe_data, 4))
     assert len(s) == 2
@@ -406,6 +422,35 @@ def test_train_and_eval_end_to_end_on_tiny_push_data(push_data, tmp_path):
     assert t["speedup_per_candidate"] > 0
     assert "speed-up" in res.output
     assert "| affected | learned |" in res.output
+
+
+def test_fine_tuning_starts_from_the_init_weights(push_data, tmp_path):
+    base = tmp_path / "base.pt"
+    train("push", push_data, base, TrainConfig(epochs=1, val_fraction=0.0, threads=1, width=8),
+          progress=False, log=NOLOG)
+    start, _ = load_cnabu("push", base)
+    tuned = tmp_path / "tuned.pt"
+    logs: list[str] = []
+    # width 16 is ignored: the architecture is the init's; a tiny lr keeps the weights near the start
+    side = train("push", push_data, tuned, TrainConfig(epochs=1, val_fraction=0.0, threads=1, width=16, lr=1e-9,
+                                                       init=str(base), seed=5), progress=False, log=logs.append)
+    assert side["model"]["width"] == 8
+    assert side["data"]["init"]["sha256"] == sha256_file(base)
+    assert any("fine-tuning" in m for m in logs)
+    net, _ = load_cnabu("push", tuned)
+    fresh = tmp_path / "fresh.pt"
+    train("push", push_data, fresh, TrainConfig(epochs=1, val_fraction=0.0, threads=1, width=8, lr=1e-9, seed=5),
+          progress=False, log=NOLOG)
+    other, _ = load_cnabu("push", fresh)
+    a, b, c = start.state_dict(), net.state_dict(), other.state_dict()
+    floats = [k for k in a if a[k].is_floating_point() and "running" not in k]
+    assert max(float((a[k] - b[k]).abs().max()) for k in floats) < 1e-5
+    assert max(float((a[k] - c[k]).abs().max()) for k in floats) > 1e-2  # without --init: a new network
+    wrong = tmp_path / "wrong.pt"
+    write_weights(CNABUNet(CNABUNetConfig(kind="push", grid_shape=(16, 8, 8), width=8)), wrong)
+    with pytest.raises(UserError, match=r"--init .*wrong.pt: trained on a \(16, 8, 8\) grid"):
+        train("push", push_data, tmp_path / "x.pt", TrainConfig(epochs=1, threads=1, init=str(wrong)),
+              progress=False, log=NOLOG)
 
 
 def test_train_and_eval_observe(observe_data, tmp_path):

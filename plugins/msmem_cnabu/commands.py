@@ -45,6 +45,9 @@ def datagen_cnabu(
     require_hard: Annotated[bool, typer.Option(
         "--require-hard", help="Hard scenes (as the hard25 suite: more hidden objects) instead of random "
                                "30-45 % shelves; slower to generate.")] = False,
+    observation: Annotated[str, typer.Option(
+        "--observation", help="push/grasp: the observation model the views are integrated with "
+                              "(cnabu-map: the completed belief episodes see).")] = "analytic-observation",
     sim: SimOpt = "pybullet",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
@@ -61,12 +64,13 @@ def datagen_cnabu(
         cfg = CNABUDataConfig(kind=kind, voxel_m=voxel, states=states, actions_per_state=actions,
                               observe_samples=samples, min_views=min_views, max_views=max_views,
                               manipulate_after=manipulate_after, require_hard=require_hard,
-                              simulator=ComponentRef(name=sim))
+                              observation_model=ComponentRef(name=observation), simulator=ComponentRef(name=sim))
     except ValidationError as e:
         err = e.errors()[0]
         raise UserError(f"invalid option ({'.'.join(str(x) for x in err['loc']) or 'views'}): {err['msg']}") from e
     typer.echo(f"msmem datagen cnabu: {kind}, {scenes} scenes (seeds {seeds[0]}..{seeds[-1]}) -> {out}, "
-               f"{workers} worker(s), executor {executor}, simulator {sim}")
+               f"{workers} worker(s), executor {executor}, simulator {sim}"
+               + (f", observation model {observation}" if observation != "analytic-observation" else ""))
     summary = generate_dataset(out, seeds, cfg, executor=executor, workers=workers, progress=not quiet,
                                log=lambda m: typer.echo(m, err=True))
     gen = summary.generated
@@ -95,6 +99,8 @@ def train_cnabu(
     threads: Annotated[int, typer.Option("--threads", help="torch threads.")] = 2,
     max_minutes: Annotated[float | None, typer.Option("--max-minutes", help="Stop after the epoch past this.")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue from OUT.ckpt.")] = False,
+    init: Annotated[Path | None, typer.Option(
+        "--init", help="Fine-tune these weights (their architecture; --width is ignored).")] = None,
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Train a CNABU network (AdamW, validation per epoch); keeps the best weights + a JSON sidecar (sha256)."""
@@ -102,7 +108,8 @@ def train_cnabu(
 
     kind = _kind(kind)
     cfg = TrainConfig(epochs=epochs, val_fraction=val_fraction, seed=seed, lr=lr, batch_size=batch_size,
-                      width=width, threads=threads, max_minutes=max_minutes, resume=resume)
+                      width=width, threads=threads, max_minutes=max_minutes, resume=resume,
+                      init=str(init) if init is not None else None)
     result = train(kind, data, out, cfg, progress=not quiet, log=typer.echo)
     best = result["best"]
     val = best["val"]

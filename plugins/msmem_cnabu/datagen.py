@@ -106,6 +106,10 @@ class CNABUDataConfig(BaseModel):
     """push/grasp: views integrated after the real action between two states (uniform, inclusive)."""
     label_noise: float = Field(0.05, ge=0.0, le=1.0)
     """The simulator's structured segmentation noise (its default)."""
+    observation_model: ComponentRef = ComponentRef(name="analytic-observation")
+    """push/grasp: the belief model the views are integrated with, so the effect networks learn on the
+    beliefs they will see in episodes (``cnabu-map``: the completed belief). observe needs the analytic
+    model (its samples are the analytic ray masks)."""
     simulator: ComponentRef = ComponentRef(name="pybullet")
     """The backend the scenes are simulated in (``--sim``); its ``seed`` is the scene seed and its
     ``label_noise`` the one above, unless ``params`` set them."""
@@ -117,6 +121,9 @@ class CNABUDataConfig(BaseModel):
         if self.manipulate_after is not None and self.manipulate_after >= self.observe_samples:
             raise ValueError(f"manipulate_after {self.manipulate_after} must be below observe_samples "
                              f"{self.observe_samples} (views must follow the manipulation)")
+        if self.kind == "observe" and self.observation_model.name != "analytic-observation":
+            raise ValueError(f"observation_model {self.observation_model.name!r}: observe samples are the analytic "
+                             "ray masks; only push and grasp data take another observation model")
         lo, hi = self.views_between
         if lo < 0 or hi < lo:
             raise ValueError("views_between must be (lo, hi) with 0 <= lo <= hi")
@@ -380,6 +387,7 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
     vp_cfg = ViewpointConfig()
     viewpoints = generate_viewpoints(vp_cfg, scene.shelf)
     model = AnalyticObservationModel()
+    observer = model if cfg.kind == "observe" else _observation_model(cfg.observation_model)
     sim = build_simulator(cfg.simulator, seed=seed, label_noise=cfg.label_noise)
     rec = _Recorder()
     visited: list[int] = []
@@ -392,7 +400,7 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
 
     def look(belief: EvidentialMap, views: Sequence[int]) -> EvidentialMap:
         for v in views:
-            belief = model.update(belief, sim.observe(viewpoints[v]))
+            belief = observer.update(belief, sim.observe(viewpoints[v]))
             visited.append(int(v))
         return belief
 
@@ -459,6 +467,17 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
     if manip is not None:
         info["manipulation"] = manip
     return rec.shard(cfg.kind, seed, grid, interior, info)
+
+
+def _observation_model(ref: ComponentRef) -> Any:
+    """The observation model ``ref`` names, built by the plugin manager (one torch thread per worker)."""
+    from msmem_core.interfaces import ObservationModel
+    from msmem_core.plugins import get_plugin_manager
+
+    model = get_plugin_manager().build("belief-model", ref, where="observation_model", threads=1)
+    if not isinstance(model, ObservationModel):
+        raise UserError(f"observation_model: belief model {ref.name!r} cannot update from observations")
+    return model
 
 
 def _manipulate(skill_name: str, belief: Any, sim: Any, scene: Any, grid: GridSpec, rng: np.random.Generator,

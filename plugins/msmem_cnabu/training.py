@@ -66,6 +66,9 @@ class TrainConfig(BaseModel):
     width: int = Field(24, ge=4, le=512)
     """U-Net width (``CNABUNetConfig.width``)."""
     levels: int = Field(3, ge=1, le=5)
+    init: str | None = None
+    """Start from these weights (fine-tuning): the architecture is theirs (``width`` and ``levels`` are
+    ignored); their kind, grid and class count must match the data."""
     loss: CNABULossConfig = CNABULossConfig()
 
 
@@ -214,6 +217,10 @@ def train(
     model_cfg = CNABUNetConfig(kind=kind, grid_shape=tuple(first.grid.shape), num_classes=int(first.eta.shape[1]),
                                width=cfg.width, levels=cfg.levels)
     model = CNABUNet(model_cfg)
+    if cfg.init is not None:
+        model = initial_network(kind, cfg.init, model_cfg)
+        model_cfg = model.config
+        log(f"fine-tuning {cfg.init} (width {model_cfg.width}, {model_cfg.levels} levels)")
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     steps_per_epoch = sum(math.ceil(sizes[i] / cfg.batch_size) for i in train_idx)  # upper bound
     lr_at = warmup_cosine(cfg.lr, cfg.warmup_steps, cfg.epochs * steps_per_epoch)
@@ -226,6 +233,8 @@ def train(
         "train_samples": n_train,
         "manifest": read_manifest(data_dir),
     }
+    if cfg.init is not None:
+        data_info["init"] = {"path": cfg.init, "sha256": sha256_file(cfg.init)}
 
     def write_sidecar(history: list[dict[str, Any]], best: dict[str, Any], seconds: float) -> None:
         _write_sidecar(out, kind, model_cfg, cfg, data_info, history, best, seconds)
@@ -267,6 +276,20 @@ def train(
     finally:
         run.stop()
     return run.result()
+
+
+def initial_network(kind: str, path: str | Path, data_cfg: CNABUNetConfig) -> CNABUNet:
+    """The network of the ``kind`` weights at ``path`` in training mode, refused in one line when its
+    grid or class count is not the data's (``data_cfg``)."""
+    from msmem_cnabu.weights import load_cnabu
+
+    net, _ = load_cnabu(kind, path)
+    have, want = net.config, data_cfg
+    if tuple(have.grid_shape) != tuple(want.grid_shape) or have.num_classes != want.num_classes:
+        raise UserError(f"--init {path}: trained on a {tuple(have.grid_shape)} grid with {have.num_classes} classes, "
+                        f"the data has {tuple(want.grid_shape)} and {want.num_classes}")
+    net.train()
+    return net
 
 
 def write_weights(model: CNABUNet, out: str | Path, **meta: Any) -> dict[str, Any]:
