@@ -7,6 +7,7 @@ Core code depends only on these; it never imports a simulator library or a plugi
 
 from __future__ import annotations
 
+import itertools
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -261,6 +262,30 @@ class Robot(ABC):
         """What the arm in configuration ``joints`` touches or comes too close to (``link-board``
         names); empty: collision-free."""
 
+    arm: ClassVar[bool] = True
+    """False for a robot without an arm (``floating``): the loop then checks no tool path."""
+
+    def tool_mount(self) -> NDArray[np.float64]:
+        """4x4 pose of the gripper frame (``GripperSpec``'s: origin between the fingertips, z the approach
+        axis) in the flange frame. Identity unless the robot's hand says otherwise."""
+        return np.eye(4)
+
+    def reach_path(self, tool_poses: NDArray[np.float64], shelf: ShelfSpec, step_m: float = 0.02) -> Reach:
+        """Whether the gripper can move through the poses ``tool_poses`` [W, 4, 4] (gripper frame, world) in
+        order: every waypoint, and points at most ``step_m`` apart on the straight segments between them
+        (with the orientation of the segment's end), reached collision-free by ``ik``. The answer is
+        the last configuration, or the first failure with its waypoint in ``reason``. Robots with
+        joint-space paths (e.g. seeded from the previous answer) override it."""
+        poses = densify(np.asarray(tool_poses, dtype=np.float64), step_m)
+        inv = np.linalg.inv(self.tool_mount())
+        reach = Reach(True, ())
+        for k, t in enumerate(poses):
+            reach = self.ik(t @ inv, shelf)
+            if not reach.reachable:
+                return Reach(False, None, reach.position_error_m, reach.orientation_error_deg, reach.collisions,
+                             f"path point {k} of {len(poses)}: {reach.reason}")
+        return reach
+
     def reach_camera(self, camera_to_world: NDArray[np.float64], shelf: ShelfSpec) -> Reach:
         """``ik`` of the flange pose that puts the wrist camera at ``camera_to_world``."""
         return self.ik(np.asarray(camera_to_world, dtype=np.float64) @ np.linalg.inv(self.camera_mount()), shelf)
@@ -272,6 +297,21 @@ class Robot(ABC):
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release the robot's resources (e.g. its kinematics client)."""
+
+
+def densify(poses: NDArray[np.float64], step_m: float) -> NDArray[np.float64]:
+    """The poses [W, 4, 4] with points inserted on each straight segment so that consecutive positions are
+    at most ``step_m`` apart; inserted points take the orientation of their segment's end."""
+    if len(poses) < 2:
+        return poses
+    out = [poses[0]]
+    for a, b in itertools.pairwise(poses):
+        n = max(1, int(np.ceil(np.linalg.norm(b[:3, 3] - a[:3, 3]) / step_m)))
+        for f in np.arange(1, n + 1) / n:
+            t = b.copy()
+            t[:3, 3] = a[:3, 3] + f * (b[:3, 3] - a[:3, 3])
+            out.append(t)
+    return np.stack(out)
 
 
 # ---------------------------------------------------------------------------------------- belief model
@@ -416,6 +456,12 @@ class Skill(ABC):
     def execute(self, sim: Simulator, action: Action, ctx: DecisionContext) -> Outcome:
         """Carry out one of this skill's actions with the Simulator vocabulary (see ``Outcome`` for
         what MSAS measures itself)."""
+
+    def tool_path(self, action: Action, workspace: Workspace) -> NDArray[np.float64] | None:
+        """The gripper poses [W, 4, 4] (``GripperSpec`` frame, world) that executing ``action`` moves
+        through, in order, so that the loop can drop the candidates the run's robot cannot follow
+        (``Robot.reach_path``). None (the default): the skill does not say, nothing is checked."""
+        return None
 
     def track(self, ctx: DecisionContext) -> None:  # noqa: B027 - optional hook
         """Called once per step before any proposal, also when this skill may not act: skills that

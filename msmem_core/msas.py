@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -140,6 +140,9 @@ class Decision:
     """Best objective value of each skill that proposed something."""
     batch: CandidateBatch
     index: int
+    unreachable: dict[str, int] = field(default_factory=dict)
+    """Candidates of each skill dropped because the run's robot cannot follow their tool path
+    (``Skill.tool_path``, ``Robot.reach_path``); only skills that were checked."""
 
 
 def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
@@ -155,6 +158,7 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
         best: Decision | None = None
         counts: dict[str, int] = {}
         values: dict[str, float] = {}
+        unreachable: dict[str, int] = {}
         for bound in skills:
             with span("track", bound.name, ctx=ctx):
                 bound.skill.track(ctx)  # every step, also when the skill may not act (e.g. FE-UMGF's buffer)
@@ -164,6 +168,12 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
                 actions = bound.skill.propose(ctx)
                 if s:
                     s.result = actions
+            robot = ctx.workspace.robot
+            if robot is not None and robot.arm and bound.skill.category == "manipulation" and actions:
+                with span("reach", bound.name, ctx=ctx):
+                    kept = reachable_actions(bound.skill, actions, ctx.workspace)
+                unreachable[bound.name] = len(actions) - len(kept)
+                actions = kept
             counts[bound.name] = len(actions)
             if not actions:
                 continue
@@ -178,10 +188,24 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
                 best = Decision(bound, actions[i], value, terms, counts, values, batch, i)
         if best is None:
             raise RuntimeError("no skill proposed an action")
-        best.candidates, best.best = counts, values
+        best.candidates, best.best, best.unreachable = counts, values, unreachable
         if top:
             top.result = best
         return best
+
+
+def reachable_actions(skill: Skill, actions: list[Action], workspace: Workspace) -> list[Action]:
+    """The ``actions`` whose tool path (``skill.tool_path``) the workspace's robot can follow; actions
+    without a path are kept."""
+    robot = workspace.robot
+    if robot is None:
+        return actions
+    kept = []
+    for a in actions:
+        path = skill.tool_path(a, workspace)
+        if path is None or robot.reach_path(path, workspace.shelf).reachable:
+            kept.append(a)
+    return kept
 
 
 def bev_confidence(belief: EvidentialMap, interior: NDArray[np.bool_], power: float = 1.8) -> NDArray[np.float64]:

@@ -267,3 +267,108 @@ def test_bench_fingerprints_ignore_the_default_robot_only():
     assert fingerprint(default, "s", scene, {})["config_sha256"] == sha256_text(before_robots)  # old results match
     panda = load_config("view-only", None, {"robot": {"name": "panda"}})
     assert fingerprint(panda, "s", scene, {})["config_sha256"] != fingerprint(default, "s", scene, {})["config_sha256"]
+
+
+# ------------------------------------------------------------------- tool paths of pushes and grasps
+def test_densify_spaces_path_points_and_keeps_each_segments_end_orientation():
+    from scipy.spatial.transform import Rotation
+
+    from msmem_core.interfaces import densify
+
+    a, b, c = np.eye(4), np.eye(4), np.eye(4)
+    b[:3, :3] = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    b[:3, 3] = (0.05, 0.0, 0.0)
+    c[:3, 3] = (0.05, 0.01, 0.0)
+    out = densify(np.stack([a, b, c]), 0.02)
+    assert len(out) == 1 + 3 + 1  # 5 cm in three steps of at most 2 cm, then 1 cm in one
+    assert np.array_equal(out[0], a)
+    assert np.array_equal(out[3], b)
+    assert np.array_equal(out[-1], c)
+    gaps = np.linalg.norm(np.diff(out[:, :3, 3], axis=0), axis=1)
+    assert gaps.max() <= 0.02 + 1e-12
+    assert np.allclose(out[1:4, :3, :3], b[:3, :3])  # inserted points: the segment end's orientation
+    assert np.allclose(out[1, :3, 3], (0.05 / 3, 0.0, 0.0))
+    assert len(densify(np.stack([a]), 0.02)) == 1
+
+
+def test_panda_gripper_frame_sits_at_the_fingertips_closing_between_the_fingers(panda):
+    q = (0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785)
+    g = panda.flange_pose(q) @ panda.tool_mount()
+    c = panda._client
+    names = {n: j for j, n in panda._links.items()}
+    left, right = (np.array(c.getLinkState(panda._body, names[f"panda_{s}finger"])[4]) for s in ("left", "right"))
+    across = (left - right) / np.linalg.norm(left - right)
+    assert abs(float(across @ g[:3, 0])) > 0.999  # the gripper frame's x is the closing direction
+    # the finger joints sit 0.0584 m out of the hand, 0.0536 m behind the fingertips along the approach
+    assert np.allclose((left + right) / 2, g[:3, 3] - 0.0536 * g[:3, 2], atol=1e-3)
+
+
+def test_floating_robot_follows_any_tool_path():
+    far = np.stack([flange((0.0, 3.0, 0.1)), flange((2.0, -3.0, 0.1))])
+    assert not FloatingRobot.arm
+    assert PandaRobot.arm
+    assert FloatingRobot().reach_path(far, SHELF).reachable
+
+
+def test_panda_follows_a_path_in_front_of_it_and_refuses_a_top_down_push_inside_the_shelf(panda):
+    from msmem_push.skill import PushAction, PushConfig, PushSkill
+
+    base = panda.model().base_pose[:3, 3]
+    inv_mount = np.linalg.inv(panda.tool_mount())
+    free = np.stack([flange((base[0] + dx, base[1] + 0.45, base[2] + 0.45)) @ panda.tool_mount() for dx in (0, 0.1)])
+    got = panda.reach_path(free, SHELF)
+    assert got.reachable, got.reason
+    fk = panda.flange_pose(got.joints) @ panda.tool_mount()  # the answer is at the path's end
+    assert np.linalg.norm(fk[:3, 3] - free[-1][:3, 3]) <= 0.005
+    away = np.stack([free[0], flange((0.0, 3.0, 0.45)) @ panda.tool_mount()])
+    miss = panda.reach_path(away, SHELF)
+    assert not miss.reachable
+    from msmem_core.interfaces import densify
+
+    n = len(densify(away, 0.02))
+    k = int(miss.reason.split()[2])
+    assert 0 < k < n  # the start is reached, a later point is not
+    assert miss.reason.startswith(f"path point {k} of {n}: ")
+    # the floating gripper's push: hand pointing down, 2 cm above the floor, into the 28 cm shelf
+    push = PushSkill(PushConfig()).waypoints(PushAction(start_m=(0.0, 0.05), direction=(0.0, 1.0), length_m=0.1,
+                                                         height_m=0.02))
+    assert np.allclose(push[1][:3, 2], (0, 0, -1))
+    no = panda.reach_path(push, SHELF)
+    assert not no.reachable
+    assert "collides with the shelf" in no.reason, no.reason
+    assert "-top" in no.reason, no.reason
+    assert panda.ik(push[0] @ inv_mount, SHELF).reachable  # in front of the shelf it reaches the pose
+
+
+class _LeftOnly(FloatingRobot):
+    """An arm that follows only tool paths whose second point lies at x < 0."""
+
+    arm = True
+
+    def reach_path(self, tool_poses, shelf, step_m=0.02) -> Reach:
+        return Reach(bool(tool_poses[1][0, 3] < 0), ())
+
+
+def test_decide_drops_the_manipulations_the_robot_cannot_follow_and_counts_them():
+    from msmem_push.effect import AnalyticPushEffect
+    from msmem_push.skill import PushAction, PushConfig, PushSkill
+
+    from msmem_core.testing.builders import belief_with_boxes, one_decision
+
+    pushes = [PushAction(start_m=(x, 0.05), direction=(0.0, 1.0), length_m=0.1, height_m=0.02)
+              for x in (-0.2, -0.1, 0.1, 0.2, 0.3)]
+
+    class Fixed(PushSkill):
+        def propose(self, ctx):
+            return list(pushes)
+
+    ws = default_workspace()
+    belief = belief_with_boxes(ws.grid, [((-0.25, 0.1, 0.0), (0.25, 0.2, 0.1), 3)], free="none")
+    skills = [("view", ViewSkill()), ("push", Fixed(PushConfig()), AnalyticPushEffect())]
+    for robot, kept, dropped in ((_LeftOnly(), 2, 3), (FloatingRobot(), 5, None)):
+        bound = Workspace(ws.grid, ws.shelf, ws.gripper, ws.num_classes, robot)
+        d = one_decision(skills, belief, workspace=bound)
+        assert d.candidates["push"] == kept
+        assert d.unreachable.get("push") == dropped
+        if d.skill.name == "push":
+            assert d.action.start_m[0] < 0 or dropped is None

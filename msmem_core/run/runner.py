@@ -334,6 +334,7 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
         rec = {
             "step": step, "skill": d.skill.name, "action": d.action.model_dump(), "objective": d.value,
             "terms": d.terms, "best_per_skill": d.best, "candidates": d.candidates,
+            **({"unreachable": d.unreachable} if d.unreachable else {}),  # only with an arm (docs/robots.md)
             "success": outcome.success, "fell_or_left": outcome.fell_or_left, "info": outcome.info,
             "metrics": m, "seconds": now - t_last,
         }

@@ -510,6 +510,11 @@ class GraspSkill(Skill):
         return cfg.lift_m
 
     # ------------------------------------------------------------------------------- execution
+    def tool_path(self, action: Action, workspace: Workspace) -> NDArray[np.float64]:
+        """The approach points, the grasp and the retreat points, at the grasp's orientation."""
+        a = action if isinstance(action, GraspAction) else GraspAction.model_validate(action.model_dump())
+        return np.stack([a.at(p) for p in a.approach_m] + [a.matrix] + [a.at(p) for p in a.retreat_m])
+
     def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
         cfg = self.config
         a = action if isinstance(action, GraspAction) else GraspAction.model_validate(action.model_dump())

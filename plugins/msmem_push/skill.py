@@ -447,19 +447,24 @@ class PushSkill(Skill):
         return not (occupied[corridor].any() or walls[corridor].any())
 
     # ----------------------------------------------------------------------------------- execution
+    def waypoints(self, action: Action) -> NDArray[np.float64]:
+        """The gripper poses [3, 4, 4] of a push: in front of the shelf (``approach_y_m``), at the start,
+        at the end (it returns the same way)."""
+        a = action if isinstance(action, PushAction) else PushAction.model_validate(action.model_dump())
+        approach = np.array([a.start[0], self.config.approach_y_m])
+        return np.stack([gripper_pose(xy, a.height_m, a.u, a.palm) for xy in (approach, a.start, a.end)])
+
+    def tool_path(self, action: Action, workspace: Workspace) -> NDArray[np.float64]:
+        return self.waypoints(action)
+
     def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
         cfg = self.config
         a = action if isinstance(action, PushAction) else PushAction.model_validate(action.model_dump())
         a.check_start(ctx.shelf.interior_box)
-        u = a.u
-        approach = np.array([a.start[0], cfg.approach_y_m])
-        h = a.height_m
-        def pose(xy: NDArray[np.float64]) -> NDArray[np.float64]:
-            return gripper_pose(xy, h, u, a.palm)
-
-        sim.move_gripper([pose(approach), pose(a.start)], opening_m=0.0, speed_mps=cfg.travel_speed_mps)
-        reached = sim.move_gripper([pose(a.end)], speed_mps=cfg.speed_mps)
-        sim.move_gripper([pose(a.start), pose(approach)], speed_mps=cfg.travel_speed_mps)
+        approach, start, end = self.waypoints(a)
+        sim.move_gripper([approach, start], opening_m=0.0, speed_mps=cfg.travel_speed_mps)
+        reached = sim.move_gripper([end], speed_mps=cfg.speed_mps)
+        sim.move_gripper([start, approach], speed_mps=cfg.travel_speed_mps)
         sim.park_gripper()
         if cfg.settle_s > 0:
             sim.step(cfg.settle_s)

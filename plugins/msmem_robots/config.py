@@ -44,5 +44,8 @@ class PandaConfig(BaseModel):
     """IK calls per start configuration, each from the previous answer (clipped to the joint limits)."""
     ik_starts: Int = Field(8, ge=1, le=8)
     """Start configurations tried in turn (the first ones of a fixed list; docs/robots.md)."""
+    path_joint_step_rad: float = Field(0.5, gt=0.0, le=6.3)
+    """Along a tool path (``reach_path``), the largest change of any joint between consecutive path points
+    (at most 2 cm apart); a larger one means the arm would have to jump to another configuration."""
     disk_cache: Bool = True
     """Keep reachable-view answers in ``$MSMEM_CACHE_DIR/reach`` (default ``~/.cache/msmem/reach``)."""

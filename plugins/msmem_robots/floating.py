@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -14,6 +15,8 @@ from msmem_robots.config import FloatingConfig
 
 class FloatingRobot(Robot):
     """No arm: what msmem did before robots (the default)."""
+
+    arm: ClassVar[bool] = False
 
     def __init__(self, config: FloatingConfig | None = None) -> None:
         self.config = config or FloatingConfig()

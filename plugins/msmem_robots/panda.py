@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from msmem_core.interfaces import Reach, Robot, RobotModel
+from msmem_core.interfaces import Reach, Robot, RobotModel, densify
 from msmem_core.util.artifacts import sha256_file
 from msmem_core.util.quiet import quiet_stdio
 
@@ -40,6 +40,9 @@ URDF = Path(pybullet_data.getDataPath()) / "franka_panda" / "panda.urdf"
 ARM_JOINTS = 7
 FLANGE_LINK = "panda_link8"
 FINGER_OPEN_M = 0.04
+FINGERTIP_M = 0.112
+"""Distance along the flange's z from ``panda_link8`` to the tips of the open fingers (the finger joints sit
+at 0.0584 m in the hand, the fingers reach 0.112 m: their collision boxes in pybullet, less its margin)."""
 BOARDS = ("bottom", "top", "left", "right", "back")
 """Names of ``ShelfSpec.boards()`` in its order."""
 STARTS: tuple[tuple[float, ...], ...] = (  # chosen greedily from 48 candidates by views and shelf-interior poses
@@ -135,6 +138,69 @@ class PandaRobot(Robot):
 
     def camera_mount(self) -> NDArray[np.float64]:
         return self._mount.copy()
+
+    def tool_mount(self) -> NDArray[np.float64]:
+        """The gripper frame at the fingertips: the hand is turned -45 deg about the flange's z, its fingers
+        close along its y (the gripper frame's x), so the gripper frame is the flange's turned +45 deg,
+        ``FINGERTIP_M`` out along z."""
+        m = np.eye(4)
+        m[:3, :3] = Rotation.from_euler("z", 45.0, degrees=True).as_matrix()
+        m[2, 3] = FINGERTIP_M
+        return m
+
+    def reach_path(self, tool_poses: NDArray[np.float64], shelf: ShelfSpec, step_m: float = 0.02) -> Reach:
+        """The first point by ``ik`` (every start configuration), each next one by IK from the previous
+        answer (a joint-space path: no joint may change by more than ``path_joint_step_rad`` between
+        points at most ``step_m`` apart), every configuration checked against the shelf."""
+        poses = densify(np.asarray(tool_poses, dtype=np.float64), step_m)
+        inv = np.linalg.inv(self.tool_mount())
+        n = len(poses)
+        first = self.ik(poses[0] @ inv, shelf)
+        if not first.reachable:
+            return Reach(False, None, first.position_error_m, first.orientation_error_deg, first.collisions,
+                         f"path point 0 of {n}: {first.reason}")
+        q = np.asarray(first.joints)
+        cfg = self.config
+        perr, aerr = first.position_error_m, first.orientation_error_deg
+        for k in range(1, n):
+            target = poses[k] @ inv
+            new, perr, aerr = self._solve(target, q)
+            jump = float(np.abs(new - q).max())
+            why = ""
+            if perr > cfg.position_tolerance_m or aerr > cfg.orientation_tolerance_deg:
+                why = (f"no IK answer near the previous point within {cfg.position_tolerance_m * 1000:g} mm and "
+                       f"{cfg.orientation_tolerance_deg:g} deg (best: {perr * 1000:.1f} mm, {aerr:.1f} deg)")
+            elif jump > cfg.path_joint_step_rad:
+                why = f"a joint would jump {jump:.2f} rad (more than {cfg.path_joint_step_rad:g})"
+            elif hits := self._hits():
+                return Reach(False, None, perr, aerr, tuple(hits),
+                             f"path point {k} of {n}: the arm collides with the shelf ({', '.join(hits[:3])})")
+            if why:
+                return Reach(False, None, perr, aerr, (), f"path point {k} of {n}: {why}")
+            q = new
+        return Reach(True, tuple(float(x) for x in q), perr, aerr)
+
+    def _solve(self, target: NDArray[np.float64], start: NDArray[np.float64]
+               ) -> tuple[NDArray[np.float64], float, float]:
+        """IK from ``start`` (also the null-space rest pose), ``ik_rounds`` calls each from the previous
+        answer; (configuration set in the client, position error, orientation error)."""
+        cfg, c = self.config, self._client
+        pos, orn = [float(x) for x in target[:3, 3]], [float(x) for x in matrix_to_quat(target[:3, :3])]
+        lo, hi = self._lower, self._upper
+        rest = [*start, FINGER_OPEN_M, FINGER_OPEN_M]
+        q = np.asarray(start, dtype=np.float64)
+        self._set(q)
+        perr, aerr = self._error(target)
+        for _ in range(cfg.ik_rounds):
+            if perr <= cfg.position_tolerance_m and aerr <= cfg.orientation_tolerance_deg:
+                break
+            sol = c.calculateInverseKinematics(self._body, self._flange, pos, orn, lowerLimits=list(lo),
+                                               upperLimits=list(hi), jointRanges=list(hi - lo), restPoses=rest,
+                                               maxNumIterations=cfg.ik_iterations, residualThreshold=1e-6)
+            q = np.clip(np.asarray(sol[:ARM_JOINTS]), lo[:ARM_JOINTS], hi[:ARM_JOINTS])
+            self._set(q)
+            perr, aerr = self._error(target)
+        return q, perr, aerr
 
     def flange_pose(self, joints: Sequence[float]) -> NDArray[np.float64]:
         """Forward kinematics: the flange's world pose in configuration ``joints``."""
