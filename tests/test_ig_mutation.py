@@ -1,0 +1,106 @@
+"""IG's helpers checked against brute force on their edges: the shelf masks at voxel centres that lie
+exactly on the interior's faces, the deduplication of candidate changes, a change applied to a field,
+and the service's coarse rays (issue 22: tests that catch the planted bugs mutmut makes in
+``msmem_core/map/ig.py``; docs/reliability.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_ig import CAM, GRID, SHELF, random_belief, service, small_views
+
+from msmem_core.map.ig import IGDelta, IGField, IGService, _unique_deltas, shelf_interior_mask, shelf_wall_mask
+from msmem_core.world.grid import GridSpec
+from msmem_core.world.scene import ShelfSpec
+
+# every number a binary fraction: voxel centres land exactly on the interior's faces (x = +-0.375,
+# y = 0 and 0.375, z = 0 and 0.25), so < against <= and > against >= decide those voxels
+EXACT_SHELF = ShelfSpec(width_m=0.75, depth_m=0.375, height_m=0.25)
+EXACT_GRID = GridSpec(origin_m=(-0.53125, -0.15625, -0.15625), voxel_m=0.0625, shape=(17, 11, 9))
+
+
+def _brute_force(grid: GridSpec, shelf: ShelfSpec) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = shelf.interior_lower.tolist(), shelf.interior_upper.tolist()
+    walls, interior = np.zeros(grid.shape, bool), np.zeros(grid.shape, bool)
+    for i, j, k in np.ndindex(*grid.shape):
+        c = [grid.origin_m[a] + (n + 0.5) * grid.voxel_m for a, n in enumerate((i, j, k))]
+        inside = all(lo[a] <= c[a] <= hi[a] for a in range(3))
+        interior[i, j, k] = inside
+        walls[i, j, k] = not inside and c[1] >= lo[1]  # outside, but not in front of the open side
+    return walls, interior
+
+
+def test_shelf_masks_equal_brute_force_with_centres_on_the_faces():
+    centres = EXACT_GRID.centers()
+    for axis, values in ((0, (-0.375, 0.375)), (1, (0.0, 0.375)), (2, (0.0, 0.25))):
+        for v in values:
+            assert (centres[..., axis] == v).any()  # the edge cases are in the grid
+    walls, interior = _brute_force(EXACT_GRID, EXACT_SHELF)
+    got_walls, got_interior = shelf_wall_mask(EXACT_GRID, EXACT_SHELF), shelf_interior_mask(EXACT_GRID, EXACT_SHELF)
+    assert got_walls.shape == got_interior.shape == EXACT_GRID.shape
+    assert got_walls.dtype == got_interior.dtype == np.bool_
+    np.testing.assert_array_equal(got_walls, walls)
+    np.testing.assert_array_equal(got_interior, interior)
+    # the closed interior and the walls never overlap; what is neither lies in front of the shelf
+    assert not (got_walls & got_interior).any()
+    assert (centres[~got_walls & ~got_interior][:, 1] < 0).all()
+    # and on the usual 1 cm grid of the IG tests
+    walls, interior = _brute_force(GRID, SHELF)
+    np.testing.assert_array_equal(shelf_wall_mask(GRID, SHELF), walls)
+    np.testing.assert_array_equal(shelf_interior_mask(GRID, SHELF), interior)
+
+
+def _delta(idx, p, h) -> IGDelta:
+    return IGDelta(np.asarray(idx, np.int64), np.asarray(p, np.float32), np.asarray(h, np.float32))
+
+
+def test_unique_deltas_merge_only_identical_changes():
+    a = _delta([1, 5], [0.2, 1.0], [0.5, 0.0])
+    same = _delta([1, 5], [0.2, 1.0], [0.5, 0.0])
+    other_p = _delta([1, 5], [0.3, 1.0], [0.5, 0.0])
+    other_h = _delta([1, 5], [0.2, 1.0], [0.6, 0.0])
+    other_idx = _delta([1, 6], [0.2, 1.0], [0.5, 0.0])
+    out, same_as = _unique_deltas([a, other_p, same, other_h, other_idx, a])
+    assert same_as.dtype == np.int64
+    assert same_as.tolist() == [0, 1, 0, 2, 3, 0]
+    assert [d is x for d, x in zip(out, [a, other_p, other_h, other_idx], strict=True)] == [True] * 4
+    empty, none = _unique_deltas([])
+    assert empty == []
+    assert none.shape == (0,)
+
+
+def test_a_delta_applied_to_a_field_changes_only_its_voxels_and_leaves_the_base():
+    base = IGField(np.full(6, 0.5, np.float32), np.full(6, 0.69, np.float32))
+    out = _delta([1, 4], [0.0, 1.0], [0.0, 0.0]).apply(base)
+    np.testing.assert_array_equal(out.p, np.array([0.5, 0.0, 0.5, 0.5, 1.0, 0.5], np.float32))
+    np.testing.assert_array_equal(out.H, np.array([0.69, 0.0, 0.69, 0.69, 0.0, 0.69], np.float32))
+    np.testing.assert_array_equal(base.p, np.full(6, 0.5, np.float32))  # a copy, not the base
+    np.testing.assert_array_equal(base.H, np.full(6, 0.69, np.float32))
+
+
+def test_service_keeps_its_inputs_and_coarse_rays_subsample_both_image_axes():
+    views = small_views().astype(np.float32)  # float32 poses are widened, not kept
+    svc = IGService(GRID, CAM, views, SHELF)
+    assert svc.camera is CAM
+    assert svc.viewpoints.dtype == np.float64
+    assert svc.walls.shape == (GRID.size,)
+    np.testing.assert_array_equal(svc.walls, shelf_wall_mask(GRID, SHELF).ravel())
+    h, w = CAM.pixel_rays(svc.config.ray_stride_px).shape[:2]
+    coarse = svc.coarse_rays(2)
+    assert svc.coarse_rays(2) is coarse  # built once
+    assert svc.coarse_rays(1) is svc.rays
+    assert coarse.dirs.shape[:2] == (svc.num_views, len(range(0, h, 2)) * len(range(0, w, 2)))
+    full = svc.dirs.reshape(svc.num_views, h, w, 3)[:, ::2, ::2].reshape(svc.num_views, -1, 3)
+    np.testing.assert_allclose(np.sort(coarse.dirs.reshape(-1, 3), axis=0), np.sort(full.reshape(-1, 3), axis=0))
+    with pytest.raises(ValueError, match=r"viewpoints must be \[V, 4, 4\] camera-to-world poses, got \(4, 4\)"):
+        IGService(GRID, CAM, np.eye(4), SHELF)
+
+
+def test_prepare_refuses_a_belief_on_another_grid():
+    svc = service()
+    other = GridSpec(origin_m=GRID.origin_m, voxel_m=GRID.voxel_m, shape=(GRID.shape[0] + 1, *GRID.shape[1:]))
+    from msmem_core.map.belief import EvidentialMap
+
+    with pytest.raises(ValueError, match="belief grid differs from the IG service's grid"):
+        svc.prepare(EvidentialMap.empty(other))
+    assert svc.prepare(random_belief(0)).p.dtype == np.float32
