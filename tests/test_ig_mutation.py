@@ -104,3 +104,24 @@ def test_prepare_refuses_a_belief_on_another_grid():
     with pytest.raises(ValueError, match="belief grid differs from the IG service's grid"):
         svc.prepare(EvidentialMap.empty(other))
     assert svc.prepare(random_belief(0)).p.dtype == np.float32
+
+
+@pytest.mark.parametrize("exact", [False, True])
+def test_coarse_incremental_ig_equals_the_coarse_sweep_of_each_changed_field(exact):
+    """``view_ig_delta`` with ``ray_step`` 2 re-scores the screening rays exactly as a fresh coarse sweep of
+    the changed field would, with the early exit as asked (a large one, so that it matters)."""
+    from test_ig_incremental import random_deltas
+
+    svc = service(early_exit=0.3)
+    rng = np.random.default_rng(11)
+    belief = random_belief(5)
+    base = svc.prepare(belief)
+    deltas = [svc.belief_delta(base, d) for d in random_deltas(belief, rng, 4)]
+    assert all(len(d.idx) for d in deltas)
+    got = svc.view_ig_delta(base, deltas, exact=exact, ray_step=2)
+    want = np.stack([svc.sweep(d.apply(base), exact=exact, ray_step=2) for d in deltas])
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    # the screening estimate is not the full-density IG, and the early exit changes it
+    assert not np.allclose(got, svc.view_ig_delta(base, deltas, exact=exact, ray_step=1))
+    assert not np.allclose(svc.sweep(base, exact=exact), svc.sweep(base, exact=not exact))
+    np.testing.assert_allclose(svc.sweep(base, exact=exact), svc.view_ig(base, exact=exact), rtol=1e-9)
