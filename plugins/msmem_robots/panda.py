@@ -180,17 +180,18 @@ class PandaRobot(Robot):
             q = new
         return Reach(True, tuple(float(x) for x in q), perr, aerr)
 
-    def _solve(self, target: NDArray[np.float64], start: NDArray[np.float64]
+    def _solve(self, target: NDArray[np.float64], start: NDArray[np.float64], check_start: bool = True
                ) -> tuple[NDArray[np.float64], float, float]:
-        """IK from ``start`` (also the null-space rest pose), ``ik_rounds`` calls each from the previous
-        answer; (configuration set in the client, position error, orientation error)."""
+        """IK from ``start`` (also the null-space rest pose), up to ``ik_rounds`` calls each from the
+        previous answer, stopping once within tolerance (``check_start``: already at ``start``);
+        (configuration set in the client, position error, orientation error)."""
         cfg, c = self.config, self._client
         pos, orn = [float(x) for x in target[:3, 3]], [float(x) for x in matrix_to_quat(target[:3, :3])]
         lo, hi = self._lower, self._upper
         rest = [*start, FINGER_OPEN_M, FINGER_OPEN_M]
         q = np.asarray(start, dtype=np.float64)
         self._set(q)
-        perr, aerr = self._error(target)
+        perr, aerr = self._error(target) if check_start else (np.inf, np.inf)
         for _ in range(cfg.ik_rounds):
             if perr <= cfg.position_tolerance_m and aerr <= cfg.orientation_tolerance_deg:
                 break
@@ -225,26 +226,11 @@ class PandaRobot(Robot):
     def ik(self, flange_pose: NDArray[np.float64], shelf: ShelfSpec) -> Reach:
         cfg = self.config
         self._use_shelf(shelf)
-        c = self._client
         target = np.asarray(flange_pose, dtype=np.float64)
-        pos, orn = [float(x) for x in target[:3, 3]], [float(x) for x in matrix_to_quat(target[:3, :3])]
-        lo, hi = self._lower, self._upper
-        span = list(hi - lo)
         tol_m, tol_deg = cfg.position_tolerance_m, cfg.orientation_tolerance_deg
         best, best_score = Reach(False, reason="no IK start configuration"), np.inf
         for start in STARTS[: cfg.ik_starts]:
-            rest = [*start, FINGER_OPEN_M, FINGER_OPEN_M]
-            q = np.array(start)
-            self._set(q)
-            for _ in range(cfg.ik_rounds):  # each call starts from the previous answer
-                sol = c.calculateInverseKinematics(self._body, self._flange, pos, orn, lowerLimits=list(lo),
-                                                   upperLimits=list(hi), jointRanges=span, restPoses=rest,
-                                                   maxNumIterations=cfg.ik_iterations, residualThreshold=1e-6)
-                q = np.clip(np.asarray(sol[:ARM_JOINTS]), lo[:ARM_JOINTS], hi[:ARM_JOINTS])
-                self._set(q)
-                perr, aerr = self._error(target)
-                if perr <= tol_m and aerr <= tol_deg:
-                    break
+            q, perr, aerr = self._solve(target, np.array(start), check_start=False)
             reached = perr <= tol_m and aerr <= tol_deg
             hits = self._hits() if reached else []
             if reached and not hits:
