@@ -7,6 +7,7 @@ Tiny everywhere: 2 cm voxels (a 39 x 20 x 15 grid), one or two scenes, one epoch
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -524,6 +525,22 @@ def test_bad_weights_raise_clear_errors(tmp_path):
     write_weights(tiny_net("push", grid_shape=(10, 10, 5)), w3)
     with pytest.raises(WeightsError, match="grid"):
         CNABUPushEffect(CNABUEffectConfig(weights=w3)).predict(random_belief(), push_actions(), WORKSPACE)
+
+
+def test_a_config_names_shipped_weights_by_their_folder(tmp_path, monkeypatch):
+    """``weights: msmem_cnabu/weights/NAME`` in a config is the shipped file from any working directory,
+    unless such a relative file exists there."""
+    from msmem_cnabu.weights import resolve_weights, shipped_weights
+
+    monkeypatch.chdir(tmp_path)
+    assert resolve_weights("msmem_cnabu/weights/cnabu_push.pt") == shipped_weights("push")
+    _, meta = load_cnabu("push", "msmem_cnabu/weights/cnabu_push.pt")
+    assert meta["sha256"] == json.loads(shipped_weights("push").with_suffix(".json").read_text())["sha256"]
+    assert resolve_weights("other/weights/cnabu_push.pt") == Path("other/weights/cnabu_push.pt")
+    local = tmp_path / "msmem_cnabu" / "weights" / "cnabu_push.pt"
+    local.parent.mkdir(parents=True)
+    local.write_bytes(b"")
+    assert resolve_weights("msmem_cnabu/weights/cnabu_push.pt") == Path("msmem_cnabu/weights/cnabu_push.pt")
 
 
 def test_dirichlet_kl_uniform_against_scipy_at_large_evidence_in_float32():

@@ -9,7 +9,16 @@ import numpy as np
 import pytest
 from test_ig import CAM, GRID, SHELF, random_belief, service, small_views
 
-from msmem_core.map.ig import IGDelta, IGField, IGService, _unique_deltas, shelf_interior_mask, shelf_wall_mask
+from msmem_core.map.ig import (
+    IGConfig,
+    IGDelta,
+    IGField,
+    IGService,
+    _unique_deltas,
+    shelf_interior_mask,
+    shelf_wall_mask,
+)
+from msmem_core.util.trace import Span, Tracer, tracing
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
 
@@ -94,6 +103,8 @@ def test_service_keeps_its_inputs_and_coarse_rays_subsample_both_image_axes():
     np.testing.assert_allclose(np.sort(coarse.dirs.reshape(-1, 3), axis=0), np.sort(full.reshape(-1, 3), axis=0))
     with pytest.raises(ValueError, match=r"viewpoints must be \[V, 4, 4\] camera-to-world poses, got \(4, 4\)"):
         IGService(GRID, CAM, np.eye(4), SHELF)
+    with pytest.raises(ValueError, match=r"viewpoints must be \[V, 4, 4\] camera-to-world poses, got \(2, 3, 4\)"):
+        IGService(GRID, CAM, np.zeros((2, 3, 4)), SHELF)  # three axes, but not 4 x 4 matrices
 
 
 def test_prepare_refuses_a_belief_on_another_grid():
@@ -101,7 +112,7 @@ def test_prepare_refuses_a_belief_on_another_grid():
     other = GridSpec(origin_m=GRID.origin_m, voxel_m=GRID.voxel_m, shape=(GRID.shape[0] + 1, *GRID.shape[1:]))
     from msmem_core.map.belief import EvidentialMap
 
-    with pytest.raises(ValueError, match="belief grid differs from the IG service's grid"):
+    with pytest.raises(ValueError, match=r"^belief grid differs from the IG service's grid$"):
         svc.prepare(EvidentialMap.empty(other))
     assert svc.prepare(random_belief(0)).p.dtype == np.float32
 
@@ -125,3 +136,124 @@ def test_coarse_incremental_ig_equals_the_coarse_sweep_of_each_changed_field(exa
     assert not np.allclose(got, svc.view_ig_delta(base, deltas, exact=exact, ray_step=1))
     assert not np.allclose(svc.sweep(base, exact=exact), svc.sweep(base, exact=not exact))
     np.testing.assert_allclose(svc.sweep(base, exact=exact), svc.view_ig(base, exact=exact), rtol=1e-9)
+
+
+def test_defaults_are_the_early_exit_at_full_ray_density():
+    """``sweep``, ``view_ig`` and ``view_ig_delta`` default to the configured early exit over every ray."""
+    from test_ig_incremental import random_deltas
+
+    svc = service(early_exit=0.3)
+    belief = random_belief(7)
+    base = svc.prepare(belief)
+    deltas = [svc.belief_delta(base, d) for d in random_deltas(belief, np.random.default_rng(2), 3)]
+    early = svc.view_ig(base, exact=False)
+    assert not np.allclose(early, svc.view_ig(base, exact=True))  # the early exit matters here
+    np.testing.assert_allclose(svc.view_ig(base), early, rtol=1e-12)
+    np.testing.assert_allclose(svc.sweep(base), early, rtol=1e-9)
+    want = svc.view_ig_delta(base, deltas, exact=False, ray_step=1)
+    np.testing.assert_allclose(svc.view_ig_delta(base, deltas), want, rtol=1e-12)
+    np.testing.assert_allclose(want, np.stack([svc.view_ig(d.apply(base)) for d in deltas]), rtol=1e-9)
+
+
+def test_empty_batches_give_no_rows():
+    svc = service()
+    base = svc.prepare(random_belief(1))
+    for got in (svc.view_ig([]), svc.view_ig_delta(base, []), svc.view_ig_delta(base, [], exact=True, ray_step=2)):
+        assert got.shape == (0, svc.num_views)
+
+
+@pytest.mark.parametrize("exact", [False, True])
+def test_a_ray_lying_on_the_low_faces_of_the_changed_voxel_is_rescored(exact):
+    """The incremental ray filter widens its box around the changed voxels: a ray running exactly along
+    the voxel's low x and z faces (the traversal puts it in that voxel) still sees the change."""
+    from msmem_core.map.belief import EvidentialMap
+    from msmem_core.world.camera import CameraConfig
+
+    cam = CameraConfig(width_px=72, height_px=56)  # every 8th pixel: u = 36, v = 28 is the principal point
+    assert np.flatnonzero((cam.pixel_rays(8)[..., :2] == 0).all(axis=-1)).size == 1
+    g, s = np.asarray(EXACT_GRID.origin_m), EXACT_GRID.voxel_m
+    i, j, k = 8, 4, 3
+    pose = np.eye(4)
+    pose[:3, :3] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]  # camera x -> world x, y (down) -> -z, z -> +y
+    pose[:3, 3] = [g[0] + i * s, -0.5, g[2] + k * s]  # on the low x and z faces of voxel (i, ., k)
+    svc = IGService(EXACT_GRID, cam, pose[None], EXACT_SHELF)
+    base = svc.prepare(EvidentialMap.empty(EXACT_GRID))
+    flat = np.ravel_multi_index((i, j, k), EXACT_GRID.shape)
+    assert base.p[flat] == 0.5
+    assert not svc.walls[flat]
+    delta = _delta([flat], [1.0], [0.0])
+    want = svc.view_ig(delta.apply(base), exact=exact)
+    assert not np.allclose(want, svc.view_ig(base, exact=exact))  # the change is seen
+    np.testing.assert_allclose(svc.view_ig_delta(base, [delta], exact=exact)[0], want, rtol=1e-9)
+
+
+def test_unique_deltas_compare_values_not_the_dtypes_they_came_in():
+    """A change handed over as Python ints / float64 is the same change as the int64 / float32 one."""
+    a = _delta([1, 5], [0.25, 1.0], [0.5, 0.0])
+    for b in (IGDelta(np.array([1, 5], np.int32), a.p, a.H), IGDelta(a.idx, a.p.astype(np.float64), a.H),
+              IGDelta(a.idx, a.p, a.H.astype(np.float64))):
+        out, same = _unique_deltas([a, b])
+        assert len(out) == 1
+        assert same.tolist() == [0, 0]
+
+
+def test_the_clamp_is_strict_at_its_thresholds():
+    """MEM's clamp: *above* p_occ_clamp is occupied, *below* p_free_clamp is free; the thresholds
+    themselves stay uncertain (binary-exact thresholds, so that p lands exactly on them)."""
+    from msmem_core.map.belief import EvidentialMap
+
+    svc = IGService(GRID, CAM, small_views(), SHELF, IGConfig(p_occ_clamp=0.75, p_free_clamp=0.25))
+    b = EvidentialMap.empty(GRID)
+    inside = np.flatnonzero(~svc.walls)[:4]
+    for flat, (a, bb) in zip(inside, [(3.0, 1.0), (1.0, 3.0), (7.0, 1.0), (1.0, 7.0)], strict=True):
+        b.alpha.reshape(-1)[flat], b.beta.reshape(-1)[flat] = a, bb
+    f = svc.prepare(b)
+    np.testing.assert_array_equal(f.p[inside], np.array([0.75, 0.25, 1.0, 0.0], np.float32))
+    assert (f.H[inside[:2]] > 0).all()
+    assert (f.H[inside[2:]] == 0).all()
+
+
+def test_field_delta_lists_exactly_the_voxels_whose_p_or_h_differ():
+    base = IGField(np.array([0.5, 0.5, 1.0, 0.0, 0.2], np.float32), np.array([0.69, 0.69, 0.0, 0.0, 0.5], np.float32))
+    field = IGField(base.p.copy(), base.H.copy())
+    field.p[1], field.H[3] = 0.0, 0.1  # p alone changes at 1, H alone at 3
+    d = service().field_delta(base, field)
+    assert d.idx.tolist() == [1, 3]
+    np.testing.assert_array_equal(d.p, field.p[[1, 3]])
+    np.testing.assert_array_equal(d.H, field.H[[1, 3]])
+    np.testing.assert_array_equal(d.apply(base).p, field.p)
+
+
+def test_remembered_sweeps_are_keyed_by_field_ray_step_and_early_exit():
+    svc = service(early_exit=0.3)
+    a, b = svc.prepare(random_belief(3)), svc.prepare(random_belief(4))
+    fresh = service(early_exit=0.3)
+    for field, step, exact in ((a, 1, False), (b, 1, False), (a, 2, False), (a, 1, True), (b, 2, True)):
+        np.testing.assert_allclose(svc.sweep(field, exact=exact, ray_step=step),
+                                   fresh.sweep(field.copy(), exact=exact, ray_step=step), rtol=1e-12)
+
+
+class _Stages(Tracer):
+    def __init__(self) -> None:
+        self.seen: list[tuple[str, dict]] = []
+
+    def begin(self, span: Span) -> None:
+        self.seen.append((span.stage, dict(span.info)))
+
+
+def test_ig_stages_are_reported_by_name_with_what_they_work_on():
+    """``msmem perf step`` times IG by these span names and attributes."""
+    from test_ig_incremental import random_deltas
+
+    svc = service()
+    belief = random_belief(2)
+    rec = _Stages()
+    with tracing(rec):
+        base = svc.prepare(belief)
+        svc.sweep(base, ray_step=2)
+        deltas = [svc.belief_delta(base, d) for d in random_deltas(belief, np.random.default_rng(0), 3)]
+        svc.view_ig_delta(base, deltas, ray_step=2)
+        svc.view_ig(base)
+        svc.after_view(base, 0)
+    assert rec.seen == [("ig.prepare", {}), ("ig.sweep", {"ray_step": 2}),
+                        ("ig.incremental", {"ray_step": 2, "candidates": 3}), ("ig.sweep", {}), ("ig.after_view", {})]

@@ -32,7 +32,8 @@ class CNABUEffectConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     weights: Path | None = None
-    """Weights file (None: the shipped ``msmem_cnabu/weights/cnabu_<kind>.pt``)."""
+    """Weights file (None: the shipped ``msmem_cnabu/weights/cnabu_<kind>.pt``; a relative
+    ``msmem_cnabu/weights/NAME`` names another shipped file, e.g. ``cnabu_push_map.pt``)."""
     change_threshold: float = Field(0.85, gt=0.0, lt=1.0)
     """A voxel changes where the predicted change probability exceeds this; elsewhere the prior is copied."""
     change_epsilon: float = Field(0.0, ge=0.0, lt=1.0)

@@ -28,6 +28,15 @@ def shipped_weights(kind: str) -> Path:
     return WEIGHTS_DIR / f"cnabu_{kind}.pt"
 
 
+def resolve_weights(path: str | Path) -> Path:
+    """``path`` as given, except that a relative ``msmem_cnabu/weights/NAME`` that does not exist from the
+    working directory names the shipped folder (so a config file can pick shipped weights by name)."""
+    p = Path(path)
+    if not p.is_absolute() and not p.exists() and p.parts[:2] == ("msmem_cnabu", "weights"):
+        return WEIGHTS_DIR.joinpath(*p.parts[2:])
+    return p
+
+
 def how_to_make(kind: str, path: Path) -> str:
     return (f"generate data with `msmem datagen cnabu --kind {kind} --scenes N --out DATA` and train them with "
             f"`msmem train cnabu --kind {kind} --data DATA --out {path}`")
@@ -49,7 +58,7 @@ def load_cnabu(kind: str, path: str | Path | None = None, verify: bool = True) -
     tensors that do not fit the recorded architecture raise one :class:`WeightsError` naming the
     file and the hash it should have (``verify=False`` skips the hash, for experiments).
     """
-    path = Path(path) if path is not None else shipped_weights(kind)
+    path = resolve_weights(path) if path is not None else shipped_weights(kind)
     if not path.exists():
         raise WeightsError(f"cnabu-{kind}: weights file {path} does not exist; {how_to_make(kind, path)} "
                            "(or name another file in the model's `weights` parameter)")
