@@ -257,3 +257,38 @@ def test_ig_stages_are_reported_by_name_with_what_they_work_on():
         svc.after_view(base, 0)
     assert rec.seen == [("ig.prepare", {}), ("ig.sweep", {"ray_step": 2}),
                         ("ig.incremental", {"ray_step": 2, "candidates": 3}), ("ig.sweep", {}), ("ig.after_view", {})]
+
+
+def test_a_removed_surface_opens_the_rays_behind_it():
+    """A voxel that was certainly occupied (p = 1: base rays stop there) and that a candidate frees must
+    not stop that candidate's rays: what lies behind it is scored as a fresh sweep would."""
+    from msmem_core.map.belief import EvidentialMap
+
+    svc = service()
+    belief = EvidentialMap.empty(GRID)
+    base = svc.prepare(belief)
+    inside = np.flatnonzero(~svc.walls & (base.p == 0.5))
+    for flat in inside[len(inside) // 2: len(inside) // 2 + 40: 8]:  # single voxels (slot 0) mid-shelf
+        wall = IGField(base.p.copy(), base.H.copy())
+        wall.p[flat], wall.H[flat] = 1.0, 0.0
+        freed = _delta([flat], [0.0], [0.0])
+        for exact in (False, True):
+            want = svc.view_ig(freed.apply(wall), exact=exact)
+            np.testing.assert_allclose(svc.view_ig_delta(wall, [freed], exact=exact)[0], want, rtol=1e-9)
+
+
+def test_best_two_step_ignores_unknown_views_and_uses_the_callers_first_ig():
+    svc = service()
+    f = svc.prepare(random_belief(4))
+    plain = svc.best_two_step(f)
+    # indices that name no view (a stale exclusion list) are ignored, at both ends of the range
+    assert svc.best_two_step(f, {-1, svc.num_views, svc.num_views + 3}) == plain
+    with pytest.raises(ValueError, match=r"^every viewpoint is excluded$"):
+        svc.best_two_step(f, set(range(svc.num_views)))
+    # ``first`` stands in for view_ig(field): the first view is its argmax, with its value
+    other = (plain[0] + 1) % svc.num_views
+    first = np.zeros(svc.num_views)
+    first[other] = 5.0
+    v1, ig1, v2, _ = svc.best_two_step(f, first=first)
+    assert (v1, ig1) == (other, 5.0)
+    assert v2 != v1
