@@ -1,0 +1,70 @@
+"""The metrics on inputs their signatures allow but the main tests do not use: masks and occupancy given
+as integers, class-probability arrays at the edge of their shape check, and the messages that name
+what is wrong (issue 22: gaps found by ``tests/mutation_scan.py`` on ``msmem_core/run/metrics.py``;
+docs/reliability.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from msmem_core.run.metrics import (
+    class_iou_counts,
+    occupancy_iou,
+    occupancy_iou_counts,
+    prediction_from_belief,
+    semantic_miou,
+)
+
+RNG = np.random.default_rng(5)
+PRED = RNG.random((6, 5, 4)) < 0.4
+GT = RNG.random((6, 5, 4)) < 0.4
+MASK = RNG.random((6, 5, 4)) < 0.5
+
+
+def test_masks_and_occupancy_given_as_integers_count_as_booleans():
+    """A 0/1 or 0/255 array is a mask of the nonzero cells, never a list of indices."""
+    want = occupancy_iou(PRED, GT, MASK)
+    assert want == pytest.approx(np.sum(PRED & GT & MASK) / np.sum((PRED | GT) & MASK))
+    for as_int in (lambda a: a.astype(np.int64), lambda a: a.astype(np.uint8) * 255):
+        assert occupancy_iou(as_int(PRED), as_int(GT), as_int(MASK)) == want
+    inter, union = occupancy_iou_counts(PRED, GT, MASK)
+    for mask in (MASK.astype(np.int64), MASK.astype(np.uint8)):
+        i, u = class_iou_counts(PRED.astype(np.int64), GT.astype(np.int64), 2, mask)
+        np.testing.assert_array_equal(i, inter)
+        np.testing.assert_array_equal(u, union)
+    assert union[1] == np.sum((PRED | GT) & MASK)
+
+
+def test_occupancy_counts_take_any_nonzero_value_as_occupied():
+    inter, union = occupancy_iou_counts(PRED.astype(np.uint8) * 7, GT.astype(np.float32) * 0.5)
+    assert inter.tolist() == [np.sum(~PRED & ~GT), np.sum(PRED & GT)]
+    assert union.tolist() == [np.sum(~PRED | ~GT), np.sum(PRED | GT)]
+
+
+def test_errors_name_what_is_wrong():
+    labels = np.zeros((3, 4), np.int64)
+    with pytest.raises(ValueError, match=r"^prediction shape \(3, 4\) differs from ground truth \(4, 3\)$"):
+        semantic_miou(labels, labels.T)
+    with pytest.raises(ValueError, match=r"^prediction shape \(3, 4\) differs from ground truth \(4, 3\)$"):
+        class_iou_counts(labels, labels.T, 2)
+    with pytest.raises(ValueError, match=r"^mask shape \(4, 3\) differs from prediction shape \(3, 4\)$"):
+        class_iou_counts(labels, labels, 2, np.ones((4, 3), bool))
+    bad = labels.copy()
+    bad[0, 0] = 2
+    with pytest.raises(ValueError, match=r"^prediction holds labels outside 0\.\.1$"):
+        class_iou_counts(bad, labels, 2)
+    with pytest.raises(ValueError, match=r"^ground truth holds labels outside 0\.\.1$"):
+        class_iou_counts(labels, bad, 2)
+
+
+def test_prediction_from_belief_needs_background_and_one_class_at_least():
+    p = np.full((2, 3, 4), 0.9)
+    occ, cls = prediction_from_belief(p, np.stack([np.full(p.shape, 0.2), np.full(p.shape, 0.8)]))
+    assert occ.all()
+    assert (cls == 1).all()
+    assert cls.dtype == np.int16
+    with pytest.raises(ValueError, match=r"as \[C>=2, X, Y, Z\]"):
+        prediction_from_belief(p, np.ones((1, *p.shape)))  # background only
+    with pytest.raises(ValueError, match=r"as \[C>=2, X, Y, Z\]"):
+        prediction_from_belief(p, np.ones((3, 2, 3, 5)))
