@@ -87,3 +87,28 @@ def test_threshold_check_decides_twice_per_belief_and_a_lower_threshold_changes_
     # 80 candidates were predicted twice and the nearly dense change map changed many more voxels
     assert hi["skill"] == lo["skill"] == "push"
     assert lo["changed_voxels_per_candidate"] > 3 * hi["changed_voxels_per_candidate"]
+
+
+# The push model fine-tuned on the completed beliefs of ``cnabu-map`` (MODEL_CARD_push_map.md), used by
+# examples/observe/cnabu-map-push-map.yaml: on held-out pushes from completed beliefs it must beat "no
+# change", the analytic twin and the shipped push model, which was trained on analytic beliefs.
+PUSH_MAP = "msmem_cnabu/weights/cnabu_push_map.pt"
+
+
+def test_push_map_weights_beat_the_twin_and_the_analytic_push_model_on_completed_beliefs():
+    from msmem_cnabu.weights import resolve_weights
+
+    data = HELDOUT / "push_map"
+    net, meta = load_cnabu("push", PUSH_MAP)
+    assert resolve_weights(PUSH_MAP).stat().st_size < 4e6
+    assert meta["data"]["manifest"]["config"]["observation_model"]["name"] == "cnabu-map"
+    held = [int(p.stem.split("_")[1]) for p in data.glob("scene_*.npz")]
+    assert held
+    assert not set(held) & set(meta["data"]["manifest"]["seeds"])
+    nll = {}
+    for name, weights in (("map", resolve_weights(PUSH_MAP)), ("shipped", None)):
+        m = evaluate("push", data, weights=weights, timing=False, threads=1, log=lambda _: None)["metrics"]
+        nll[name] = m["learned"]["affected"]["occ_nll"] + m["learned"]["affected"]["sem_nll"]
+        for base in ("analytic", "no-change"):
+            nll[base] = m[base]["affected"]["occ_nll"] + m[base]["affected"]["sem_nll"]
+    assert nll["map"] < min(nll["shipped"], nll["analytic"], nll["no-change"]), nll
