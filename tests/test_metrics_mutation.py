@@ -68,3 +68,48 @@ def test_prediction_from_belief_needs_background_and_one_class_at_least():
         prediction_from_belief(p, np.ones((1, *p.shape)))  # background only
     with pytest.raises(ValueError, match=r"as \[C>=2, X, Y, Z\]"):
         prediction_from_belief(p, np.ones((3, 2, 3, 5)))
+
+
+def test_semantic_miou_scores_the_classes_it_is_given():
+    gt = np.array([1, 1, 2, 2, 0, 0])
+    pred = np.array([1, 1, 2, 0, 3, 0])
+    assert semantic_miou(pred, gt) == pytest.approx((1.0 + 0.5) / 2)  # classes of the ground truth
+    assert semantic_miou(pred, gt, classes=[1, 2, 3]) == pytest.approx((1.0 + 0.5 + 0.0) / 3)
+    assert semantic_miou(pred, gt, classes=[2]) == pytest.approx(0.5)
+
+
+def test_top_label_checks_labels_against_the_class_axis():
+    from msmem_core.run.metrics import top_label
+
+    probs = np.full((2, 5), 0.5)  # 2 classes, 5 voxels: more voxels than classes
+    conf, ok = top_label(probs, np.array([0, 1, 0, 1, 0]))
+    np.testing.assert_array_equal(ok, [True, False, True, False, True])  # ties go to class 0
+    np.testing.assert_array_equal(conf, np.full(5, 0.5))
+    with pytest.raises(ValueError, match=r"^labels outside 0\.\.1$"):
+        top_label(probs, np.array([0, 3, 0, 1, 0]))
+
+
+def test_paper_counts_refuse_an_interior_of_another_shape():
+    from msmem_core.run.metrics import paper_counts
+
+    p = np.full((2, 3, 4), 0.5)
+    probs = np.full((3, 2, 3, 4), 1 / 3)
+    cls = np.zeros(p.shape, np.int64)
+    with pytest.raises(ValueError, match=r"interior \(2, 3, 5\) do not match"):
+        paper_counts(p, probs, cls, p > 0.5, cls, np.ones((2, 3, 5), bool))
+
+
+def test_object_counts_take_their_parameters_inclusively():
+    """found_fraction in (0, 1], min_hallucination_voxels >= 1: both ends that are allowed work."""
+    from msmem_core.run.metrics import object_counts
+
+    inst = np.full((4, 4, 4), -1)
+    inst[:2, :2, :2] = 0
+    occ = inst >= 0
+    cls = np.where(occ, 3, 0)
+    counts = object_counts(occ, cls, inst, {0: 3}, found_fraction=1.0, min_hallucination_voxels=1)
+    assert counts["correctly_found"] == 1
+    assert counts["hallucinated"] == 0
+    for bad in ({"found_fraction": 1.5}, {"found_fraction": 0.0}, {"min_hallucination_voxels": 0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            object_counts(occ, cls, inst, {0: 3}, **bad)
