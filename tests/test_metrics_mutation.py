@@ -113,3 +113,19 @@ def test_object_counts_take_their_parameters_inclusively():
     for bad in ({"found_fraction": 1.5}, {"found_fraction": 0.0}, {"min_hallucination_voxels": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             object_counts(occ, cls, inst, {0: 3}, **bad)
+
+
+def test_paper_counts_count_the_top_view_per_class_inside_the_interior():
+    from msmem_core.run.metrics import paper_counts
+
+    shape = (5, 2, 3)  # more columns along x than classes, so the class axis cannot be mistaken for x
+    inside = np.ones(shape, bool)
+    gt_cls = np.zeros(shape, np.int64)
+    gt_cls[1, 0, 0] = 2  # one object of class 2, in one column
+    p = np.where(gt_cls > 0, 0.9, 0.1)
+    probs = np.stack([np.where(gt_cls == c, 0.8, 0.1) for c in range(3)])
+    counts = paper_counts(p, probs, gt_cls, gt_cls > 0, gt_cls, inside)
+    assert counts["semantic_2d_intersection"] == [9, 0, 1]  # per class 0..C-1 over the 10 columns
+    assert counts["semantic_2d_union"] == [9, 0, 1]
+    assert counts["occupancy_intersection"] == [29, 1]
+
