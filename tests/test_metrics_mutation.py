@@ -129,3 +129,25 @@ def test_paper_counts_count_the_top_view_per_class_inside_the_interior():
     assert counts["semantic_2d_union"] == [9, 0, 1]
     assert counts["occupancy_intersection"] == [29, 1]
 
+
+
+def test_object_counts_size_objects_without_their_excluded_voxels_and_skip_background_blobs():
+    from msmem_core.run.metrics import object_counts
+
+    inst = np.full((8, 8, 8), -1)
+    inst[:2, :2, :2] = 0  # an object of 8 voxels
+    occ = np.zeros(inst.shape, bool)
+    occ[0, 0, :2] = True  # 2 of its voxels predicted
+    ex = np.zeros(inst.shape, bool)
+    ex[:2, :2, :2] = True
+    ex[0, 0, :2] = False  # all but those 2 excluded: the object is its 2 visible voxels
+    cls = np.where(occ, 3, 0)
+    assert object_counts(occ, cls, inst, {0: 3}, found_fraction=0.5)["not_found"] == 1
+    assert object_counts(occ, cls, inst, {0: 3}, found_fraction=0.5, exclude=ex)["correctly_found"] == 1
+    # a predicted blob of class 5 far from the object is a hallucination, also beside occupied voxels
+    # predicted as background
+    occ2, cls2 = occ.copy(), cls.copy()
+    occ2[5:7, 5:7, 5:7] = True
+    cls2[5:7, 5:7, 5:7] = 5
+    occ2[7, 0, 7] = True  # class 0 (background) where occupancy is predicted
+    assert object_counts(occ2, cls2, inst, {0: 3})["hallucinated"] == 1
