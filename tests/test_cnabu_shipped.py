@@ -100,6 +100,7 @@ def test_push_map_weights_beat_the_twin_and_the_analytic_push_model_on_completed
 
     data = HELDOUT / "push_map"
     net, meta = load_cnabu("push", PUSH_MAP)
+    assert not net.training
     assert resolve_weights(PUSH_MAP).stat().st_size < 4e6
     assert meta["data"]["manifest"]["config"]["observation_model"]["name"] == "cnabu-map"
     held = [int(p.stem.split("_")[1]) for p in data.glob("scene_*.npz")]
