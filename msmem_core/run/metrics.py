@@ -160,8 +160,7 @@ def occupancy_iou_counts(
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """Intersection and union of the two occupancy classes, index 0 = free and 1 = occupied (any nonzero
     value counts as occupied, as in :func:`occupancy_iou`)."""
-    pred, gt = (np.asarray(a, dtype=bool).astype(np.int64) for a in (pred_occ, gt_occ))
-    return class_iou_counts(pred, gt, 2, mask)
+    return class_iou_counts(np.asarray(pred_occ, dtype=bool), np.asarray(gt_occ, dtype=bool), 2, mask)
 
 
 def miou_from_counts(inter: ArrayLike, union: ArrayLike) -> float:
