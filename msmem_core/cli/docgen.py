@@ -368,6 +368,9 @@ API_SECTIONS: tuple[tuple[str, str, tuple[str, ...]], ...] = (
         "msmem_core.testing.plugin_conformance.check_outcome",
         "msmem_core.testing.plugin_conformance.check_prediction",
         "msmem_core.testing.plugin_conformance.check_base_unchanged",
+        "msmem_core.testing.robot_conformance.robot_conformance",
+        "msmem_core.testing.robot_conformance.RobotReport",
+        "msmem_core.testing.robot_conformance.check_answer",
         "msmem_core.testing.plugin_conformance.ConformanceError",
         "msmem_core.testing.plugin_conformance.ConformanceUsageError")),
 )

@@ -8,7 +8,9 @@
   with your skills, in a unit test).
 - Conformance suites (``msmem_core.testing.conformance``): ``simulator_conformance(factory)``,
   ``skill_conformance(factory, name)`` and ``effect_model_conformance(factory, actions_for)``: what
-  a backend, a skill or an effect model runs to prove it follows its interface and its conventions.
+  a backend, a skill or an effect model runs to prove it follows its interface and its conventions;
+  ``robot_conformance(factory)`` (``msmem_core.testing.robot_conformance``) the same for a robot, its
+  answers verified by an independent forward kinematics of its URDF.
 """
 
 from msmem_core.testing.builders import (
@@ -29,11 +31,13 @@ from msmem_core.testing.plugin_conformance import (
     effect_model_conformance,
     skill_conformance,
 )
+from msmem_core.testing.robot_conformance import RobotReport, robot_conformance
 
 __all__ = [
     "ConformanceError",
     "ConformanceUsageError",
     "FakeSimulator",
+    "RobotReport",
     "belief_of_scene",
     "belief_with_boxes",
     "decision_context",
@@ -41,6 +45,7 @@ __all__ = [
     "default_workspace",
     "effect_model_conformance",
     "one_decision",
+    "robot_conformance",
     "simulator_conformance",
     "skill_conformance",
     "small_ig",
