@@ -234,6 +234,39 @@ def test_clearance_keeps_the_pushed_object_clear_of_its_neighbour() -> None:
     assert max(a.length_m for a in toward) <= 0.06 - clearance + PushConfig().standoff_m + 0.011
 
 
+def test_chain_clearance_stops_the_row_short_of_the_wall_but_lets_the_target_push_its_neighbour() -> None:
+    """A wide box hides a region; a second box stands 6 cm to its right and 8 cm from the right wall. With
+    ``chain_clearance_m`` a push to the right may drive the second box (unlike ``clearance_m``) but ends
+    before the second box, driven by the first, reaches the wall: after 14 cm of travel, less the
+    clearance. Pushes into the shelf, where nothing known stands before the back wall, keep their full length."""
+    b = EvidentialMap.empty(GRID)
+    c = GRID.centers()
+    floor = c[..., 2] > 0
+    known = ((c[..., 1] < 0.04) | (np.abs(c[..., 0]) >= 0.08)) & (c[..., 1] > 0) & floor
+    b.beta[known], b.eta[0][known] = 21.0, 21.0
+    x_hi = WORKSPACE.shelf.interior_box[3]
+    boxes = {3: ((-0.08, 0.04), (0.08, 0.06)), 5: ((0.14, 0.03), (x_hi - 0.08, 0.07))}
+    for k, ((x0, y0), (x1, y1)) in boxes.items():
+        m = (c[..., 0] > x0) & (c[..., 0] < x1) & (c[..., 1] > y0) & (c[..., 1] < y1) & floor & (c[..., 2] < 0.15)
+        b.alpha[m], b.beta[m], b.eta[:, m] = 21.0, 1.0, 1.0
+        b.eta[k, m] = 21.0
+    clearance, standoff, voxel = 0.01, PushConfig().standoff_m, GRID.voxel_m
+
+    def pushes(cfg: PushConfig) -> list[PushAction]:
+        return [a for seed in range(6) for a in PushSkill(cfg).propose(_ctx(b, seed=seed)) if a.target_class == 3]
+
+    free, kept = pushes(PushConfig()), pushes(PushConfig(chain_clearance_m=clearance))
+    right = [a for a in kept if a.direction[0] > 0.95]
+    into = [a for a in kept if a.direction[1] > 0.95]
+    assert right
+    assert into
+    jam = 0.06 + 0.08  # travel of the first box when the second one reaches the wall
+    assert max(a.length_m for a in right) <= jam - clearance + standoff + voxel
+    assert max(a.length_m for a in right) > 0.06 + standoff + voxel, "pushing into the neighbour is allowed"
+    assert max(a.length_m for a in free if a.direction[0] > 0.95) > jam + standoff + voxel
+    assert max(a.length_m for a in into) > PushConfig().max_length_m - voxel
+
+
 def test_max_height_ratio_refuses_to_push_a_thin_tall_object() -> None:
     """A 16 x 2 cm box 15 cm tall (7.5 times as tall as its narrowest width) is pushed without the
     check, not at all with ``max_height_ratio`` 3, and again with 8."""

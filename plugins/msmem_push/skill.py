@@ -193,6 +193,13 @@ class PushConfig(BaseModel):
     """With ``clearance_m``: whether the pushed object may move into columns not believed free
     (unknown space, where hidden objects may stand). False: only into believed-free columns (every
     interior voxel of the column at most ``free_threshold``)."""
+    chain_clearance_m: float | None = Field(None, ge=0.0, le=0.2)
+    """If set, the *chain* a push drives is predicted and the push shortened so that no object of it is
+    pressed into a side or back wall: the target's believed footprint moves along the push, every
+    confidently occupied object it meets starts moving with it from that point (and so on), and the
+    push ends this far before the first of them reaches a wall; a candidate left shorter than
+    ``min_length_m`` is dropped. Unlike ``clearance_m`` it allows pushing into other objects, only
+    not a row of them into a wall (the falls measured in docs/push.md). None: no check."""
     speed_mps: float = Field(0.1, gt=0.0, le=1.0)
     travel_speed_mps: float = Field(0.25, gt=0.0, le=2.0)
     """Speed of the approach and the retreat."""
@@ -291,12 +298,13 @@ class PushSkill(Skill):
             blocked = self._blocked(conf_bev, grid, shelf.interior_box)
             if not cfg.clear_into_unknown:
                 blocked |= (interior & (p > cfg.free_threshold)).any(axis=2)
+        chain = self._chain_data(conf, cls, grid, shelf.interior_box) if cfg.chain_clearance_m is not None else None
         per_target = max(2, math.ceil(2 * cfg.max_samples / len(targets)))
         groups: list[list[PushAction]] = [[] for _ in targets]
         interior_m = shelf.interior_box
         for _ in range(ROUNDS):  # in dense shelves most sideways pushes collide: sample again
             for g, t in zip(groups, targets, strict=True):
-                raw = (self._candidate(t, rng, grid, interior_m, blocked) for _ in range(per_target))
+                raw = (self._candidate(t, rng, grid, interior_m, blocked, chain) for _ in range(per_target))
                 g += [a for a in raw if a is not None and self._valid(a, grid, walls, occupied, interior_m)]
             if sum(len(g) for g in groups) >= cfg.max_samples:
                 break
@@ -373,8 +381,67 @@ class PushSkill(Skill):
         free = float(steps[first[0]] - s / 2) if len(first) else np.inf
         return free - float(self.config.clearance_m)
 
+    @staticmethod
+    def _chain_data(conf: NDArray[np.bool_], cls: NDArray[np.int64], grid: Any, interior_m: Interior
+                    ) -> tuple[NDArray[np.int32], NDArray[np.bool_]]:
+        """(object label per BEV cell: the 8-connected components of each class's confident columns, 0 where
+        none, numbered across classes; the cells beyond the interior's sides and back)."""
+        labels = np.zeros(conf.shape[:2], dtype=np.int32)
+        n = 0
+        for c in np.unique(cls[conf]):
+            lab, k = ndimage.label((conf & (cls == c)).any(axis=2), structure=np.ones((3, 3), dtype=bool))
+            free = labels == 0  # a column two classes share keeps the first label
+            labels[free & (lab > 0)] = lab[free & (lab > 0)] + n
+            n += k
+        x_lo, _, _, x_hi, y_hi, _ = interior_m
+        c = grid.origin[:2] + (np.indices(conf.shape[:2]).transpose(1, 2, 0) + 0.5) * grid.voxel_m
+        return labels, (c[..., 0] < x_lo) | (c[..., 0] > x_hi) | (c[..., 1] > y_hi)
+
+    def _chain_room(self, t: _Target, u: NDArray[np.float64], grid: Any,
+                    chain: tuple[NDArray[np.int32], NDArray[np.bool_]]) -> float:
+        """How far the target can be pushed along ``u`` before an object of the chain it drives enters a
+        wall cell, minus ``chain_clearance_m``. Each moving object's footprint is swept along ``u``; an
+        object it meets starts moving when the target has travelled as far as that contact (the
+        earliest over the objects that meet it); every object moves the rest of the push."""
+        cfg = self.config
+        labels, wall = chain
+        s = grid.voxel_m
+        far = cfg.max_length_m + float(cfg.chain_clearance_m or 0.0) + s
+        steps = np.arange(s / 2, far, s / 2)
+        nx, ny = labels.shape
+        start: dict[int, float] = {}  # object label -> target travel at which it starts moving
+        foot = {0: t.cells}  # 0: the target itself
+        own = set(np.unique(labels[t.foot]).tolist()) - {0}  # the target (its component)
+        queue: list[tuple[float, int]] = [(0.0, 0)]
+        room = np.inf
+        while queue:
+            queue.sort()
+            e, k = queue.pop(0)
+            if e >= room:
+                break
+            cells = foot[k] if k in foot else np.argwhere(labels == k)
+            moved = (cells[None, :, :] + 0.5) + steps[:, None, None] * u[None, None, :] / s  # [T, N, 2]
+            ij = np.floor(moved).astype(np.int64)
+            inside = (ij[..., 0] >= 0) & (ij[..., 0] < nx) & (ij[..., 1] >= 0) & (ij[..., 1] < ny)
+            hit_wall = ~inside
+            hit_wall[inside] = wall[ij[inside][:, 0], ij[inside][:, 1]]
+            first = np.flatnonzero(hit_wall.any(axis=1))
+            if len(first):
+                room = min(room, e + float(steps[first[0]] - s / 2))
+            lab = np.zeros(inside.shape, dtype=np.int32)
+            lab[inside] = labels[ij[inside][:, 0], ij[inside][:, 1]]
+            for j in np.unique(lab[lab > 0]).tolist():
+                if j in own or j == k:
+                    continue
+                d = e + float(steps[np.flatnonzero((lab == j).any(axis=1))[0]] - s / 2)
+                if d < start.get(j, np.inf) and d < room:
+                    start[j] = d
+                    queue = [(q, i) for q, i in queue if i != j] + [(d, j)]
+        return room - float(cfg.chain_clearance_m or 0.0)
+
     def _candidate(self, t: _Target, rng: np.random.Generator, grid: Any, interior_m: Interior,
-                   blocked: NDArray[np.bool_] | None = None) -> PushAction | None:
+                   blocked: NDArray[np.bool_] | None = None,
+                   chain: tuple[NDArray[np.int32], NDArray[np.bool_]] | None = None) -> PushAction | None:
         cfg = self.config
         s = grid.voxel_m
         o = grid.origin
@@ -418,6 +485,8 @@ class PushSkill(Skill):
             return None
         if blocked is not None:  # the object moves once the tool has closed the standoff gap
             hi_len = min(hi_len, self._object_room(t, u, grid, blocked) + cfg.standoff_m)
+        if chain is not None and hi_len >= cfg.min_length_m:
+            hi_len = min(hi_len, self._chain_room(t, u, grid, chain) + cfg.standoff_m)
         if hi_len < cfg.min_length_m:
             return None
         return PushAction(
