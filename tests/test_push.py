@@ -255,7 +255,7 @@ def test_chain_clearance_stops_the_row_short_of_the_wall_but_lets_the_target_pus
     def pushes(cfg: PushConfig) -> list[PushAction]:
         return [a for seed in range(6) for a in PushSkill(cfg).propose(_ctx(b, seed=seed)) if a.target_class == 3]
 
-    free, kept = pushes(PushConfig()), pushes(PushConfig(chain_clearance_m=clearance))
+    free, kept = pushes(PushConfig(chain_clearance_m=None)), pushes(PushConfig(chain_clearance_m=clearance))
     right = [a for a in kept if a.direction[0] > 0.95]
     into = [a for a in kept if a.direction[1] > 0.95]
     assert right
@@ -265,6 +265,33 @@ def test_chain_clearance_stops_the_row_short_of_the_wall_but_lets_the_target_pus
     assert max(a.length_m for a in right) > 0.06 + standoff + voxel, "pushing into the neighbour is allowed"
     assert max(a.length_m for a in free if a.direction[0] > 0.95) > jam + standoff + voxel
     assert max(a.length_m for a in into) > PushConfig().max_length_m - voxel
+
+
+def test_chain_clearance_with_max_height_ratio_stops_before_a_thin_tall_neighbour() -> None:
+    """The same row, but the neighbour is a 3 cm thin, 15 cm tall board (a book on its edge): with
+    ``max_height_ratio`` a chain must not reach it, so pushes to the right end before contact (after
+    6 cm of travel, less the clearance), while the box itself (6 cm deep) is still pushed."""
+    b = EvidentialMap.empty(GRID)
+    c = GRID.centers()
+    floor = c[..., 2] > 0
+    known = ((c[..., 1] < 0.04) | (np.abs(c[..., 0]) >= 0.08)) & (c[..., 1] > 0) & floor
+    b.beta[known], b.eta[0][known] = 21.0, 21.0
+    boxes = {3: ((-0.08, 0.04), (0.08, 0.10)), 5: ((0.14, 0.03), (0.17, 0.11))}
+    for k, ((x0, y0), (x1, y1)) in boxes.items():
+        m = (c[..., 0] > x0) & (c[..., 0] < x1) & (c[..., 1] > y0) & (c[..., 1] < y1) & floor & (c[..., 2] < 0.15)
+        b.alpha[m], b.beta[m], b.eta[:, m] = 21.0, 1.0, 1.0
+        b.eta[k, m] = 21.0
+    clearance, standoff, voxel = 0.01, PushConfig().standoff_m, GRID.voxel_m
+
+    def right(cfg: PushConfig) -> list[PushAction]:
+        return [a for seed in range(6) for a in PushSkill(cfg).propose(_ctx(b, seed=seed))
+                if a.target_class == 3 and a.direction[0] > 0.95]
+
+    chain_only = right(PushConfig(chain_clearance_m=clearance))
+    both = right(PushConfig(chain_clearance_m=clearance, max_height_ratio=4.0))
+    assert both
+    assert max(a.length_m for a in both) <= 0.06 - clearance + standoff + voxel
+    assert max(a.length_m for a in chain_only) > 0.06 + standoff + voxel
 
 
 def test_max_height_ratio_refuses_to_push_a_thin_tall_object() -> None:

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -193,13 +194,15 @@ class PushConfig(BaseModel):
     """With ``clearance_m``: whether the pushed object may move into columns not believed free
     (unknown space, where hidden objects may stand). False: only into believed-free columns (every
     interior voxel of the column at most ``free_threshold``)."""
-    chain_clearance_m: float | None = Field(None, ge=0.0, le=0.2)
+    chain_clearance_m: float | None = Field(0.01, ge=0.0, le=0.2)
     """If set, the *chain* a push drives is predicted and the push shortened so that no object of it is
     pressed into a side or back wall: the target's believed footprint moves along the push, every
     confidently occupied object it meets starts moving with it from that point (and so on), and the
     push ends this far before the first of them reaches a wall; a candidate left shorter than
     ``min_length_m`` is dropped. Unlike ``clearance_m`` it allows pushing into other objects, only
-    not a row of them into a wall (the falls measured in docs/push.md). None: no check."""
+    not a row of them into a wall. With ``max_height_ratio`` set, a chain must also not reach a thin,
+    tall object. The default since it was measured (docs/push.md, "Falls"): on ``hard25`` scenes 0-9
+    push-only 0 of 10 episodes with a fall against 5 of 10, as many pushes. None: no check."""
     speed_mps: float = Field(0.1, gt=0.0, le=1.0)
     travel_speed_mps: float = Field(0.25, gt=0.0, le=2.0)
     """Speed of the approach and the retreat."""
@@ -243,6 +246,15 @@ class _Target:
     def own(self) -> NDArray[np.bool_]:
         """The footprint and its 8 neighbours: its believed contour, or an object touching it."""
         return ndimage.binary_dilation(self.foot, structure=np.ones((3, 3), dtype=bool))
+
+
+@dataclass
+class _Chain:
+    """What ``chain_clearance_m`` predicts chains from (``PushSkill._chain_data``)."""
+
+    labels: NDArray[np.int32]
+    wall: NDArray[np.bool_]
+    fragile: set[int]
 
 
 class PushSkill(Skill):
@@ -381,30 +393,43 @@ class PushSkill(Skill):
         free = float(steps[first[0]] - s / 2) if len(first) else np.inf
         return free - float(self.config.clearance_m)
 
-    @staticmethod
-    def _chain_data(conf: NDArray[np.bool_], cls: NDArray[np.int64], grid: Any, interior_m: Interior
-                    ) -> tuple[NDArray[np.int32], NDArray[np.bool_]]:
-        """(object label per BEV cell: the 8-connected components of each class's confident columns, 0 where
-        none, numbered across classes; the cells beyond the interior's sides and back)."""
+    def _chain_data(self, conf: NDArray[np.bool_], cls: NDArray[np.int64], grid: Any, interior_m: Interior
+                    ) -> _Chain:
+        """Object label per BEV cell (the 8-connected components of each class's confident columns, 0 where
+        none, numbered across classes), the cells beyond the interior's sides and back, and with
+        ``max_height_ratio`` the labels of thin, tall objects (believed height above that multiple of
+        the footprint's narrowest width), which a chain must not reach."""
         labels = np.zeros(conf.shape[:2], dtype=np.int32)
+        fragile: set[int] = set()
         n = 0
+        ratio, s = self.config.max_height_ratio, grid.voxel_m
         for c in np.unique(cls[conf]):
-            lab, k = ndimage.label((conf & (cls == c)).any(axis=2), structure=np.ones((3, 3), dtype=bool))
+            col = conf & (cls == c)
+            lab, k = ndimage.label(col.any(axis=2), structure=np.ones((3, 3), dtype=bool))
             free = labels == 0  # a column two classes share keeps the first label
             labels[free & (lab > 0)] = lab[free & (lab > 0)] + n
+            if ratio is not None:
+                zs = np.arange(conf.shape[2])
+                top = np.where(col, zs[None, None, :] + 1, 0).max(axis=2)  # voxels up to the top, per column
+                for i in range(1, k + 1):
+                    foot = lab == i
+                    height = (grid.origin[2] + top[foot].max() * s) - interior_m[2]
+                    width = _Target(foot, int(c), np.zeros(3), np.zeros(2), 0.0, (0, 0)).width_cells * s
+                    if height > ratio * width:
+                        fragile.add(i + n)
             n += k
         x_lo, _, _, x_hi, y_hi, _ = interior_m
         c = grid.origin[:2] + (np.indices(conf.shape[:2]).transpose(1, 2, 0) + 0.5) * grid.voxel_m
-        return labels, (c[..., 0] < x_lo) | (c[..., 0] > x_hi) | (c[..., 1] > y_hi)
+        return _Chain(labels, (c[..., 0] < x_lo) | (c[..., 0] > x_hi) | (c[..., 1] > y_hi), fragile)
 
-    def _chain_room(self, t: _Target, u: NDArray[np.float64], grid: Any,
-                    chain: tuple[NDArray[np.int32], NDArray[np.bool_]]) -> float:
+    def _chain_room(self, t: _Target, u: NDArray[np.float64], grid: Any, chain: _Chain) -> float:
         """How far the target can be pushed along ``u`` before an object of the chain it drives enters a
-        wall cell, minus ``chain_clearance_m``. Each moving object's footprint is swept along ``u``; an
-        object it meets starts moving when the target has travelled as far as that contact (the
-        earliest over the objects that meet it); every object moves the rest of the push."""
+        wall cell or meets a thin, tall object, minus ``chain_clearance_m``. Each moving object's
+        footprint is swept along ``u``; an object it meets starts moving when the target has travelled
+        as far as that contact (the earliest over the objects that meet it); every object moves the
+        rest of the push."""
         cfg = self.config
-        labels, wall = chain
+        labels, wall, fragile = chain.labels, chain.wall, chain.fragile
         s = grid.voxel_m
         far = cfg.max_length_m + float(cfg.chain_clearance_m or 0.0) + s
         steps = np.arange(s / 2, far, s / 2)
@@ -434,14 +459,15 @@ class PushSkill(Skill):
                 if j in own or j == k:
                     continue
                 d = e + float(steps[np.flatnonzero((lab == j).any(axis=1))[0]] - s / 2)
-                if d < start.get(j, np.inf) and d < room:
+                if j in fragile:  # a thin, tall object would be pushed: stop before it
+                    room = min(room, d)
+                elif d < start.get(j, np.inf) and d < room:
                     start[j] = d
                     queue = [(q, i) for q, i in queue if i != j] + [(d, j)]
         return room - float(cfg.chain_clearance_m or 0.0)
 
     def _candidate(self, t: _Target, rng: np.random.Generator, grid: Any, interior_m: Interior,
-                   blocked: NDArray[np.bool_] | None = None,
-                   chain: tuple[NDArray[np.int32], NDArray[np.bool_]] | None = None) -> PushAction | None:
+                   blocked: NDArray[np.bool_] | None = None, chain: _Chain | None = None) -> PushAction | None:
         cfg = self.config
         s = grid.voxel_m
         o = grid.origin
