@@ -234,22 +234,28 @@ def test_clearance_keeps_the_pushed_object_clear_of_its_neighbour() -> None:
     assert max(a.length_m for a in toward) <= 0.06 - clearance + PushConfig().standoff_m + 0.011
 
 
-def test_chain_clearance_stops_the_row_short_of_the_wall_but_lets_the_target_push_its_neighbour() -> None:
-    """A wide box hides a region; a second box stands 6 cm to its right and 8 cm from the right wall. With
-    ``chain_clearance_m`` a push to the right may drive the second box (unlike ``clearance_m``) but ends
-    before the second box, driven by the first, reaches the wall: after 14 cm of travel, less the
-    clearance. Pushes into the shelf, where nothing known stands before the back wall, keep their full length."""
+def _row_belief(boxes: dict[int, tuple[tuple[float, float], tuple[float, float]]]) -> EvidentialMap:
+    """Free space known in front of y = 4 cm and beside |x| = 8 cm, unknown elsewhere; each box (class:
+    (x0, y0), (x1, y1)) 15 cm tall and confidently of its class."""
     b = EvidentialMap.empty(GRID)
     c = GRID.centers()
     floor = c[..., 2] > 0
     known = ((c[..., 1] < 0.04) | (np.abs(c[..., 0]) >= 0.08)) & (c[..., 1] > 0) & floor
     b.beta[known], b.eta[0][known] = 21.0, 21.0
-    x_hi = WORKSPACE.shelf.interior_box[3]
-    boxes = {3: ((-0.08, 0.04), (0.08, 0.06)), 5: ((0.14, 0.03), (x_hi - 0.08, 0.07))}
     for k, ((x0, y0), (x1, y1)) in boxes.items():
         m = (c[..., 0] > x0) & (c[..., 0] < x1) & (c[..., 1] > y0) & (c[..., 1] < y1) & floor & (c[..., 2] < 0.15)
         b.alpha[m], b.beta[m], b.eta[:, m] = 21.0, 1.0, 1.0
         b.eta[k, m] = 21.0
+    return b
+
+
+def test_chain_clearance_stops_the_row_short_of_the_wall_but_lets_the_target_push_its_neighbour() -> None:
+    """A wide box hides a region; a second box stands 6 cm to its right and 8 cm from the right wall. With
+    ``chain_clearance_m`` a push to the right may drive the second box (unlike ``clearance_m``) but ends
+    before the second box, driven by the first, reaches the wall: after 14 cm of travel, less the
+    clearance. Pushes into the shelf, where nothing known stands before the back wall, keep their full length."""
+    x_hi = WORKSPACE.shelf.interior_box[3]
+    b = _row_belief({3: ((-0.08, 0.04), (0.08, 0.06)), 5: ((0.14, 0.03), (x_hi - 0.08, 0.07))})
     clearance, standoff, voxel = 0.01, PushConfig().standoff_m, GRID.voxel_m
 
     def pushes(cfg: PushConfig) -> list[PushAction]:
@@ -271,16 +277,7 @@ def test_chain_clearance_with_max_height_ratio_stops_before_a_thin_tall_neighbou
     """The same row, but the neighbour is a 3 cm thin, 15 cm tall board (a book on its edge): with
     ``max_height_ratio`` a chain must not reach it, so pushes to the right end before contact (after
     6 cm of travel, less the clearance), while the box itself (6 cm deep) is still pushed."""
-    b = EvidentialMap.empty(GRID)
-    c = GRID.centers()
-    floor = c[..., 2] > 0
-    known = ((c[..., 1] < 0.04) | (np.abs(c[..., 0]) >= 0.08)) & (c[..., 1] > 0) & floor
-    b.beta[known], b.eta[0][known] = 21.0, 21.0
-    boxes = {3: ((-0.08, 0.04), (0.08, 0.10)), 5: ((0.14, 0.03), (0.17, 0.11))}
-    for k, ((x0, y0), (x1, y1)) in boxes.items():
-        m = (c[..., 0] > x0) & (c[..., 0] < x1) & (c[..., 1] > y0) & (c[..., 1] < y1) & floor & (c[..., 2] < 0.15)
-        b.alpha[m], b.beta[m], b.eta[:, m] = 21.0, 1.0, 1.0
-        b.eta[k, m] = 21.0
+    b = _row_belief({3: ((-0.08, 0.04), (0.08, 0.10)), 5: ((0.14, 0.03), (0.17, 0.11))})
     clearance, standoff, voxel = 0.01, PushConfig().standoff_m, GRID.voxel_m
 
     def right(cfg: PushConfig) -> list[PushAction]:
