@@ -89,26 +89,28 @@ def test_threshold_check_decides_twice_per_belief_and_a_lower_threshold_changes_
     assert lo["changed_voxels_per_candidate"] > 3 * hi["changed_voxels_per_candidate"]
 
 
-# The push model fine-tuned on the completed beliefs of ``cnabu-map`` (MODEL_CARD_push_map.md), used by
-# examples/observe/cnabu-map-push-map.yaml: on held-out pushes from completed beliefs it must beat "no
-# change", the analytic twin and the shipped push model, which was trained on analytic beliefs.
-PUSH_MAP = "msmem_cnabu/weights/cnabu_push_map.pt"
+# The effect models fine-tuned on the completed beliefs of ``cnabu-map`` (MODEL_CARD_push_map.md,
+# MODEL_CARD_grasp_map.md), used by examples/observe/cnabu-map-effects-map.yaml: on held-out actions from
+# completed beliefs each must beat "no change", the analytic twin and the shipped model of its kind,
+# which was trained on analytic beliefs.
+ON_MAP = {"push": "msmem_cnabu/weights/cnabu_push_map.pt", "grasp": "msmem_cnabu/weights/cnabu_grasp_map.pt"}
 
 
-def test_push_map_weights_beat_the_twin_and_the_analytic_push_model_on_completed_beliefs():
+@pytest.mark.parametrize("kind", ["push", "grasp"])
+def test_map_weights_beat_the_twin_and_the_analytic_model_on_completed_beliefs(kind):
     from msmem_cnabu.weights import resolve_weights
 
-    data = HELDOUT / "push_map"
-    net, meta = load_cnabu("push", PUSH_MAP)
+    data = HELDOUT / f"{kind}_map"
+    net, meta = load_cnabu(kind, ON_MAP[kind])
     assert not net.training
-    assert resolve_weights(PUSH_MAP).stat().st_size < 4e6
+    assert resolve_weights(ON_MAP[kind]).stat().st_size < 4e6
     assert meta["data"]["manifest"]["config"]["observation_model"]["name"] == "cnabu-map"
     held = [int(p.stem.split("_")[1]) for p in data.glob("scene_*.npz")]
     assert held
     assert not set(held) & set(meta["data"]["manifest"]["seeds"])
     nll = {}
-    for name, weights in (("map", resolve_weights(PUSH_MAP)), ("shipped", None)):
-        m = evaluate("push", data, weights=weights, timing=False, threads=1, log=lambda _: None)["metrics"]
+    for name, weights in (("map", resolve_weights(ON_MAP[kind])), ("shipped", None)):
+        m = evaluate(kind, data, weights=weights, timing=False, threads=1, log=lambda _: None)["metrics"]
         nll[name] = m["learned"]["affected"]["occ_nll"] + m["learned"]["affected"]["sem_nll"]
         for base in ("analytic", "no-change"):
             nll[base] = m[base]["affected"]["occ_nll"] + m[base]["affected"]["sem_nll"]
