@@ -422,7 +422,7 @@ class PushSkill(Skill):
         c = grid.origin[:2] + (np.indices(conf.shape[:2]).transpose(1, 2, 0) + 0.5) * grid.voxel_m
         return _Chain(labels, (c[..., 0] < x_lo) | (c[..., 0] > x_hi) | (c[..., 1] > y_hi), fragile)
 
-    def _chain_room(self, t: _Target, u: NDArray[np.float64], grid: Any, chain: _Chain) -> float:
+    def _chain_room(self, t: _Target, u: NDArray[np.float64], grid: Any, chain: _Chain, cap: float = np.inf) -> float:
         """How far the target can be pushed along ``u`` before an object of the chain it drives enters a
         wall cell or meets a thin, tall object, minus ``chain_clearance_m``. Each moving object's
         footprint is swept along ``u``; an object it meets starts moving when the target has travelled
@@ -431,7 +431,8 @@ class PushSkill(Skill):
         cfg = self.config
         labels, wall, fragile = chain.labels, chain.wall, chain.fragile
         s = grid.voxel_m
-        far = cfg.max_length_m + float(cfg.chain_clearance_m or 0.0) + s
+        # only a room below ``cap`` (the travel the push may have anyway) changes the push: look no further
+        far = min(cfg.max_length_m, cap) + float(cfg.chain_clearance_m or 0.0) + s
         steps = np.arange(s / 2, far, s / 2)
         nx, ny = labels.shape
         start: dict[int, float] = {}  # object label -> target travel at which it starts moving
@@ -512,7 +513,7 @@ class PushSkill(Skill):
         if blocked is not None:  # the object moves once the tool has closed the standoff gap
             hi_len = min(hi_len, self._object_room(t, u, grid, blocked) + cfg.standoff_m)
         if chain is not None and hi_len >= cfg.min_length_m:
-            hi_len = min(hi_len, self._chain_room(t, u, grid, chain) + cfg.standoff_m)
+            hi_len = min(hi_len, self._chain_room(t, u, grid, chain, hi_len - cfg.standoff_m) + cfg.standoff_m)
         if hi_len < cfg.min_length_m:
             return None
         return PushAction(
