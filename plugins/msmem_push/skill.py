@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -226,6 +226,13 @@ class PushConfig(BaseModel):
         return v
 
 
+def narrowest_width_cells(cells: NDArray[np.int64]) -> float:
+    """A footprint's narrowest extent (cells) over 36 directions, 5 degrees apart; ``cells`` [N, 2]."""
+    a = np.radians(np.arange(0, 180, 5))
+    along = cells @ np.stack([np.cos(a), np.sin(a)])  # [N, 36]
+    return float((along.max(axis=0) - along.min(axis=0)).min() + 1.0)
+
+
 class _Target:
     """An occluder met by a trace: its BEV footprint, class, contact cell and the seed behind it."""
 
@@ -238,9 +245,7 @@ class _Target:
     @functools.cached_property
     def width_cells(self) -> float:
         """The footprint's narrowest extent (cells) over 36 directions, 5 degrees apart."""
-        a = np.radians(np.arange(0, 180, 5))
-        along = self.cells @ np.stack([np.cos(a), np.sin(a)])  # [N, 36]
-        return float((along.max(axis=0) - along.min(axis=0)).min() + 1.0)
+        return narrowest_width_cells(self.cells)
 
     @functools.cached_property
     def own(self) -> NDArray[np.bool_]:
@@ -255,6 +260,13 @@ class _Chain:
     labels: NDArray[np.int32]
     wall: NDArray[np.bool_]
     fragile: set[int]
+    cells: dict[int, NDArray[np.int64]] = field(default_factory=dict)
+    """Each label's cells [N, 2], filled as chains reach them (shared by all candidates of a proposal)."""
+
+    def cells_of(self, k: int) -> NDArray[np.int64]:
+        if k not in self.cells:
+            self.cells[k] = np.argwhere(self.labels == k)
+        return self.cells[k]
 
 
 class PushSkill(Skill):
@@ -372,9 +384,14 @@ class PushSkill(Skill):
     def _blocked(conf_bev: NDArray[np.bool_], grid: Any, interior_m: Interior) -> NDArray[np.bool_]:
         """[X, Y] BEV cells a pushed object must not enter: confidently occupied object columns and the
         cells beyond the interior's sides and back (the front is open)."""
+        return conf_bev | PushSkill._wall_cells(grid, interior_m)
+
+    @staticmethod
+    def _wall_cells(grid: Any, interior_m: Interior) -> NDArray[np.bool_]:
+        """[X, Y] BEV cells beyond the interior's sides and back (the front is open)."""
         x_lo, _, _, x_hi, y_hi, _ = interior_m
         c = grid.origin[:2] + (np.indices(grid.shape[:2]).transpose(1, 2, 0) + 0.5) * grid.voxel_m
-        return conf_bev | (c[..., 0] < x_lo) | (c[..., 0] > x_hi) | (c[..., 1] > y_hi)
+        return (c[..., 0] < x_lo) | (c[..., 0] > x_hi) | (c[..., 1] > y_hi)
 
     def _object_room(self, t: _Target, u: NDArray[np.float64], grid: Any, blocked: NDArray[np.bool_]) -> float:
         """How far the target's footprint can move along ``u`` before it enters a blocked cell, minus
@@ -414,13 +431,11 @@ class PushSkill(Skill):
                 for i in range(1, k + 1):
                     foot = lab == i
                     height = (grid.origin[2] + top[foot].max() * s) - interior_m[2]
-                    width = _Target(foot, int(c), np.zeros(3), np.zeros(2), 0.0, (0, 0)).width_cells * s
+                    width = narrowest_width_cells(np.argwhere(foot)) * s
                     if height > ratio * width:
                         fragile.add(i + n)
             n += k
-        x_lo, _, _, x_hi, y_hi, _ = interior_m
-        c = grid.origin[:2] + (np.indices(conf.shape[:2]).transpose(1, 2, 0) + 0.5) * grid.voxel_m
-        return _Chain(labels, (c[..., 0] < x_lo) | (c[..., 0] > x_hi) | (c[..., 1] > y_hi), fragile)
+        return _Chain(labels, self._wall_cells(grid, interior_m), fragile)
 
     def _chain_room(self, t: _Target, u: NDArray[np.float64], grid: Any, chain: _Chain, cap: float = np.inf) -> float:
         """How far the target can be pushed along ``u`` before an object of the chain it drives enters a
@@ -436,7 +451,6 @@ class PushSkill(Skill):
         steps = np.arange(s / 2, far, s / 2)
         nx, ny = labels.shape
         start: dict[int, float] = {}  # object label -> target travel at which it starts moving
-        foot = {0: t.cells}  # 0: the target itself
         own = set(np.unique(labels[t.foot]).tolist()) - {0}  # the target (its component)
         queue: list[tuple[float, int]] = [(0.0, 0)]
         room = np.inf
@@ -445,7 +459,7 @@ class PushSkill(Skill):
             e, k = queue.pop(0)
             if e >= room:
                 break
-            cells = foot[k] if k in foot else np.argwhere(labels == k)
+            cells = t.cells if k == 0 else chain.cells_of(k)  # 0: the target itself
             moved = (cells[None, :, :] + 0.5) + steps[:, None, None] * u[None, None, :] / s  # [T, N, 2]
             ij = np.floor(moved).astype(np.int64)
             inside = (ij[..., 0] >= 0) & (ij[..., 0] < nx) & (ij[..., 1] >= 0) & (ij[..., 1] < ny)
