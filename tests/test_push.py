@@ -13,7 +13,14 @@ from hypothesis import strategies as st
 from msmem_objectives.entropy import SemanticEntropyTerm
 from msmem_objectives.ig import IGTerm, IGTermConfig
 from msmem_push.effect import AnalyticPushEffect
-from msmem_push.geometry import leading_half_depth, swept_extent, swept_voxels, swept_voxels_reference, tool_boxes
+from msmem_push.geometry import (
+    footprint_sweep_hits,
+    leading_half_depth,
+    swept_extent,
+    swept_voxels,
+    swept_voxels_reference,
+    tool_boxes,
+)
 from msmem_push.skill import START_FRONT_MARGIN_M, PushAction, PushConfig, PushSkill
 from pydantic import ValidationError
 
@@ -564,3 +571,45 @@ def test_perf_push_times_the_named_effect_model_and_matches_the_reference() -> N
     assert any("predict (push-analytic)" in line for line in lines)
     assert res["max_rel_diff_exact_vs_reference"] < 1e-9
     assert res["total_s"] >= res["sample_s"] + res["predict_s"]
+
+
+def _sweep_hits_reference(cells, u, steps, s, labels, wall):  # type: ignore[no-untyped-def]
+    """The footprint sweep as plain array arithmetic over every step and cell (what the chain check did)."""
+    moved = (cells[None, :, :] + 0.5) + steps[:, None, None] * u[None, None, :] / s
+    ij = np.floor(moved).astype(np.int64)
+    nx, ny = labels.shape
+    inside = (ij[..., 0] >= 0) & (ij[..., 0] < nx) & (ij[..., 1] >= 0) & (ij[..., 1] < ny)
+    hit = ~inside
+    hit[inside] = wall[ij[inside][:, 0], ij[inside][:, 1]]
+    rows = np.flatnonzero(hit.any(axis=1))
+    at_wall = int(rows[0]) if len(rows) else -1
+    lab = np.zeros(inside.shape, dtype=np.int64)
+    lab[inside] = labels[ij[inside][:, 0], ij[inside][:, 1]]
+    first = np.full(labels.max() + 1, -1)
+    for j in range(1, labels.max() + 1):
+        at = np.flatnonzero((lab == j).any(axis=1))
+        if len(at) and (at_wall < 0 or at[0] <= at_wall):
+            first[j] = at[0]
+    return at_wall, first
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), angle=st.floats(0.0, 2 * np.pi), walls=st.booleans())
+def test_the_compiled_footprint_sweep_equals_the_array_reference(seed: int, angle: float, walls: bool) -> None:
+    """The chain check's kernel: the first wall step and each label's first step, exactly as array code."""
+    rng = np.random.default_rng(seed)
+    labels = np.zeros((30, 20), dtype=np.int32)
+    for k in range(1, 5):  # four rectangles, some overlapping (the later label wins)
+        i, j = rng.integers(0, 26), rng.integers(0, 16)
+        labels[i:i + rng.integers(1, 5), j:j + rng.integers(1, 5)] = k
+    wall = np.zeros_like(labels, dtype=bool)
+    if walls:
+        wall[:, 18:] = True
+        wall[27:, :] = True
+    cells = np.argwhere(labels == 1) if (labels == 1).any() else np.array([[10, 8]])
+    u = np.array([np.cos(angle), np.sin(angle)])
+    steps = np.arange(0.005, 0.27, 0.005)
+    at_wall, first = footprint_sweep_hits(cells, u, steps, 0.01, labels, wall)
+    ref_wall, ref_first = _sweep_hits_reference(cells, u, steps, 0.01, labels, wall)
+    assert at_wall == ref_wall
+    assert first.tolist() == ref_first.tolist()

@@ -112,7 +112,7 @@ def run(
 
     from msmem_core.config import RunConfig, load_config
     from msmem_core.run.runfolder import commit_run_dir, stage_run_dir
-    from msmem_core.run.runner import build_episode, resolve_scene, run_episode
+    from msmem_core.run.runner import build_episode, run_episode
 
     if scene is not None and scene_seed is not None:
         raise UserError("give either --scene or --scene-seed, not both")
@@ -132,10 +132,9 @@ def run(
     cfg = load_config(method, config, over)
     staged = stage_run_dir(out, overwrite) if out is not None else None  # checked before any work
     try:
-        spec = resolve_scene(cfg)
-        out_dir = out or Path("runs") / f"{cfg.method}-{spec.name}-seed{cfg.seed}"
+        ep = build_episode(cfg, _pm())  # plugin names are checked before the scene is generated (seconds)
+        out_dir = out or Path("runs") / f"{cfg.method}-{ep.scene.name}-seed{cfg.seed}"
         staged = staged or stage_run_dir(out_dir, overwrite)
-        ep = build_episode(cfg, _pm(), scene=spec)
     except BaseException:
         if staged is not None:
             shutil.rmtree(staged, ignore_errors=True)

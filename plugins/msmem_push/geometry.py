@@ -265,3 +265,34 @@ def swept_extent(
     z_lo = tip_z + min(b[2] for b in boxes)
     z_hi = tip_z + max(b[3] for b in boxes)
     return np.array([*pts.min(axis=0), z_lo]), np.array([*pts.max(axis=0), z_hi])
+
+
+@njit(cache=True, fastmath=False)
+def footprint_sweep_hits(cells, u, steps, s, labels, wall):  # type: ignore[no-untyped-def]
+    """Sweep a BEV footprint along ``u``: cells ``[N, 2]`` (grid indices) moved by each of ``steps``
+    (metres, increasing), a moved cell being the one its centre falls in.
+
+    Returns the index of the first step at which a cell leaves the grid or enters ``wall`` (-1: none)
+    and, per label of ``labels`` ``[X, Y]`` (int, 0: none), the index of the first step at which a cell
+    enters it (-1: never, or not before that wall step; the step of the wall hit itself is included).
+    The same arithmetic as ``floor((cells + 0.5) + steps * u / s)`` on arrays, so the same cells."""
+    nx, ny = labels.shape
+    first = np.full(labels.max() + 1, -1, np.int64)
+    for t in range(steps.shape[0]):
+        dx = steps[t] * u[0] / s
+        dy = steps[t] * u[1] / s
+        hit = False
+        for c in range(cells.shape[0]):
+            i = math.floor((cells[c, 0] + 0.5) + dx)
+            j = math.floor((cells[c, 1] + 0.5) + dy)
+            if i < 0 or i >= nx or j < 0 or j >= ny:
+                hit = True
+                continue
+            if wall[i, j]:
+                hit = True
+            k = labels[i, j]
+            if k > 0 and first[k] < 0:
+                first[k] = t
+        if hit:
+            return t, first
+    return -1, first

@@ -60,6 +60,7 @@ from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.scene import ShelfSpec
 from msmem_push.geometry import (
     Box,
+    footprint_sweep_hits,
     gripper_pose,
     leading_half_depth,
     sweep_halfplanes,
@@ -449,7 +450,6 @@ class PushSkill(Skill):
         # only a room below ``cap`` (the travel the push may have anyway) changes the push: look no further
         far = min(cfg.max_length_m, cap) + float(cfg.chain_clearance_m or 0.0) + s
         steps = np.arange(s / 2, far, s / 2)
-        nx, ny = labels.shape
         start: dict[int, float] = {}  # object label -> target travel at which it starts moving
         own = set(np.unique(labels[t.foot]).tolist()) - {0}  # the target (its component)
         queue: list[tuple[float, int]] = [(0.0, 0)]
@@ -460,20 +460,13 @@ class PushSkill(Skill):
             if e >= room:
                 break
             cells = t.cells if k == 0 else chain.cells_of(k)  # 0: the target itself
-            moved = (cells[None, :, :] + 0.5) + steps[:, None, None] * u[None, None, :] / s  # [T, N, 2]
-            ij = np.floor(moved).astype(np.int64)
-            inside = (ij[..., 0] >= 0) & (ij[..., 0] < nx) & (ij[..., 1] >= 0) & (ij[..., 1] < ny)
-            hit_wall = ~inside
-            hit_wall[inside] = wall[ij[inside][:, 0], ij[inside][:, 1]]
-            first = np.flatnonzero(hit_wall.any(axis=1))
-            if len(first):
-                room = min(room, e + float(steps[first[0]] - s / 2))
-            lab = np.zeros(inside.shape, dtype=np.int32)
-            lab[inside] = labels[ij[inside][:, 0], ij[inside][:, 1]]
-            for j in np.unique(lab[lab > 0]).tolist():
+            at_wall, first = footprint_sweep_hits(cells, u, steps, s, labels, wall)
+            if at_wall >= 0:
+                room = min(room, e + float(steps[at_wall] - s / 2))
+            for j in np.flatnonzero(first >= 0).tolist():
                 if j in own or j == k:
                     continue
-                d = e + float(steps[np.flatnonzero((lab == j).any(axis=1))[0]] - s / 2)
+                d = e + float(steps[first[j]] - s / 2)
                 if j in fragile:  # a thin, tall object would be pushed: stop before it
                     room = min(room, d)
                 elif d < start.get(j, np.inf) and d < room:
