@@ -12,7 +12,7 @@ from msmem_core.errors import UserError
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.meshes import object_mesh, part_meshes
 from msmem_core.world.scene import SceneSpec
-from msmem_core.world.scenegen import SceneGenConfig, footprint_fraction, generate_scene
+from msmem_core.world.scenegen import SceneGenConfig, clear_generated_scenes, footprint_fraction, generate_scene
 from msmem_core.world.viewpoints import generate_viewpoints
 from msmem_core.world.visibility import object_pixel_counts
 from msmem_core.world.voxelize import object_voxels
@@ -32,7 +32,10 @@ def hard_scene() -> SceneSpec:
 
 
 def test_same_seed_gives_the_same_scene_and_other_seeds_differ(easy_scenes: list[SceneSpec]) -> None:
+    assert generate_scene(0, EASY) is easy_scenes[0]  # kept per process
+    clear_generated_scenes()  # generated again, from scratch
     again = generate_scene(0, EASY)
+    assert again is not easy_scenes[0]
     assert again.model_dump_json() == easy_scenes[0].model_dump_json()
     assert len({s.model_dump_json() for s in easy_scenes}) == 3
 

@@ -22,7 +22,7 @@ Every random choice flows from the seed.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -580,6 +580,18 @@ def generate_scene(seed: int, cfg: SceneGenConfig | None = None) -> SceneSpec:
     cfg = cfg or SceneGenConfig()
     if seed < 0:
         raise UserError(f"scene seed must be >= 0, got {seed}")
+    return _generate(int(seed), cfg)
+
+
+def clear_generated_scenes() -> None:
+    """Forget the scenes ``generate_scene`` keeps for this process (the next call generates again)."""
+    _generate.cache_clear()
+
+
+@lru_cache(maxsize=16)
+def _generate(seed: int, cfg: SceneGenConfig) -> SceneSpec:
+    """``generate_scene``'s work, kept per process: a scene is a pure function of its seed and
+    config (both immutable), and generating one takes seconds."""
     sub_seeds = np.random.default_rng(seed).integers(0, 2**63 - 1, size=cfg.max_tries)
     views = generate_viewpoints(cfg.viewpoints, cfg.shelf)
     for sub in sub_seeds:
