@@ -295,6 +295,12 @@ class Robot(ABC):
         skill asks at every step: implementations cache the answer per shelf and viewpoint set."""
         return np.array([self.reach_camera(t, shelf).reachable for t in viewpoints], dtype=bool)
 
+    def link_points(self, joints: Sequence[float]) -> NDArray[np.float64]:
+        """[L, 3] world positions along the arm in configuration ``joints``, from the base to the hand
+        (link frame origins, in chain order), for drawing the arm: the step records keep them and the
+        report draws them. Empty (the default) for a robot that does not say."""
+        return np.zeros((0, 3))
+
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release the robot's resources (e.g. its kinematics client)."""
 

@@ -372,3 +372,45 @@ def test_decide_drops_the_manipulations_the_robot_cannot_follow_and_counts_them(
         assert d.unreachable.get("push") == dropped
         if d.skill.name == "push":
             assert d.action.start_m[0] < 0 or dropped is None
+
+
+def test_each_step_records_the_arm_configuration_that_reaches_its_view_and_the_report_draws_it(
+        plugin_manager, tmp_path):
+    """With the Panda, a view's step record holds the IK answer for its camera pose: forward kinematics
+    of those joints (computed here, in a robot of its own) puts the wrist camera at the chosen view, and
+    the drawn points run from the base to the fingertips. The report draws the arm; without an arm there
+    is no record."""
+    from msmem_core.run.report import arm_at, write_report
+    from msmem_core.run.runfolder import load_run
+    from msmem_core.run.runner import build_episode, run_episode
+    from msmem_core.testing.builders import conformance_scene
+    from msmem_core.world.geometry import rotation_angle_deg
+
+    small = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}, "steps": 3}
+    ep = build_episode(load_config("view-only", None, {**small, "robot": {"name": "panda"}}), plugin_manager,
+                       scene=conformance_scene())
+    run_episode(ep, tmp_path / "run")
+    check = PandaRobot(PandaConfig(disk_cache=False))
+    try:
+        for rec in ep.records:
+            arm = rec["arm"]
+            assert arm["reachable"], arm
+            camera = check.flange_pose(arm["joints"]) @ check.camera_mount()
+            view = ep.viewpoints[rec["action"]["view"]]
+            assert np.linalg.norm(camera[:3, 3] - view[:3, 3]) < 0.006
+            assert rotation_angle_deg(camera, view) < 2.5
+            points = np.asarray(arm["points"])
+            assert np.allclose(points[0], PandaConfig().base_position_m)
+            tip = check.flange_pose(arm["joints"]) @ check.tool_mount()
+            assert np.allclose(points[-1], tip[:3, 3], atol=1e-3)
+            assert len(points) >= 8
+            assert np.linalg.norm(np.diff(points, axis=0), axis=1).max() < 0.45
+    finally:
+        check.close()
+    run = load_run(tmp_path / "run")
+    assert arm_at(run, 2)[0] == 2
+    write_report(tmp_path / "run", png=False)
+    assert "arm (step 2)" in (tmp_path / "run" / "report.html").read_text()
+    plain = build_episode(load_config("view-only", None, small), plugin_manager, scene=conformance_scene())
+    run_episode(plain)
+    assert all("arm" not in rec for rec in plain.records)

@@ -116,6 +116,17 @@ def camera_path(run: RunData, upto: int) -> list[tuple[str, NDArray[np.float64]]
     return out
 
 
+def arm_at(run: RunData, upto: int) -> tuple[int, NDArray[np.float64]] | None:
+    """(step, [L, 3] points) of the arm in the last step <= ``upto`` whose record has its configuration
+    (``arm.points``: runs with a robot that has an arm); None when there is none."""
+    found = None
+    for rec in run.steps:
+        arm = rec.get("arm") or {}
+        if rec["step"] <= upto and arm.get("points"):
+            found = (int(rec["step"]), np.asarray(arm["points"], dtype=np.float64))
+    return found
+
+
 @dataclass
 class Arrow:
     step: int
@@ -328,6 +339,14 @@ def figure_3d(run: RunData) -> Any:
                     line={"color": "#9467bd", "width": 4}, visible=first, showlegend=col == 1,
                     hoverinfo="skip"), row=1, col=col)
                 idx.append(len(fig.data) - 1)
+        arm = arm_at(run, snap.step)
+        if arm is not None:
+            for col in (1, 2):
+                fig.add_trace(go.Scatter3d(
+                    x=arm[1][:, 0], y=arm[1][:, 1], z=arm[1][:, 2], mode="lines+markers", name=f"arm (step {arm[0]})",
+                    line={"color": "#7f7f7f", "width": 9}, marker={"size": 3, "color": "#444"}, visible=first,
+                    showlegend=col == 1, hoverinfo="skip"), row=1, col=col)
+                idx.append(len(fig.data) - 1)
         groups.append(idx)
 
     n = len(fig.data)
@@ -352,7 +371,8 @@ def figure_3d(run: RunData) -> Any:
     fig.layout.annotations[0].text = f"belief {run.snapshots[shown].label}"
     fig.layout.annotations[1].text = f"ground truth {run.snapshots[shown].label}"
     # both scenes show the same box (shelf and every camera), so the synchronised views match
-    cam_xyz = np.array([t[:3, 3] for _, t in camera_path(run, len(run.steps))])
+    cam_xyz = np.array([t[:3, 3] for _, t in camera_path(run, len(run.steps))]
+                       + [p for r in run.steps for p in (r.get("arm") or {}).get("points", [])])
     box_lo = np.minimum(shelf.interior_lower, cam_xyz.min(axis=0)) - 0.03
     box_hi = np.maximum(shelf.interior_upper, cam_xyz.max(axis=0)) + 0.03
     ext = box_hi - box_lo
@@ -609,6 +629,7 @@ def png_belief(run: RunData, path: Path) -> None:
     lo, hi = shelf.interior_lower, shelf.interior_upper
     cams = np.array([t[:3, 3] for _, t in camera_path(run, snap.step)])
     arrows, _ = manipulations(run, snap.step)
+    arm = arm_at(run, snap.step)
     for i, (layer, title) in enumerate(((bl, f"belief {snap.label} (p > 0.5)"), (gl, "ground truth"))):
         ax = fig.add_subplot(1, 2, i + 1, projection="3d")
         ax.scatter(layer.xyz[:, 0], layer.xyz[:, 1], layer.xyz[:, 2], c=_class_rgb(layer.cls, palette[1]), s=2,
@@ -619,9 +640,13 @@ def png_belief(run: RunData, path: Path) -> None:
             ax.quiver(*a.start, *(a.end - a.start), color="k", lw=2, arrow_length_ratio=0.3)
         if i == 0 and len(cams):
             ax.plot(cams[:, 0], cams[:, 1], cams[:, 2], "o-", color="#d62728", ms=3, lw=1)
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(min(lo[1], cams[:, 1].min() if i == 0 and len(cams) else lo[1]), hi[1])
-        ax.set_zlim(lo[2], max(hi[2], cams[:, 2].max() if i == 0 and len(cams) else hi[2]))
+        shown = cams if i == 0 and len(cams) else np.zeros((0, 3))
+        if arm is not None:
+            ax.plot(arm[1][:, 0], arm[1][:, 1], arm[1][:, 2], "o-", color="#7f7f7f", ms=3, lw=4, mfc="#444")
+            shown = np.concatenate([shown, arm[1]])
+        ax.set_xlim(min(lo[0], shown[:, 0].min(initial=lo[0])), max(hi[0], shown[:, 0].max(initial=hi[0])))
+        ax.set_ylim(min(lo[1], shown[:, 1].min(initial=lo[1])), hi[1])
+        ax.set_zlim(min(lo[2], shown[:, 2].min(initial=lo[2])), max(hi[2], shown[:, 2].max(initial=hi[2])))
         xr, yr, zr = (np.ptp(np.array(ax.get_xlim())), np.ptp(np.array(ax.get_ylim())), np.ptp(np.array(ax.get_zlim())))
         ax.set_box_aspect((xr, yr, zr))
         ax.view_init(elev=25, azim=-70)

@@ -302,6 +302,32 @@ class MetricTracker:
         }
 
 
+def arm_record(ep: Episode, d: Decision) -> dict[str, Any] | None:
+    """The arm's configuration for the step's action (a robot with an arm only): the IK answer for a
+    view's camera pose, or the last configuration along a manipulation's tool path, with the points
+    ``Robot.link_points`` draws the arm by; or why the robot cannot reach it. The simulator still
+    places the camera and moves the gripper itself (docs/robots.md)."""
+    robot = ep.robot
+    if robot is None or not robot.arm:
+        return None
+    action = d.action.model_dump()
+    if d.skill.skill.category == "perception":
+        view = action.get("view")
+        if not isinstance(view, int):
+            return None
+        reach = robot.reach_camera(ep.viewpoints[view], ep.scene.shelf)
+    else:
+        path = d.skill.skill.tool_path(d.action, ep.workspace)
+        if path is None:
+            return None
+        reach = robot.reach_path(path, ep.scene.shelf)
+    if not reach.reachable or reach.joints is None:
+        return {"reachable": False, "reason": reach.reason}
+    points = robot.link_points(reach.joints)
+    return {"reachable": True, "joints": [round(q, 5) for q in reach.joints],
+            "points": np.round(points, 4).tolist()}
+
+
 def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
                 tracer: Tracer | None = None) -> dict[str, Any]:
     """Run MSAS for ``cfg.steps`` actions; returns the final metrics (and writes the run folder).
@@ -335,6 +361,7 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
             "step": step, "skill": d.skill.name, "action": d.action.model_dump(), "objective": d.value,
             "terms": d.terms, "best_per_skill": d.best, "candidates": d.candidates,
             **({"unreachable": d.unreachable} if d.unreachable else {}),  # only with an arm (docs/robots.md)
+            **({"arm": arm} if (arm := arm_record(ep, d)) is not None else {}),
             "success": outcome.success, "fell_or_left": outcome.fell_or_left, "info": outcome.info,
             "metrics": m, "seconds": now - t_last,
         }

@@ -210,6 +210,21 @@ class PandaRobot(Robot):
         state = c.getLinkState(self._body, self._flange, computeForwardKinematics=True)
         return pose_matrix(state[4], state[5])
 
+    def link_points(self, joints: Sequence[float]) -> NDArray[np.float64]:
+        """The base and the origin of every link from ``panda_link1`` to the hand, then the point between
+        the fingertips (the gripper frame), by forward kinematics."""
+        c = self._connect()
+        self._set(np.asarray(joints, dtype=np.float64))
+        pts = [self._base[:3, 3].copy()]
+        hand = next(j for j, n in self._links.items() if n == "panda_hand")
+        for j in range(hand + 1):
+            pts.append(np.asarray(c.getLinkState(self._body, j, computeForwardKinematics=True)[4]))
+        tip = self.flange_pose(joints) @ self.tool_mount()
+        pts.append(tip[:3, 3])
+        out = np.array(pts, dtype=np.float64)
+        keep = np.r_[True, np.linalg.norm(np.diff(out, axis=0), axis=1) > 1e-6]  # fixed joints repeat a point
+        return out[keep]
+
     def collisions(self, joints: Sequence[float], shelf: ShelfSpec) -> list[str]:
         self._use_shelf(shelf)
         self._set(np.asarray(joints, dtype=np.float64))
