@@ -297,8 +297,8 @@ class Robot(ABC):
 
     def link_points(self, joints: Sequence[float]) -> NDArray[np.float64]:
         """[L, 3] world positions along the arm in configuration ``joints``, from the base to the hand
-        (link frame origins, in chain order), for drawing the arm: the step records keep them and the
-        report draws them. Empty (the default) for a robot that does not say."""
+        (link frame origins, in chain order, passing the flange), for drawing the arm: the step records
+        keep them and the report draws them. Empty (the default) for a robot that does not say."""
         return np.zeros((0, 3))
 
     def close(self) -> None:  # noqa: B027 - optional hook

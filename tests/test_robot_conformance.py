@@ -77,7 +77,19 @@ class _VaguePaths(PandaRobot):
         return r if r.reachable else Reach(False, None, reason="no")
 
 
+class _ArmBesideItself(PandaRobot):  # draws the arm 20 cm off to the side
+    def link_points(self, joints):
+        return super().link_points(joints) + np.array([0.2, 0.0, 0.0])
+
+
+class _ArmWithoutTheHand(PandaRobot):  # draws the arm only up to its elbow
+    def link_points(self, joints):
+        return super().link_points(joints)[:4]
+
+
 @pytest.mark.parametrize(("factory", "rule"), [
+    (panda(_ArmBesideItself), "link_points must start at the base"),
+    (panda(_ArmWithoutTheHand), "link_points does not pass the flange"),
     (panda(_OutsideLimits), "leaves the joint limits at panda_joint4"),
     (panda(_Liar), "forward kinematics of the URDF puts the flange"),
     (panda(_NoCollisionCheck), "inside the shelf's bottom board was called reachable|inside a shelf board"),

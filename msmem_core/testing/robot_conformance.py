@@ -15,7 +15,8 @@ and, for a robot with a URDF, puts the flange where it was asked by an *independ
 (a pybullet client of the suite's own loading the same URDF at ``RobotModel.base_pose``) with no link
 inside a shelf board; poses far away or inside a board are refused with a one-line reason; answers are
 deterministic; paths through a reachable pose are followed and paths that leave the workspace are
-refused naming their point. A robot without an arm (``Robot.arm = False``) must reach everything.
+refused naming their point; the points the arm is drawn by (``link_points``) start at the base and pass
+the flange. A robot without an arm (``Robot.arm = False``) must reach everything.
 
 A failed check raises ``ConformanceError`` naming the robot and the rule; ``ConformanceUsageError`` when
 the argument is not a robot factory. Every ``check_*`` function is public.
@@ -210,6 +211,27 @@ def check_answer(robot: Robot, reach: Reach, target: NDArray[np.float64], shelf:
         _fail(f"{who}: {what}: called reachable, but a link is {depth * 1000:.1f} mm inside a shelf board")
 
 
+def check_link_points(robot: Robot, reach: Reach, kin: _Kinematics | None, what: str) -> None:
+    """``link_points`` of a reachable answer: an empty array (the robot does not say), or [L, 3] finite
+    points starting at the base and passing within ``FK_POSITION_M`` of the flange (by ``kin``)."""
+    who = _who(robot)
+    pts = robot.link_points(tuple(reach.joints or ()))
+    if not (isinstance(pts, np.ndarray) and pts.ndim == 2 and pts.shape[1] == 3 and np.all(np.isfinite(pts))):
+        got = f"{pts.dtype} {pts.shape}" if isinstance(pts, np.ndarray) else type(pts).__name__
+        _fail(f"{who}: {what}: link_points must return a finite [L, 3] array, got {got}")
+    if len(pts) == 0:
+        return
+    base = robot.model().base_pose[:3, 3]
+    if np.linalg.norm(pts[0] - base) > FK_POSITION_M:
+        _fail(f"{who}: {what}: link_points must start at the base {base.round(3).tolist()}, starts at "
+              f"{pts[0].round(3).tolist()}")
+    if kin is not None:
+        flange = kin.flange_pose(tuple(reach.joints or ()))[:3, 3]
+        if np.linalg.norm(pts - flange, axis=1).min() > FK_POSITION_M:
+            _fail(f"{who}: {what}: link_points does not pass the flange at {flange.round(3).tolist()} "
+                  "(forward kinematics of the URDF)")
+
+
 # ------------------------------------------------------------------------------------------- suite
 def robot_conformance(factory: Callable[[], Robot] | str, shelf: ShelfSpec | None = None,
                       viewpoints: NDArray[np.float64] | None = None, samples: int = 6) -> RobotReport:
@@ -278,6 +300,7 @@ def _verify(robot: Robot, shelf: ShelfSpec, views: NDArray[np.float64], mask: ND
         if not r.reachable:
             _fail(f"{who}: reachable_views says view {v} is reachable, reach_camera says not ({r.reason})")
         check_answer(robot, r, views[v] @ mount_inv, shelf, f"view {v}", kin)
+        check_link_points(robot, r, kin, f"view {v}")
         if robot.reach_camera(views[v], shelf) != r:
             _fail(f"{who}: view {v}: two ik calls for the same pose gave different answers")
         checked += 1
@@ -310,5 +333,5 @@ def _verify(robot: Robot, shelf: ShelfSpec, views: NDArray[np.float64], mask: ND
     return checked
 
 
-__all__ = ["RobotReport", "check_answer", "check_model", "check_mounts", "check_refusal",
-                      "robot_conformance"]
+__all__ = ["RobotReport", "check_answer", "check_link_points", "check_model", "check_mounts", "check_refusal",
+           "robot_conformance"]
