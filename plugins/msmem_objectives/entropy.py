@@ -10,7 +10,10 @@ the semantic uncertainty its predicted change adds and never rewarded for entrop
 removes. The presets keep it until the unclipped form is tuned on tune10 (docs/results.md): with
 the learned effect models a push's predicted change *removes* about one nat per changed voxel (the
 swept space predicted free), so unclipped dH is +2,000 to +6,500 for the best pushes, larger than
-their IG, and 40 to 340 for grasps.
+their IG, and 40 to 340 for grasps. On the completed beliefs of ``cnabu-map`` with the effect models
+fine-tuned on them it is the other way round: the predictions are less certain than the belief, dH is
+negative for the chosen candidates (-700 for a grasp on ``tune10`` scene 0) and the clip changes
+nothing (docs/results.md, the tune10 sweep).
 """
 
 from __future__ import annotations
