@@ -20,29 +20,20 @@ import json
 import math
 from pathlib import Path
 
-from msmem_core.run.bench import mean_ci
+from msmem_core.run.bench import mean_ci, read_bench_folder
 
 METRICS = ("occupancy_miou", "semantic_miou_2d", "observable_iou", "occupancy_iou", "semantic_miou", "occupancy_nll",
            "semantic_nll",
            "occupancy_ece", "semantic_ece")
 
 
-def episodes(folder: Path) -> dict[tuple[str, int], dict]:
-    """Per (method, scene) the metrics of the ok episodes: from ``episodes/*.json``, or, in a folder
-    kept without them, from the episodes ``results.json`` holds."""
-    files = sorted((folder / "episodes").glob("*.json"))
-    records = ([json.loads(f.read_text()) for f in files] if files
-               else json.loads((folder / "results.json").read_text()).get("episodes", []))
-    return {(r["method"], r["scene_index"]): r["metrics"] for r in records if r.get("status") == "ok"}
-
-
 def main(folders: list[str]) -> None:
     first, *others = (Path(f) for f in folders)
-    base = episodes(first)
+    base = read_bench_folder(first)
     print("| folder | episodes | " + " | ".join(METRICS) + " (suite-cumulative: occupancy mIoU, semantic mIoU 2-D) |")
     print("|---|---|" + "---|" * len(METRICS))
     for folder in (first, *others):
-        eps = episodes(folder)
+        eps = read_bench_folder(folder)
         cells = []
         for k in METRICS:
             m, c = mean_ci([e[k] for e in eps.values() if k in e])
@@ -58,7 +49,7 @@ def main(folders: list[str]) -> None:
     print("| difference | scenes | " + " | ".join(METRICS) + " |")
     print("|---|---|" + "---|" * len(METRICS))
     for folder in others:
-        other = episodes(folder)
+        other = read_bench_folder(folder)
         keys = sorted(set(base) & set(other))
         cells = []
         for k in METRICS:
@@ -74,7 +65,7 @@ def within(a: str, b: str, folders: list[str]) -> None:
     print("| folder | scenes | " + " | ".join(METRICS) + " |")
     print("|---|---|" + "---|" * len(METRICS))
     for f in folders:
-        eps = episodes(Path(f))
+        eps = read_bench_folder(Path(f))
         scenes = sorted({s for m, s in eps if m == a} & {s for m, s in eps if m == b})
         cells = []
         for k in METRICS:

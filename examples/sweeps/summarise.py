@@ -14,16 +14,7 @@ import argparse
 import json
 from pathlib import Path
 
-from msmem_core.run.bench import mean_ci
-
-
-def episodes(folder: Path) -> dict[int, dict]:
-    out = {}
-    for f in sorted((folder / "episodes").glob("*.json")):
-        r = json.loads(f.read_text())
-        if r.get("status") == "ok":
-            out[r["scene_index"]] = r["metrics"]
-    return out
+from msmem_core.run.bench import grasps_held, mean_ci, read_bench_folder
 
 
 def fmt(values: list[float], star: bool = False, sign: bool = False) -> str:
@@ -33,7 +24,7 @@ def fmt(values: list[float], star: bool = False, sign: bool = False) -> str:
 
 
 def main(folders: list[str]) -> None:
-    runs = [(Path(f).name, episodes(Path(f)), Path(f)) for f in folders]
+    runs = [(Path(f).name, {s: m for (_, s), m in read_bench_folder(Path(f)).items()}, Path(f)) for f in folders]
     base_name, base, _ = runs[0]
     print("| config | episodes | occupancy mIoU (paper) | semantic mIoU 2-D (paper) | paired occ / sem 2-D against "
           f"{base_name} | Position Change (m) | pushes / grasps | grasp success | episodes with a fall |")
@@ -54,7 +45,7 @@ def main(folders: list[str]) -> None:
         pushes = sum(eps[s]["pushes"] for s in scenes) / len(scenes)
         grasps = sum(eps[s]["grasps"] for s in scenes) / len(scenes)
         n_grasp = sum(eps[s]["grasps"] for s in scenes)
-        ok_grasp = sum(round(eps[s]["grasp_success"] * eps[s]["grasps"]) for s in scenes if eps[s]["grasps"])
+        ok_grasp = sum(grasps_held(eps[s]) for s in scenes)
         falls = sum(1 for s in scenes if eps[s].get("fell"))
         cum_txt = (f" ({cum['occupancy_miou']:.3f})", f" ({cum['semantic_miou_2d']:.3f})") if cum else ("", "")
         print(f"| {name} | {len(scenes)} | {fmt(occ)}{cum_txt[0]} | {fmt(sem)}{cum_txt[1]} | {paired} | "

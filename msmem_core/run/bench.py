@@ -176,6 +176,21 @@ def read_episode(path: Path) -> dict[str, Any]:
     return rec
 
 
+def read_bench_folder(folder: Path) -> dict[tuple[str, int], dict[str, Any]]:
+    """The finished episodes of a bench folder, as {(method, scene index): metrics}: from
+    ``episodes/*.json``, or, in a folder kept without them, from the episodes ``results.json`` holds.
+    For scripts that compare folders (``examples/paired_benches.py``, ``examples/table1.py``)."""
+    files = sorted((folder / "episodes").glob("*.json"))
+    records = ([json.loads(f.read_text()) for f in files] if files
+               else json.loads((folder / "results.json").read_text()).get("episodes", []))
+    return {(r["method"], r["scene_index"]): r["metrics"] for r in records if r.get("status") == "ok"}
+
+
+def grasps_held(metrics: dict[str, Any]) -> int:
+    """Grasps of an episode that held their object (``grasp_success`` is their share)."""
+    return round(metrics["grasp_success"] * metrics["grasps"]) if metrics.get("grasps") else 0
+
+
 def crash_record(task: BenchTask, error: str, trace: str, seconds: float | None = None) -> dict[str, Any]:
     return {"method": task.method, "scene_index": task.scene_index, "status": "error", "error": error,
             "traceback": trace, "seconds": seconds, "fingerprint": task.fingerprint,

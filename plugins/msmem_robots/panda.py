@@ -215,12 +215,10 @@ class PandaRobot(Robot):
         the fingertips (the gripper frame), by forward kinematics."""
         c = self._connect()
         self._set(np.asarray(joints, dtype=np.float64))
-        pts = [self._base[:3, 3].copy()]
         hand = next(j for j, n in self._links.items() if n == "panda_hand")
-        for j in range(hand + 1):
-            pts.append(np.asarray(c.getLinkState(self._body, j, computeForwardKinematics=True)[4]))
-        tip = self.flange_pose(joints) @ self.tool_mount()
-        pts.append(tip[:3, 3])
+        states = [c.getLinkState(self._body, j, computeForwardKinematics=True) for j in range(hand + 1)]
+        flange = pose_matrix(states[self._flange][4], states[self._flange][5])
+        pts = [self._base[:3, 3].copy(), *(np.asarray(st[4]) for st in states), (flange @ self.tool_mount())[:3, 3]]
         out = np.array(pts, dtype=np.float64)
         keep = np.r_[True, np.linalg.norm(np.diff(out, axis=0), axis=1) > 1e-6]  # fixed joints repeat a point
         return out[keep]
