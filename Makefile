@@ -32,8 +32,12 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[dev]"
 	@touch $(STAMP)
 
+# The demo runs `ours` with the learned whole-map observation model and the effect models fine-tuned on
+# its beliefs (README, "make demo"); `make demo DEMO_CONFIG=` runs the library defaults (analytic update).
+DEMO_CONFIG ?= examples/observe/cnabu-map-effects-map.yaml
+
 demo: setup
-	$(VENV)/bin/msmem run --out runs/demo --overwrite
+	$(VENV)/bin/msmem run --out runs/demo --overwrite $(if $(DEMO_CONFIG),-c $(DEMO_CONFIG))
 
 # Two workers (pytest-xdist), a test file per worker: each file's module fixtures are built once.
 test: setup

@@ -6,7 +6,8 @@
 The first folder is compared with each of the others on the scenes both finished (same method and
 scene index), metric by metric: mean of (first - other) and the half-width of its 95% t-interval
 (`msmem_core.run.bench.mean_ci`); an interval excluding 0 is marked *. Suite-cumulative paper metrics
-of each folder are printed too (from `results.json`).
+of each folder are printed too (from `results.json`), and their differences with a paired bootstrap
+interval (`cumulative_difference`).
 
     .venv/bin/python examples/paired_benches.py --within ours view-only runs/t-ours
 
@@ -20,7 +21,7 @@ import json
 import math
 from pathlib import Path
 
-from msmem_core.run.bench import mean_ci, read_bench_folder
+from msmem_core.run.bench import cumulative_difference, mean_ci, read_bench_folder, read_paper_counts
 
 METRICS = ("occupancy_miou", "semantic_miou_2d", "observable_iou", "occupancy_iou", "semantic_miou", "occupancy_nll",
            "semantic_nll",
@@ -57,6 +58,18 @@ def main(folders: list[str]) -> None:
             star = "*" if not math.isnan(c) and abs(m) > c else ""
             cells.append(f"{m:+.3f} ± {c:.3f}{star}")
         print(f"| {first.name} - {folder.name} | {len(keys)} | " + " | ".join(cells) + " |")
+    print()
+    print(f"Suite-cumulative paper metrics, {first.name} minus each (paired bootstrap over scenes, 2,000 draws,")
+    print("95% percentile interval; * = interval excludes 0):")
+    print()
+    print("| difference | occupancy mIoU | semantic mIoU 2-D |")
+    print("|---|---|---|")
+    for folder in others:
+        cells = []
+        for k in ("occupancy_miou", "semantic_miou_2d"):
+            d, lo, hi = cumulative_difference(read_paper_counts(first), read_paper_counts(folder), k)
+            cells.append(f"{d:+.3f} [{lo:+.3f}, {hi:+.3f}]{'*' if lo > 0 or hi < 0 else ''}")
+        print(f"| {first.name} - {folder.name} | " + " | ".join(cells) + " |")
 
 
 def within(a: str, b: str, folders: list[str]) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 import time
@@ -14,6 +15,7 @@ from msmem_core.errors import UserError
 from msmem_core.run.bench import (
     TABLE_METRICS,
     BenchTask,
+    cumulative_difference,
     parse_range,
     run_bench,
     run_bench_task,
@@ -94,6 +96,22 @@ def _paper_result(method: str, scene: int, counts: dict) -> dict:
     r["metrics"].update(paper_metrics_from_counts(counts))
     r["paper_counts"] = counts
     return r
+
+
+def test_cumulative_difference_is_paired_and_summed_before_dividing():
+    # scenes of very different size; in each, a finds 10 % of b's missing occupied intersection
+    sizes = (10, 100, 1000, 40, 400)
+    b = {i: _counts(([n, n // 2], [n, n]), ([1, 1, 0], [2, 2, 0])) for i, n in enumerate(sizes)}
+    a = {i: _counts(([n, n // 2 + n // 20], [n, n]), ([1, 1, 0], [2, 2, 0])) for i, n in enumerate(sizes)}
+    d, lo, hi = cumulative_difference(a, b, "occupancy_miou")
+    total, gained = sum(sizes), sum(n // 20 for n in sizes)
+    assert d == pytest.approx(gained / total / 2)  # summed over scenes, then divided (free IoU is 1 in both)
+    assert 0 < lo <= d <= hi < 0.03  # same draw for both: the difference hardly varies
+    assert cumulative_difference(a, b, "semantic_miou_2d") == (0.0, 0.0, 0.0)
+    assert cumulative_difference(a, a, "occupancy_miou") == (0.0, 0.0, 0.0)
+    assert all(math.isnan(v) for v in cumulative_difference(a, {7: b[0]}, "occupancy_miou"))  # no common scene
+    again = cumulative_difference(a, b, "occupancy_miou")
+    assert again == (d, lo, hi)  # seeded
 
 
 def test_paper_metrics_per_scene_and_suite_cumulative():

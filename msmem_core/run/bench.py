@@ -270,6 +270,38 @@ def cumulative(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return {"episodes": len(counted), **values}
 
 
+def cumulative_difference(a: dict[int, dict[str, Any]], b: dict[int, dict[str, Any]], key: str,
+                          resamples: int = 2000, seed: int = 0) -> tuple[float, float, float]:
+    """Suite-cumulative paper metric ``key`` of ``a`` minus ``b`` over the scenes both hold (``a``, ``b``:
+    ``paper_counts`` per scene index), and its paired percentile-bootstrap 95% interval: scenes are
+    drawn with replacement, the same draw for both, and the counts of the draw summed before dividing."""
+    scenes = sorted(set(a) & set(b))
+    if not scenes:
+        return float("nan"), float("nan"), float("nan")
+
+    def diff(draw: list[int]) -> float:
+        return (paper_metrics_from_counts(sum_paper_counts(a[s] for s in draw))[key]
+                - paper_metrics_from_counts(sum_paper_counts(b[s] for s in draw))[key])
+
+    rng = np.random.default_rng(seed)
+    boot = [diff([scenes[i] for i in rng.integers(0, len(scenes), len(scenes))]) for _ in range(resamples)]
+    lo, hi = np.nanpercentile(boot, [2.5, 97.5])
+    return diff(scenes), float(lo), float(hi)
+
+
+def read_paper_counts(folder: Path, method: str | None = None) -> dict[int, dict[str, Any]]:
+    """``paper_counts`` per scene index of one method's finished episodes in a bench folder (the only
+    method when ``method`` is None; episodes written before the counts existed are left out)."""
+    files = sorted((folder / "episodes").glob("*.json"))
+    records = ([json.loads(f.read_text()) for f in files] if files
+               else json.loads((folder / "results.json").read_text()).get("episodes", []))
+    ok = [r for r in records if r.get("status") == "ok" and "paper_counts" in r]
+    methods = sorted({r["method"] for r in ok})
+    if method is None and len(methods) > 1:
+        raise UserError(f"{folder} holds methods {', '.join(methods)}; name one")
+    return {r["scene_index"]: r["paper_counts"] for r in ok if method is None or r["method"] == method}
+
+
 def summarise(results: list[dict[str, Any]], methods: list[str]) -> dict[str, Any]:
     """Per method: mean and 95% CI over scenes of every table metric (episodes lacking a metric, written
     before it existed, are left out of its column), Table II counts, and the suite-cumulative paper metrics;
