@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from msmem_core.errors import UserError
 from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
 from msmem_core.world.camera import Observation
 from msmem_core.world.grid import GridSpec
@@ -191,6 +192,19 @@ class Simulator(ABC):
     @abstractmethod
     def capabilities(self) -> Capabilities: ...
 
+    def attach_robot(self, robot: Robot) -> None:
+        """Build ``robot``'s arm into the world from the next ``reset`` on and drive it by joint control:
+        the gripper calls above then move the arm's hand, and ``observe`` puts the arm where its wrist
+        camera takes the view. The loop calls it for a robot with an arm. A backend that cannot load the
+        robot refuses here, in one line naming what is missing (this default)."""
+        raise UserError(f"simulator {self.capabilities().name!r} cannot drive robot {robot.model().name!r}: it "
+                        "does not load robots from URDF; use the pybullet simulator, or robot: {name: floating}")
+
+    def robot_notes(self) -> list[str]:
+        """What the attached arm could not do since the last call (e.g. a move to a pose it cannot reach,
+        which is then not made), one line each; the loop puts them in the step record."""
+        return []
+
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release the backend's resources."""
 
@@ -215,6 +229,11 @@ class RobotModel:
     """Upper joint limits (rad or m), from the URDF."""
     flange_link: str | None = None
     """The link whose pose ``Robot.ik`` reaches; the camera mount is relative to it."""
+    finger_joints: tuple[str, ...] = ()
+    """The hand's finger joints (prismatic, metres): a simulator that drives the arm opens and closes
+    them, the opening being their sum."""
+    home: tuple[float, ...] = ()
+    """A configuration (``joint_names`` order) out of the shelf, where a simulator parks the arm."""
 
 
 @dataclass(frozen=True)

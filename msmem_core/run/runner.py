@@ -219,6 +219,8 @@ def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | Non
     if not isinstance(robot, Robot):
         raise PluginError(f"robot {cfg.robot.name!r} is not a msmem_core.interfaces.Robot")
     sim = pm.build("simulator", cfg.simulator, where="simulator", **common)
+    if robot.arm:
+        sim.attach_robot(robot)  # the arm replaces the floating gripper (a backend that cannot refuses)
     scene = scene or resolve_scene(cfg, pm.object_classes())  # after the plugins, so a bad name fails fast
     for where, name, model in models:
         if model.classes is not None and (why := class_mismatch(model.classes, scene.class_names)):
@@ -305,11 +307,12 @@ class MetricTracker:
 def arm_record(ep: Episode, d: Decision) -> dict[str, Any] | None:
     """The arm's configuration for the step's action (a robot with an arm only): the IK answer for a
     view's camera pose, or the last configuration along a manipulation's tool path, with the points
-    ``Robot.link_points`` draws the arm by; or why the robot cannot reach it. The simulator still
-    places the camera and moves the gripper itself (docs/robots.md)."""
+    ``Robot.link_points`` draws the arm by; or why the robot cannot reach it. ``execution``: what the
+    simulator's arm could not do while executing it (``Simulator.robot_notes``; docs/robots.md)."""
     robot = ep.robot
     if robot is None or not robot.arm:
         return None
+    notes = {"execution": n} if (n := ep.sim.robot_notes()) else {}
     action = d.action.model_dump()
     if d.skill.skill.category == "perception":
         view = action.get("view")
@@ -322,10 +325,10 @@ def arm_record(ep: Episode, d: Decision) -> dict[str, Any] | None:
             return None
         reach = robot.reach_path(path, ep.scene.shelf)
     if not reach.reachable or reach.joints is None:
-        return {"reachable": False, "reason": reach.reason}
+        return {"reachable": False, "reason": reach.reason, **notes}
     points = robot.link_points(reach.joints)
     return {"reachable": True, "joints": [round(q, 5) for q in reach.joints],
-            "points": np.round(points, 4).tolist()}
+            "points": np.round(points, 4).tolist(), **notes}
 
 
 def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,

@@ -40,6 +40,7 @@ URDF = Path(pybullet_data.getDataPath()) / "franka_panda" / "panda.urdf"
 ARM_JOINTS = 7
 FLANGE_LINK = "panda_link8"
 FINGER_OPEN_M = 0.04
+FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
 FINGERTIP_M = 0.112
 """Distance along the flange's z from ``panda_link8`` to the tips of the open fingers (the finger joints sit
 at 0.0584 m in the hand, the fingers reach 0.112 m: their collision boxes in pybullet, less its margin)."""
@@ -134,7 +135,7 @@ class PandaRobot(Robot):
         self._connect()
         return RobotModel(name="panda", urdf=str(URDF), base_pose=self._base.copy(), joint_names=self._names,
                           joint_lower=tuple(self._lower[:ARM_JOINTS]), joint_upper=tuple(self._upper[:ARM_JOINTS]),
-                          flange_link=FLANGE_LINK)
+                          flange_link=FLANGE_LINK, finger_joints=FINGER_JOINTS, home=STARTS[0])
 
     def camera_mount(self) -> NDArray[np.float64]:
         return self._mount.copy()

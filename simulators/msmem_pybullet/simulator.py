@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from msmem_core.errors import UserError
-from msmem_core.interfaces import GRIPPER_ID, SHELF_ID, Capabilities, Contact
+from msmem_core.interfaces import GRIPPER_ID, SHELF_ID, Capabilities, Contact, Robot
 from msmem_core.sim.motion import (
     FINGER_SPEED_MPS,
     PARK_POSITION_M,
@@ -44,6 +44,7 @@ from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.meshes import part_mesh_own_frame
 from msmem_core.world.meshparts import cache_dir
 from msmem_core.world.scene import ObjectClass, ObjectSpec, Part, SceneSpec, ShelfSpec, parts_centroid
+from msmem_pybullet.arm import ArmDrive
 
 OBJECT_FRICTION = 0.6
 """Lateral friction of objects (Bullet multiplies the coefficients of the two bodies in contact)."""
@@ -96,6 +97,10 @@ class _Snapshot:
     finger_target_m: float
     gripper_target: tuple[tuple[float, float, float], tuple[float, float, float, float]]
     parked: bool
+    arm: tuple[tuple[float, float], ...] = ()
+    """With an attached robot: position and velocity of each of its movable joints."""
+    arm_target: tuple[float, ...] = ()
+    """With an attached robot: its arm motors' targets."""
 
 
 def convex_obj(part: Part) -> Path:
@@ -169,6 +174,18 @@ class PyBulletSimulator(FloatingGripperSimulator):
         )
         self._finger_target_m = g.max_opening_m
         self._parked = True
+        self._arm: ArmDrive | None = None
+
+    def attach_robot(self, robot: Robot) -> None:
+        """From the next ``reset`` on, the robot's arm (its URDF, at its base pose) replaces the floating
+        gripper and is driven by joint control (``msmem_pybullet.arm``). A robot without an arm changes
+        nothing."""
+        if robot.arm:
+            g = self.config.gripper
+            self._arm = ArmDrive(robot, self._client, g.finger_force_n, g.finger_friction)
+
+    def robot_notes(self) -> list[str]:
+        return self._arm.take_notes() if self._arm is not None else []
 
     # ------------------------------------------------------------------------------------- lifecycle
     def reset(self, scene: SceneSpec) -> None:
@@ -178,9 +195,10 @@ class PyBulletSimulator(FloatingGripperSimulator):
         self._gripper_target = (PARK_POSITION_M, PARK_QUAT_XYZW)
         self._parked = True
         self._build_world(scene, [(o, None) for o in scene.objects])
-        q = self._finger_target_m / 2
-        for j in (0, 1):
-            p.resetJointState(self._gripper_uid, j, q, 0.0, physicsClientId=self._client)
+        if self._arm is None:
+            q = self._finger_target_m / 2
+            for j in (0, 1):
+                p.resetJointState(self._gripper_uid, j, q, 0.0, physicsClientId=self._client)
         self._drive_fingers()
         self.step(self.config.settle_s)
 
@@ -211,7 +229,10 @@ class PyBulletSimulator(FloatingGripperSimulator):
         )
         p.setGravity(0.0, 0.0, -9.81, physicsClientId=c)
         self._shelf_uids = self._build_shelf(scene.shelf)
-        self._build_gripper()
+        if self._arm is not None:
+            self._gripper_uid = self._arm.build()
+        else:
+            self._build_gripper()
         self._objects = {}
         for spec, state in objects:
             self._objects[spec.id] = self._build_object(spec, state)
@@ -359,7 +380,7 @@ class PyBulletSimulator(FloatingGripperSimulator):
     def snapshot(self) -> _Snapshot:
         scene = self._require_scene()
         c, g = self._client, self._gripper_uid
-        joints = p.getJointStates(g, [0, 1], physicsClientId=c)
+        joints = p.getJointStates(g, self._finger_joints(), physicsClientId=c)
         return _Snapshot(
             client=c,
             scene=scene,
@@ -372,6 +393,8 @@ class PyBulletSimulator(FloatingGripperSimulator):
             finger_target_m=self._finger_target_m,
             gripper_target=self._gripper_target,
             parked=self._parked,
+            arm=self._arm.state() if self._arm is not None else (),
+            arm_target=self._arm.targets() if self._arm is not None else (),
         )
 
     def restore(self, token: Any) -> None:
@@ -384,6 +407,10 @@ class PyBulletSimulator(FloatingGripperSimulator):
         self._finger_target_m = token.finger_target_m
         self._parked = token.parked
         self._build_world(token.scene, [(specs[oid], s) for oid, s in token.objects])
+        if self._arm is not None:
+            self._arm.set_state(token.arm, token.arm_target, token.finger_target_m)
+            p.performCollisionDetection(physicsClientId=self._client)
+            return
         self._set_body_state(self._gripper_uid, token.gripper)
         for j in (0, 1):
             p.resetJointState(
@@ -399,9 +426,12 @@ class PyBulletSimulator(FloatingGripperSimulator):
     # ------------------------------------------------------------------------------------- camera
     def observe(self, camera_to_world: NDArray[np.float64]) -> Observation:
         """Render z-depth, labels and object ids from an OpenCV camera-to-world pose."""
-        self._require_scene()
+        scene = self._require_scene()
         cam = self.config.camera
         c2w = np.asarray(camera_to_world, dtype=np.float64)
+        if self._arm is not None:  # the wrist camera takes the view: the arm goes there (and is in the image)
+            self._arm.place_camera(c2w, scene.shelf)
+            self._parked = True  # the next move starts at its first waypoint, as from the parking pose
         # OpenGL camera axes are OpenCV's with y and z flipped; PyBullet wants column-major matrices.
         view = np.linalg.inv(c2w @ np.diag([1.0, -1.0, -1.0, 1.0]))
         _, _, _, zbuf, seg = p.getCameraImage(
@@ -447,20 +477,32 @@ class PyBulletSimulator(FloatingGripperSimulator):
     # ------------------------------------------------------------------------------------- gripper
     def gripper_pose(self) -> NDArray[np.float64]:
         """Pose of the gripper frame (origin between the fingertip pads, z = approach)."""
+        if self._arm is not None:
+            return self._arm.tool_pose()
         pos, orn = p.getBasePositionAndOrientation(self._gripper_uid, physicsClientId=self._client)
         t = pose_matrix(pos, orn)
         t[:3, 3] -= t[:3, :3] @ self._palm_centre
         return t
 
+    def _finger_joints(self) -> list[int]:
+        return self._arm.finger_links() if self._arm is not None else [0, 1]
+
     def _opening(self) -> float:
+        if self._arm is not None:
+            return self._arm.opening()
         joints = p.getJointStates(self._gripper_uid, [0, 1], physicsClientId=self._client)
         return float(joints[0][0] + joints[1][0])
 
     def _finger_speed(self) -> float:
+        if self._arm is not None:
+            return self._arm.finger_speed()
         joints = p.getJointStates(self._gripper_uid, [0, 1], physicsClientId=self._client)
         return abs(joints[0][1]) + abs(joints[1][1])
 
     def _drive_fingers(self) -> None:
+        if self._arm is not None:
+            self._arm.set_fingers(self._finger_target_m)
+            return
         g = self.config.gripper
         for j in (0, 1):
             p.setJointMotorControl2(
@@ -477,9 +519,38 @@ class PyBulletSimulator(FloatingGripperSimulator):
         """Drive both fingers to ``opening_m`` (clamped); stop when reached or blocked (<= 0.5 s)."""
         self._require_scene()
         g = self.config.gripper
-        self._finger_target_m = float(np.clip(opening_m, 0.0, g.max_opening_m))
+        top = g.max_opening_m if self._arm is None else min(g.max_opening_m, self._arm.max_opening())
+        self._finger_target_m = float(np.clip(opening_m, 0.0, top))
         self._drive_fingers()
         return self._wait_for_fingers(self._finger_target_m)
+
+    def park_gripper(self) -> None:
+        """Floating gripper: its parking pose out of view. Arm: its home configuration (out of the shelf)."""
+        if self._arm is None:
+            super().park_gripper()
+            return
+        self._require_scene()
+        self._arm.park()
+        self._parked = True
+
+    def _leave_park(self, first: NDArray[np.float64]) -> None:
+        if self._arm is None:
+            super()._leave_park(first)
+            return
+        reach = self._arm.place(first, self._require_scene().shelf, "the first waypoint")
+        self._parked = not reach.reachable
+
+    def move_gripper(self, waypoints: Sequence[NDArray[np.float64]], opening_m: float | None = None,
+                     speed_mps: float = 0.1) -> NDArray[np.float64]:
+        """As ``FloatingGripperSimulator.move_gripper``; an arm that cannot reach the first waypoint of a
+        move from its parked or view configuration does not move (``robot_notes`` says why)."""
+        if self._arm is not None and self._parked and len(waypoints):
+            if opening_m is not None:
+                self.set_gripper(opening_m)
+            self._leave_park(np.asarray(waypoints[0], dtype=np.float64))
+            if self._parked:
+                return self.gripper_pose()
+        return super().move_gripper(waypoints, opening_m, speed_mps)
 
     def _set_target(self, pos: NDArray[np.float64], quat: NDArray[np.float64]) -> None:
         self._gripper_target = (tuple(pos.tolist()), tuple(quat.tolist()))
@@ -492,6 +563,9 @@ class PyBulletSimulator(FloatingGripperSimulator):
         )
 
     def _teleport_gripper(self, pose: NDArray[np.float64]) -> None:
+        if self._arm is not None:
+            self._arm.place(pose, self._require_scene().shelf, "the gripper pose")
+            return
         pos = pose[:3, 3] + pose[:3, :3] @ self._palm_centre
         quat = matrix_to_quat(pose[:3, :3])
         p.resetBasePositionAndOrientation(self._gripper_uid, pos.tolist(), quat.tolist(), physicsClientId=self._client)
@@ -499,6 +573,9 @@ class PyBulletSimulator(FloatingGripperSimulator):
         self._set_target(pose[:3, 3], quat)
 
     def _track(self, target: PathTarget) -> None:
+        if self._arm is not None:
+            self._arm.track(target.position, target.quat_xyzw)
+            return
         self._set_target(target.position, target.quat_xyzw)
 
     def _clearance(self, uids: Sequence[int], cap: float) -> float:
@@ -511,8 +588,14 @@ class PyBulletSimulator(FloatingGripperSimulator):
 
     def _collides(self, pose: NDArray[np.float64], clearance: float, with_objects: bool) -> bool:
         """Whether the gripper, teleported to ``pose``, is within ``clearance`` of the shelf (or anything)."""
-        self._teleport_gripper(pose)
         uids = [*self._shelf_uids, *(o.uid for o in self._objects.values())] if with_objects else list(self._shelf_uids)
+        if self._arm is not None:
+            reach = self._arm.robot.ik(pose @ np.linalg.inv(self._arm.tool), self._require_scene().shelf)
+            if not reach.reachable or reach.joints is None:
+                return True
+            self._arm.set_joints(np.asarray(reach.joints))
+            return self._arm.touching(uids, clearance)
+        self._teleport_gripper(pose)
         return self._clearance(uids, clearance) < clearance
 
     # ------------------------------------------------------------------------------------- contacts
@@ -539,10 +622,10 @@ class PyBulletSimulator(FloatingGripperSimulator):
         """The object touching both fingers (the most firmly gripped one if several do)."""
         ids = {obj.uid: oid for oid, obj in self._objects.items()}
         touching: list[dict[int, float]] = [{}, {}]
-        for finger in (0, 1):
+        for k, finger in enumerate(self._finger_joints()):
             for pt in p.getContactPoints(bodyA=self._gripper_uid, linkIndexA=finger, physicsClientId=self._client):
                 oid = ids.get(pt[2])
                 if pt[8] <= CONTACT_DISTANCE_M and oid is not None:
-                    touching[finger][oid] = touching[finger].get(oid, 0.0) + pt[9]
+                    touching[k][oid] = touching[k].get(oid, 0.0) + pt[9]
         both = [(min(touching[0][oid], touching[1][oid]), oid) for oid in touching[0].keys() & touching[1].keys()]
         return max(both)[1] if both else None
