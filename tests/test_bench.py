@@ -15,6 +15,7 @@ from msmem_core.errors import UserError
 from msmem_core.run.bench import (
     TABLE_METRICS,
     BenchTask,
+    candidate_counts,
     cumulative_difference,
     parse_range,
     run_bench,
@@ -96,6 +97,16 @@ def _paper_result(method: str, scene: int, counts: dict) -> dict:
     r["metrics"].update(paper_metrics_from_counts(counts))
     r["paper_counts"] = counts
     return r
+
+
+def test_candidate_counts_add_the_dropped_to_the_kept_per_skill():
+    steps = [{"candidates": {"view": 3}},  # before the manipulation window: no push or grasp proposed
+             {"candidates": {"view": 2, "push": 0, "grasp": 1}, "unreachable": {"push": 80, "grasp": 2}},
+             {"candidates": {"view": 1, "push": 4, "grasp": 0}}]
+    assert candidate_counts(steps) == {"view": {"proposed": 6, "unreachable": 0},
+                                       "push": {"proposed": 84, "unreachable": 80},
+                                       "grasp": {"proposed": 3, "unreachable": 2}}
+    assert candidate_counts([]) == {}
 
 
 def test_cumulative_difference_is_paired_and_summed_before_dividing():

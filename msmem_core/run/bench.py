@@ -218,7 +218,7 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
         record.update({
             "scene": ep.scene.name, "status": "ok", "metrics": episode_metrics(final, ep.records),
             "paper_counts": final["paper_counts"], "curves": curves, "skills": kinds,
-            "seconds": time.perf_counter() - t0,
+            "candidates": candidate_counts(ep.records), "seconds": time.perf_counter() - t0,
         })
     except Exception as e:  # isolate the crash: the table reports it, the other episodes go on
         import traceback
@@ -226,6 +226,19 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
         record = crash_record(task, f"{type(e).__name__}: {e}", traceback.format_exc(), time.perf_counter() - t0)
     write_atomic(Path(task.out_file), record)
     return record
+
+
+def candidate_counts(records: list[dict[str, Any]]) -> dict[str, dict[str, int]]:
+    """Per skill, candidates proposed over an episode's steps and those dropped because the robot cannot
+    follow their tool path (step records' ``candidates`` count the kept ones, ``unreachable`` the dropped)."""
+    out: dict[str, dict[str, int]] = {}
+    for r in records:
+        dropped = r.get("unreachable", {})
+        for skill in {*r.get("candidates", {}), *dropped}:
+            c = out.setdefault(skill, {"proposed": 0, "unreachable": 0})
+            c["proposed"] += int(r.get("candidates", {}).get(skill, 0)) + int(dropped.get(skill, 0))
+            c["unreachable"] += int(dropped.get(skill, 0))
+    return out
 
 
 def episode_metrics(final: dict[str, Any], records: list[dict[str, Any]]) -> dict[str, Any]:
