@@ -731,3 +731,45 @@ def test_cnabu_map_keeps_the_ray_record_and_ups_finds_hidden_space_on_its_comple
     blind = dataclasses.replace(b, observed=None)
     assert not blind.never_seen(0.9)[completed].any()
     assert PushSkill().sample(blind, shard.workspace.shelf, np.random.default_rng(0)) == []
+
+
+# ------------------------------------------------------------------------------ class map
+def test_a_class_map_feeds_the_network_the_mapped_classes_and_maps_its_answer_back(shard):
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+
+    f0, o0, s0 = start_masks(shard)
+    b0 = AnalyticObservationModel().apply_masks(EvidentialMap.empty(shard.grid), f0, o0, s0)
+    f, o, s = shard.masks(0)
+    plain = CNABUMapObservationModel()
+    keep = np.random.default_rng(0).permutation(np.arange(1, 15))[:11]  # scene class i is trained class keep[i-1]
+    cmap = {f"thing{i}": plain.classes[k] for i, k in enumerate(keep, 1)}
+    mapped = CNABUMapObservationModel(CNABUMapConfig(class_map=cmap))
+    assert mapped.classes == ("background", *cmap)
+    idx = np.r_[0, keep]
+    unmapped = np.setdiff1d(np.arange(15), idx)
+    eta, seen = b0.eta.copy(), s.copy()
+    eta[unmapped], seen[unmapped] = 1.0, False  # what the scene cannot say about classes it does not have
+    want = plain.update_masks(EvidentialMap(b0.grid, b0.alpha, b0.beta, eta, b0.observed), f, o, seen)
+    got = mapped.update_masks(EvidentialMap(b0.grid, b0.alpha, b0.beta, b0.eta[idx].copy(), b0.observed),
+                              f, o, s[idx])
+    assert got.num_classes == 12
+    np.testing.assert_array_equal(got.alpha, want.alpha)
+    np.testing.assert_array_equal(got.beta, want.beta)
+    np.testing.assert_array_equal(got.eta, want.eta[idx])
+
+
+@pytest.mark.parametrize(("class_map", "message"), [
+    ({"cereal": "chips_can"}, "maps to chips_can, which the weights do not know"),
+    ({"cereal": "cracker_box", "book": "cracker_box"}, "maps two scene classes to cracker_box"),
+    ({"background": "mug"}, "maps background"),
+])
+def test_a_bad_class_map_is_refused_in_one_line(class_map, message):
+    from msmem_cnabu.mapmodel import mapped_classes
+
+    from msmem_core.errors import UserError
+    from msmem_core.world.scene import CLASS_NAMES
+
+    with pytest.raises(UserError, match=message) as err:
+        mapped_classes(class_map, CLASS_NAMES)
+    assert "\n" not in str(err.value)

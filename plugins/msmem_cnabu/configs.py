@@ -68,3 +68,8 @@ class CNABUMapConfig(BaseModel):
     unseen_class_weight: float = Field(1.0, gt=0.0, le=1.0)
     """Object classes the map does not know are in the scene (no ray has shown them where the map
     believes them) are down-weighted by this everywhere; 1: off (``mapnet.restrict_classes``)."""
+    class_map: dict[str, str] | None = None
+    """For scenes whose classes the weights were not trained on: each object class of the scene, in the
+    scene's order, to a distinct class the weights know (e.g. ``{cereal: cracker_box, ...}``). The
+    network then sees and predicts the mapped classes; the evidence of trained classes no scene class
+    maps to is dropped. None: the scene's classes must be the trained ones (docs/map-prediction.md)."""

@@ -31,7 +31,11 @@ class CNABUMapObservationModel(ObservationModel):
         self.config = cfg = config or CNABUMapConfig()
         self.net, self.meta = load_map_net(cfg.weights if cfg.weights is not None else SHIPPED)
         self.meta["weights"] = str(cfg.weights if cfg.weights is not None else SHIPPED)
-        self.classes = model_classes(self.meta.get("classes"), self.net.config.num_classes)
+        trained = model_classes(self.meta.get("classes"), self.net.config.num_classes)
+        self.classes = trained
+        self._index: NDArray[np.int64] | None = None
+        if cfg.class_map is not None:
+            self.classes, self._index = mapped_classes(cfg.class_map, trained)
         self.rays = AnalyticObservationModel(AnalyticObservationConfig(
             pixel_stride=cfg.pixel_stride, surface_offset_m=cfg.surface_offset_m, far_m=cfg.far_m))
         self._valid: dict[Any, torch.Tensor] = {}
@@ -40,10 +44,12 @@ class CNABUMapObservationModel(ObservationModel):
         g = belief.grid
         if g not in self._valid:
             net_shape = tuple(self.net.config.grid_shape)
-            if tuple(g.shape) != net_shape or belief.num_classes != self.net.config.num_classes:
+            classes = self.net.config.num_classes if self._index is None else len(self._index)
+            if tuple(g.shape) != net_shape or belief.num_classes != classes:
                 raise UserError(f"cnabu-map: the weights were trained on a {net_shape} grid with "
-                                f"{self.net.config.num_classes} classes, the belief has {tuple(g.shape)} and "
-                                f"{belief.num_classes}; train weights for this grid (`msmem train cnabu-map`)")
+                                f"{classes} classes{' (mapped)' if self._index is not None else ''}, the belief "
+                                f"has {tuple(g.shape)} and {belief.num_classes}; train weights for this grid "
+                                "(`msmem train cnabu-map`)")
             walls = wall_mask(g, grid_interior(g, self.config.margin_voxels))
             self._valid = {g: torch.from_numpy(~walls)}
         return self._valid[g]
@@ -56,16 +62,44 @@ class CNABUMapObservationModel(ObservationModel):
                      seen: NDArray[np.bool_]) -> EvidentialMap:
         """The update from a view's ray masks (free, occ [X, Y, Z], seen [C, X, Y, Z])."""
         valid = self.valid(belief)
+        eta = belief.eta
+        if self._index is not None:  # the scene's classes into the trained ones (no evidence on the others)
+            eta = np.ones((self.net.config.num_classes, *eta.shape[1:]), dtype=belief.eta.dtype)
+            eta[self._index] = belief.eta
+            wide = np.zeros((self.net.config.num_classes, *seen.shape[1:]), dtype=bool)
+            wide[self._index] = seen
+            seen = wide
         old = torch.get_num_threads()
         if self.config.threads is not None:
             torch.set_num_threads(self.config.threads)
         try:
             t = torch.from_numpy
-            a, b, e = self.net.step(t(belief.alpha)[None], t(belief.beta)[None], t(belief.eta)[None],
+            a, b, e = self.net.step(t(belief.alpha)[None], t(belief.beta)[None], t(eta)[None],
                                     t(free)[None], t(occ)[None], t(seen)[None], valid,
                                     self.config.unseen_class_weight)
         finally:
             torch.set_num_threads(old)
         ray = free | occ | seen.any(axis=0)
         observed = ray if belief.observed is None else belief.observed | ray
-        return EvidentialMap(belief.grid, a[0].numpy(), b[0].numpy(), e[0].numpy(), observed)
+        out_eta = e[0].numpy() if self._index is None else np.ascontiguousarray(e[0].numpy()[self._index])
+        return EvidentialMap(belief.grid, a[0].numpy(), b[0].numpy(), out_eta, observed)
+
+
+def mapped_classes(class_map: dict[str, str], trained: tuple[str, ...] | None
+                   ) -> tuple[tuple[str, ...], NDArray[np.int64]]:
+    """The classes a ``class_map`` makes the model take (background, then the map's scene classes in order)
+    and, per one of them, the index of the trained class it maps to; refused in one line when the map
+    names a class the weights do not know, maps two classes to one, or maps background."""
+    if trained is None:
+        raise UserError("cnabu-map: class_map needs weights that record their classes")
+    unknown = sorted({m for m in class_map.values() if m not in trained[1:]})
+    if unknown:
+        raise UserError(f"cnabu-map: class_map maps to {', '.join(unknown)}, which the weights do not know; "
+                        f"they know {', '.join(trained[1:])}")
+    if "background" in class_map:
+        raise UserError("cnabu-map: class_map maps background, which is always itself")
+    targets = list(class_map.values())
+    if twice := sorted({m for m in targets if targets.count(m) > 1}):
+        raise UserError(f"cnabu-map: class_map maps two scene classes to {', '.join(twice)}; map each to its own")
+    index = np.array([0, *(trained.index(m) for m in targets)], dtype=np.int64)
+    return ("background", *class_map), index
