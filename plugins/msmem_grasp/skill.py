@@ -221,6 +221,11 @@ class GraspConfig(BaseModel):
     """Lift after closing (at least); raised up to ``max_lift_m`` (and the room under the shelf top)
     when that lets the object leave without meeting a believed object."""
     max_lift_m: float = Field(0.10, ge=0.0, le=0.5)
+    blocked_exit: Literal["lift_m", "skip"] = "lift_m"
+    """When no lift up to ``max_lift_m`` carries the grasped object out of the front without meeting a
+    believed-occupied voxel of another object: ``lift_m`` proposes the grasp anyway, at the minimum lift
+    (what it drags along is the effect model's prediction); ``skip`` does not propose it (docs/grasp.md,
+    "Grasps that drag a neighbour out")."""
     retreat_y_m: float = Field(-0.30, lt=0.0, ge=-2.0)
     """The gripper retreats to this y: the largest object (16 cm) is then past the opening."""
     clearance_m: float = Field(0.005, ge=0.0, le=0.05)
@@ -479,8 +484,8 @@ class GraspSkill(Skill):
         voxels below it, ``planning.fill_down``) and the closed gripper, carried straight out of the
         front, meet no believed-occupied voxel of another object; else one voxel above the lowest
         height (in whole voxels, up to ``max_lift_m`` and the room under the shelf top) at which they
-        do not; ``lift_m`` if there is none; None if even ``lift_m`` brings the object's or the
-        gripper's top closer than ``clearance_m`` to the shelf top."""
+        do not; ``lift_m`` if there is none (None with ``blocked_exit: skip``); None if even ``lift_m``
+        brings the object's or the gripper's top closer than ``clearance_m`` to the shelf top."""
         cfg = self.config
         s = grid.voxel_m
         pts = gripper_points(cfg.gripper, width, s / 2, cfg.tolerance_m)
@@ -507,7 +512,7 @@ class GraspSkill(Skill):
                 continue
             # one voxel more where there is room: the voxels' heights are only known to a voxel
             return max(cfg.lift_m, min((k + 1) * s, room)) if k > first else cfg.lift_m
-        return cfg.lift_m
+        return cfg.lift_m if cfg.blocked_exit == "lift_m" else None
 
     # ------------------------------------------------------------------------------- execution
     def tool_path(self, action: Action, workspace: Workspace) -> NDArray[np.float64]:
