@@ -398,3 +398,14 @@ def test_a_mesh_class_is_built_from_its_convex_pieces_and_labelled(tmp_path) -> 
     assert pose[2, 2] > 0.999
     assert obs.object_ids is not None
     assert set(np.unique(obs.labels[obs.object_ids == 0]).tolist()) == {15}
+
+
+def test_a_robot_with_an_arm_is_refused_in_one_line_naming_what_is_missing() -> None:
+    from msmem_core.errors import UserError
+
+    cfg = load_config("view-only", None, {"simulator": {"name": "sapien"}, "robot": {"name": "panda"}, "steps": 1})
+    with pytest.raises(UserError) as err:
+        build_episode(cfg, get_plugin_manager())
+    msg = str(err.value)
+    assert "\n" not in msg
+    assert msg.startswith("simulator 'sapien' cannot drive robot 'panda': it does not load robots from URDF")
