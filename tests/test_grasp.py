@@ -418,7 +418,7 @@ def test_the_lift_rises_over_a_low_object_in_the_way_when_the_shelf_leaves_room(
         assert g.retreat_m[0][2] - g.pose[2][3] >= 0.05 - 1e-9
 
 
-def test_a_grasp_whose_object_cannot_leave_past_a_neighbour_is_skipped_only_when_asked() -> None:
+def test_a_grasp_whose_object_cannot_leave_past_a_neighbour_is_skipped_unless_asked() -> None:
     target = ((-0.02, 0.18), (0.02, 0.27), 0.10, SUGAR)
     blocker = ((-0.05, 0.10), (0.05, 0.16), 0.07, MEAT)  # in front: lower than the approach, above max_lift_m
 
@@ -426,12 +426,12 @@ def test_a_grasp_whose_object_cannot_leave_past_a_neighbour_is_skipped_only_when
         skill = GraspSkill(GraspConfig(predictor="geometric", max_lift_m=0.05, **kw))  # type: ignore[arg-type]
         return [g for g in skill.propose(ctx(belief)) if g.target_class == SUGAR]
 
-    dragging = on_target(box_belief([target, blocker]))
-    assert dragging  # the default proposes them at the minimum lift: the object drags the block out
+    dragging = on_target(box_belief([target, blocker]), blocked_exit="lift_m")
+    assert dragging  # lift_m proposes them at the minimum lift: the object drags the block out
     assert all(abs(g.retreat_m[0][2] - g.pose[2][3] - 0.03) < 1e-9 for g in dragging)
-    assert on_target(box_belief([target, blocker]), blocked_exit="skip") == []
+    assert on_target(box_belief([target, blocker])) == []  # the default (skip) does not
     low = ((-0.05, 0.10), (0.05, 0.16), 0.03, MEAT)  # one it can be lifted over: still proposed
-    assert on_target(box_belief([target, low]), blocked_exit="skip")
+    assert on_target(box_belief([target, low]))
 
 
 # ------------------------------------------------------------------------------------- effect model
@@ -593,7 +593,7 @@ def test_predicted_occupancy_after_a_disturbing_grasp_beats_removal_alone() -> N
     try:
         sim.reset(scene)
         belief = observed_belief(sim, scene, VIEWS)
-        skill = GraspSkill(GraspConfig(predictor="geometric"))
+        skill = GraspSkill(GraspConfig(predictor="geometric", blocked_exit="lift_m"))  # the can is in the way
         grasps = [g for g in skill.propose(ctx(belief)) if g.target_class == SUGAR]
         assert grasps
         pred = model.predict(belief, grasps, WORKSPACE)

@@ -221,11 +221,12 @@ class GraspConfig(BaseModel):
     """Lift after closing (at least); raised up to ``max_lift_m`` (and the room under the shelf top)
     when that lets the object leave without meeting a believed object."""
     max_lift_m: float = Field(0.10, ge=0.0, le=0.5)
-    blocked_exit: Literal["lift_m", "skip"] = "lift_m"
+    blocked_exit: Literal["lift_m", "skip"] = "skip"
     """When no lift up to ``max_lift_m`` carries the grasped object out of the front without meeting a
-    believed-occupied voxel of another object: ``lift_m`` proposes the grasp anyway, at the minimum lift
-    (what it drags along is the effect model's prediction); ``skip`` does not propose it (docs/grasp.md,
-    "Grasps that drag a neighbour out")."""
+    believed-occupied voxel of another object: ``skip`` (the default, chosen on ``tune10``) does not
+    propose the grasp; ``lift_m`` proposes it anyway, at the minimum lift (what it drags along is the
+    effect model's prediction; the behaviour before session 18). docs/grasp.md, "Grasps that drag a
+    neighbour out"."""
     retreat_y_m: float = Field(-0.30, lt=0.0, ge=-2.0)
     """The gripper retreats to this y: the largest object (16 cm) is then past the opening."""
     clearance_m: float = Field(0.005, ge=0.0, le=0.05)
