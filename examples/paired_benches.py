@@ -64,10 +64,12 @@ def main(folders: list[str]) -> None:
     print()
     print("| difference | occupancy mIoU | semantic mIoU 2-D |")
     print("|---|---|---|")
+    base_counts = read_paper_counts(first)
     for folder in others:
+        counts = read_paper_counts(folder)
         cells = []
         for k in ("occupancy_miou", "semantic_miou_2d"):
-            d, lo, hi = cumulative_difference(read_paper_counts(first), read_paper_counts(folder), k)
+            d, lo, hi = cumulative_difference(base_counts, counts, k)
             cells.append(f"{d:+.3f} [{lo:+.3f}, {hi:+.3f}]{'*' if lo > 0 or hi < 0 else ''}")
         print(f"| {first.name} - {folder.name} | " + " | ".join(cells) + " |")
 

@@ -176,14 +176,19 @@ def read_episode(path: Path) -> dict[str, Any]:
     return rec
 
 
-def read_bench_folder(folder: Path) -> dict[tuple[str, int], dict[str, Any]]:
-    """The finished episodes of a bench folder, as {(method, scene index): metrics}: from
-    ``episodes/*.json``, or, in a folder kept without them, from the episodes ``results.json`` holds.
-    For scripts that compare folders (``examples/paired_benches.py``, ``examples/table1.py``)."""
+def _finished_records(folder: Path) -> list[dict[str, Any]]:
+    """The finished episode records of a bench folder: from ``episodes/*.json``, or, in a folder kept
+    without them, from the episodes ``results.json`` holds."""
     files = sorted((folder / "episodes").glob("*.json"))
     records = ([json.loads(f.read_text()) for f in files] if files
                else json.loads((folder / "results.json").read_text()).get("episodes", []))
-    return {(r["method"], r["scene_index"]): r["metrics"] for r in records if r.get("status") == "ok"}
+    return [r for r in records if r.get("status") == "ok"]
+
+
+def read_bench_folder(folder: Path) -> dict[tuple[str, int], dict[str, Any]]:
+    """The finished episodes of a bench folder, as {(method, scene index): metrics}. For scripts that
+    compare folders (``examples/paired_benches.py``, ``examples/table1.py``)."""
+    return {(r["method"], r["scene_index"]): r["metrics"] for r in _finished_records(folder)}
 
 
 def grasps_held(metrics: dict[str, Any]) -> int:
@@ -305,10 +310,7 @@ def cumulative_difference(a: dict[int, dict[str, Any]], b: dict[int, dict[str, A
 def read_paper_counts(folder: Path, method: str | None = None) -> dict[int, dict[str, Any]]:
     """``paper_counts`` per scene index of one method's finished episodes in a bench folder (the only
     method when ``method`` is None; episodes written before the counts existed are left out)."""
-    files = sorted((folder / "episodes").glob("*.json"))
-    records = ([json.loads(f.read_text()) for f in files] if files
-               else json.loads((folder / "results.json").read_text()).get("episodes", []))
-    ok = [r for r in records if r.get("status") == "ok" and "paper_counts" in r]
+    ok = [r for r in _finished_records(folder) if "paper_counts" in r]
     methods = sorted({r["method"] for r in ok})
     if method is None and len(methods) > 1:
         raise UserError(f"{folder} holds methods {', '.join(methods)}; name one")

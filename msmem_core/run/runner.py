@@ -312,7 +312,14 @@ def arm_record(ep: Episode, d: Decision) -> dict[str, Any] | None:
     robot = ep.robot
     if robot is None or not robot.arm:
         return None
-    notes = {"execution": n} if (n := ep.sim.robot_notes()) else {}
+    rec = _arm_configuration(robot, ep, d)
+    if notes := ep.sim.robot_notes():  # this step's, even when the action names no pose to draw
+        rec = {**(rec or {}), "execution": notes}
+    return rec
+
+
+def _arm_configuration(robot: Robot, ep: Episode, d: Decision) -> dict[str, Any] | None:
+    """``arm_record`` without the execution notes: None when the action names no camera pose or tool path."""
     action = d.action.model_dump()
     if d.skill.skill.category == "perception":
         view = action.get("view")
@@ -325,10 +332,10 @@ def arm_record(ep: Episode, d: Decision) -> dict[str, Any] | None:
             return None
         reach = robot.reach_path(path, ep.scene.shelf)
     if not reach.reachable or reach.joints is None:
-        return {"reachable": False, "reason": reach.reason, **notes}
+        return {"reachable": False, "reason": reach.reason}
     points = robot.link_points(reach.joints)
     return {"reachable": True, "joints": [round(q, 5) for q in reach.joints],
-            "points": np.round(points, 4).tolist(), **notes}
+            "points": np.round(points, 4).tolist()}
 
 
 def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,

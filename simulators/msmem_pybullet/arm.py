@@ -49,6 +49,7 @@ class ArmDrive:
         self.robot, self.model, self.client = robot, model, client
         self.finger_force_n, self.finger_friction = finger_force_n, finger_friction
         self.tool = robot.tool_mount()
+        self.tool_inv = np.linalg.inv(self.tool)
         self.uid = -1
         self.notes: list[str] = []
         self._target = np.asarray(model.home, dtype=np.float64)
@@ -81,7 +82,14 @@ class ArmDrive:
         self.joints = [by_name[n] for n in m.joint_names]
         self.fingers = [by_name[n] for n in m.finger_joints]
         self.flange = link_by_name[m.flange_link]
-        self.finger_upper = [float(p.getJointInfo(self.uid, j, physicsClientId=c)[9]) for j in self.fingers]
+        self.finger_upper = [self.limits[j][1] for j in self.fingers]
+        # what every physics step of a move needs, once: IK limits over the movable joints, where the arm's
+        # joints sit in an IK answer, the arm motors' forces
+        self._ik_lower = [self.limits[j][0] for j in self.movable]
+        self._ik_upper = [self.limits[j][1] for j in self.movable]
+        self._ik_ranges = [u - lw for u, lw in zip(self._ik_upper, self._ik_lower, strict=True)]
+        self._ik_arm = [self.movable.index(j) for j in self.joints]
+        self._forces = [self.max_force[j] for j in self.joints]
         for j in self.fingers:
             p.changeDynamics(self.uid, j, lateralFriction=self.finger_friction, physicsClientId=c)
         self.set_joints(np.asarray(m.home, dtype=np.float64))
@@ -100,7 +108,7 @@ class ArmDrive:
         self._target = np.asarray(q, dtype=np.float64).copy()
         p.setJointMotorControlArray(
             self.uid, self.joints, p.POSITION_CONTROL, targetPositions=[float(v) for v in q],
-            forces=[self.max_force[j] for j in self.joints], positionGains=[POSITION_GAIN] * len(self.joints),
+            forces=self._forces, positionGains=[POSITION_GAIN] * len(self.joints),
             physicsClientId=self.client)
 
     def joint_positions(self) -> NDArray[np.float64]:
@@ -150,7 +158,7 @@ class ArmDrive:
     def place(self, tool_pose: NDArray[np.float64], shelf: ShelfSpec, what: str) -> Reach:
         """Set the arm where its gripper frame is at ``tool_pose`` (the robot's verified IK); when it cannot,
         leave the arm and note why (``what`` names the pose in the note)."""
-        reach = self.robot.ik(np.asarray(tool_pose) @ np.linalg.inv(self.tool), shelf)
+        reach = self.robot.ik(np.asarray(tool_pose) @ self.tool_inv, shelf)
         self._apply(reach, what)
         return reach
 
@@ -172,17 +180,13 @@ class ArmDrive:
     def track(self, position: NDArray[np.float64], quat_xyzw: NDArray[np.float64]) -> None:
         """Joint targets for the gripper frame at (``position``, ``quat_xyzw``): IK of the flange pose from
         the arm's current joints (also the null-space rest pose), clipped to the limits."""
-        target = pose_matrix(position, quat_xyzw) @ np.linalg.inv(self.tool)
-        lower = [self.limits[j][0] for j in self.movable]
-        upper = [self.limits[j][1] for j in self.movable]
+        target = pose_matrix(position, quat_xyzw) @ self.tool_inv
         now = [float(s[0]) for s in p.getJointStates(self.uid, self.movable, physicsClientId=self.client)]
         sol = p.calculateInverseKinematics(
             self.uid, self.flange, target[:3, 3].tolist(), matrix_to_quat(target[:3, :3]).tolist(),
-            lowerLimits=lower, upperLimits=upper, jointRanges=[u - lw for u, lw in zip(upper, lower, strict=True)],
-            restPoses=now, maxNumIterations=TRACK_IK_ITERATIONS, residualThreshold=1e-5, physicsClientId=self.client)
-        index = {j: k for k, j in enumerate(self.movable)}
-        self.drive(np.clip(np.array([sol[index[j]] for j in self.joints]), self.model.joint_lower,
-                           self.model.joint_upper))
+            lowerLimits=self._ik_lower, upperLimits=self._ik_upper, jointRanges=self._ik_ranges, restPoses=now,
+            maxNumIterations=TRACK_IK_ITERATIONS, residualThreshold=1e-5, physicsClientId=self.client)
+        self.drive(np.clip(np.asarray(sol)[self._ik_arm], self.model.joint_lower, self.model.joint_upper))
 
     def finger_links(self) -> list[int]:
         return list(self.fingers)

@@ -590,7 +590,7 @@ class PyBulletSimulator(FloatingGripperSimulator):
         """Whether the gripper, teleported to ``pose``, is within ``clearance`` of the shelf (or anything)."""
         uids = [*self._shelf_uids, *(o.uid for o in self._objects.values())] if with_objects else list(self._shelf_uids)
         if self._arm is not None:
-            reach = self._arm.robot.ik(pose @ np.linalg.inv(self._arm.tool), self._require_scene().shelf)
+            reach = self._arm.robot.ik(pose @ self._arm.tool_inv, self._require_scene().shelf)
             if not reach.reachable or reach.joints is None:
                 return True
             self._arm.set_joints(np.asarray(reach.joints))
