@@ -48,6 +48,9 @@ def datagen_cnabu(
     observation: Annotated[str, typer.Option(
         "--observation", help="push/grasp: the observation model the views are integrated with "
                               "(cnabu-map: the completed belief episodes see).")] = "analytic-observation",
+    generator: Annotated[Path | None, typer.Option(
+        "--generator", help="Scene generator settings (YAML, as `msmem scene generate --generator`), e.g. "
+                            "scenes of your own mesh classes; default: the built-in classes.")] = None,
     sim: SimOpt = "pybullet",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
@@ -55,6 +58,7 @@ def datagen_cnabu(
     from pydantic import ValidationError
 
     from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset
+    from msmem_core.config import load_generator_config
     from msmem_core.learn.datagen import seed_range
     from msmem_core.plugins import ComponentRef
 
@@ -64,6 +68,7 @@ def datagen_cnabu(
         cfg = CNABUDataConfig(kind=kind, voxel_m=voxel, states=states, actions_per_state=actions,
                               observe_samples=samples, min_views=min_views, max_views=max_views,
                               manipulate_after=manipulate_after, require_hard=require_hard,
+                              generator=load_generator_config(generator) if generator else None,
                               observation_model=ComponentRef(name=observation), simulator=ComponentRef(name=sim))
     except ValidationError as e:
         err = e.errors()[0]
@@ -165,6 +170,25 @@ def eval_belief_models(
         typer.echo(f"metrics: {json_out}")
 
 
+CLASS_MAP_HELP = ("For data of other classes (datagen --generator): a YAML file whose class_map (at the top "
+                  "level or under observation_model.params, as in a run config) maps each scene class to a "
+                  "built-in class.")
+
+
+def _class_map(path: Path | None) -> dict[str, str] | None:
+    """The ``class_map`` of a YAML file (top level, or a run config's ``observation_model.params``)."""
+    if path is None:
+        return None
+    from msmem_core.config import read_config_file
+
+    data = read_config_file(path)
+    found = data.get("class_map", (data.get("observation_model") or {}).get("params", {}).get("class_map"))
+    if not isinstance(found, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in found.items()):
+        raise UserError(f"{path}: no class_map (scene class: built-in class) at the top level or under "
+                        "observation_model.params")
+    return dict(found)
+
+
 def train_cnabu_map(
     data: Annotated[list[Path], typer.Option(
         "--data", help="Observe shards made with --min-views 0 --max-views 0; repeat for several folders "
@@ -188,6 +212,7 @@ def train_cnabu_map(
         "--top-view-weight", help="Weight of the top-view class NLL (the paper's 2-D semantic map).")] = 0.0,
     arch: Annotated[Path | None, typer.Option(
         "--arch", help="YAML file of network settings (MapNetConfig fields, e.g. class_head: object).")] = None,
+    class_map: Annotated[Path | None, typer.Option("--class-map", help=CLASS_MAP_HELP)] = None,
 ) -> None:
     """Train the whole-map observation network (cnabu-map) through rollouts of recorded views."""
     from msmem_cnabu.maptrain import MapTrainConfig, train_map
@@ -195,7 +220,8 @@ def train_cnabu_map(
 
     cfg = MapTrainConfig(epochs=epochs, batches=batches, batch=batch, lr=lr, seed=seed, threads=threads,
                          time_limit_s=None if max_minutes is None else 60 * max_minutes,
-                         occupied_class_weight=occupied_class_weight, top_view_weight=top_view_weight)
+                         occupied_class_weight=occupied_class_weight, top_view_weight=top_view_weight,
+                         class_map=_class_map(class_map))
     side = train_map(data, out, cfg, heldout_dir=heldout, log=typer.echo, init=init,
                      arch=None if arch is None else read_config_file(arch))
     typer.echo(f"{side['data']['scenes']} scenes, {side['seconds'] / 60:.1f} min, stopped by {side['stopped']}, "
@@ -211,6 +237,7 @@ def eval_map(
     json_out: Annotated[Path | None, typer.Option("--json", help="Write the results as JSON here.")] = None,
     unseen_class_weight: Annotated[float, typer.Option(
         "--unseen-class-weight", help="cnabu-map's unseen_class_weight (1: off).", min=1e-9, max=1.0)] = 1.0,
+    class_map: Annotated[Path | None, typer.Option("--class-map", help=CLASS_MAP_HELP)] = None,
 ) -> None:
     """Rollouts of recorded views: cnabu-map against analytic-observation and column-fill (paper metrics, NLL, ECE)."""
     import torch
@@ -221,7 +248,8 @@ def eval_map(
 
     torch.set_num_threads(threads)
     net, meta = load_map_net(weights or SHIPPED)
-    r = evaluate_rollouts(net, data, max_scenes=scenes, log=typer.echo, unseen_class_weight=unseen_class_weight)
+    r = evaluate_rollouts(net, data, max_scenes=scenes, log=typer.echo, unseen_class_weight=unseen_class_weight,
+                          class_map=_class_map(class_map))
     r["weights"], r["weights_sha256"] = str(weights or SHIPPED), meta["sha256"]
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)

@@ -66,6 +66,7 @@ from msmem_core.learn.datagen import DatagenSummary, ShardTask, read_manifest, r
 from msmem_core.msas import MOVED_M, execute_measured
 from msmem_core.plugins import ComponentRef
 from msmem_core.world.grid import GridSpec
+from msmem_core.world.scenegen import SceneGenConfig
 
 SHARD_VERSION = 1
 
@@ -80,6 +81,10 @@ class CNABUDataConfig(BaseModel):
     margin_voxels: int = Field(1, ge=1, le=10)
     require_hard: bool = False
     """Hard scenes instead of random 30-45 % occupancy shelves (slower to generate: docs/cnabu.md)."""
+    generator: SceneGenConfig | None = None
+    """The scene generator's settings (``msmem scene generate --generator``: e.g. scenes of mesh classes
+    only); None: the built-in classes. ``require_hard`` above replaces the file's. The shard records
+    the scene's class names (``info["classes"]``) and its beliefs have that many classes."""
     min_views: int = Field(1, ge=0)
     max_views: int = Field(6, ge=0)
     """Random views integrated (after the start view) before the first sample."""
@@ -375,12 +380,13 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
 
     from msmem_core.map.belief import EvidentialMap
     from msmem_core.sim.build import build_simulator
-    from msmem_core.world.scenegen import SceneGenConfig, generate_scene
+    from msmem_core.world.scenegen import generate_scene
     from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 
     cfg = config
     rng = np.random.default_rng([seed, KINDS.index(cfg.kind)])
-    scene = generate_scene(seed, SceneGenConfig(require_hard=cfg.require_hard))
+    gen = cfg.generator.model_copy(update={"require_hard": cfg.require_hard}) if cfg.generator else None
+    scene = generate_scene(seed, gen or SceneGenConfig(require_hard=cfg.require_hard))
     grid = GridSpec.around_box(scene.shelf.interior_lower, scene.shelf.interior_upper, cfg.voxel_m, cfg.margin_voxels)
     lo, hi = scene.shelf.interior_lower, scene.shelf.interior_upper
     interior = (*map(float, lo), *map(float, hi))
@@ -406,7 +412,7 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
 
     try:
         sim.reset(scene)
-        belief = look(EvidentialMap.empty(grid), [default_start_view(vp_cfg)])
+        belief = look(EvidentialMap.empty(grid, scene.num_classes), [default_start_view(vp_cfg)])
         belief = look(belief, fresh_views(int(rng.integers(cfg.min_views, cfg.max_views + 1))))
         if cfg.kind == "observe":
             gt = _ground_truth(sim, scene, grid)
@@ -463,7 +469,7 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
     finally:
         sim.close()
     info = {"scene": scene.name, "objects": len(scene.objects), "views": visited, "sim_execute_s": t_sim,
-            "config": cfg.model_dump(mode="json")}
+            "config": cfg.model_dump(mode="json"), "classes": list(scene.class_names)}
     if manip is not None:
         info["manipulation"] = manip
     return rec.shard(cfg.kind, seed, grid, interior, info)
@@ -548,6 +554,14 @@ def run_shard_task(task: ShardTask) -> dict[str, Any]:
             "bytes": path.stat().st_size}
 
 
+def _class_names(generator: dict[str, Any] | None) -> list[str]:
+    """The classes a generator's scenes hold, by name (None: the built-ins)."""
+    if not generator:
+        return ["(built-in)"]
+    own = [c["name"] for c in generator.get("classes", [])]
+    return own if generator.get("builtin_classes", True) is False else ["(built-in)", *own]
+
+
 def generate_dataset(
     out_dir: str | Path,
     seeds: Sequence[int],
@@ -566,6 +580,10 @@ def generate_dataset(
         raise UserError(f"{out} already holds {old['config']['kind']!r} data (see {out / datagen.MANIFEST}); "
                         f"use another --out for {config.kind!r}")
     datagen.check_same_simulator(out, old, config.simulator)
+    if old is not None and _class_names(old.get("config", {}).get("generator")) != _class_names(
+            config.model_dump(mode="json")["generator"]):
+        raise UserError(f"{out} holds scenes of other classes than --generator gives (see {out / datagen.MANIFEST}); "
+                        "use another --out")
     check_simulator(config.simulator, label_noise=config.label_noise)  # a bad --sim fails before any worker
 
     def check(path: Path) -> None:

@@ -85,11 +85,12 @@ def twins() -> dict[str, Any]:
 def evaluate_rollouts(net: Any, data_dir: str | Path, models: dict[str, Callable[..., EvidentialMap]] | None = None,
                       max_scenes: int | None = None, log: Callable[[str], None] = print,
                       steps: Sequence[int] | None = None, effects: Effects | None = None,
-                      unseen_class_weight: float = 1.0) -> dict[str, Any]:
+                      unseen_class_weight: float = 1.0, class_map: dict[str, str] | None = None) -> dict[str, Any]:
     """Roll out ``cnabu-map`` (``net``: a ``MapNet``, or None to score only ``models``) and the twins on
     every held-out sequence; the scores of the final beliefs (and of the beliefs after ``steps`` views).
     ``effects``: the effect models of post-manipulation sequences (default ``Effects()``, built when a
-    sequence needs it); ``unseen_class_weight``: ``cnabu-map``'s (``MapNet.step``)."""
+    sequence needs it); ``unseen_class_weight``: ``cnabu-map``'s (``MapNet.step``); ``class_map``: for
+    shards of other classes (``maptrain.sequence``)."""
     import torch
 
     paths = list_shards(data_dir, "observe")[:max_scenes]
@@ -114,7 +115,7 @@ def evaluate_rollouts(net: Any, data_dir: str | Path, models: dict[str, Callable
     views = manipulated = 0
     for path in paths:
         shard = load_shard(path)
-        seq = sequence(shard)
+        seq = sequence(shard, class_map)
         valid_t = torch.from_numpy(seq.valid)
         n = len(seq)
         marks = sorted({n, *(k for k in (steps or ()) if 0 < k <= n)})

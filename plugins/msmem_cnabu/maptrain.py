@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +47,7 @@ from msmem_core.map.belief import EvidentialMap
 from msmem_core.plugins import ComponentRef
 from msmem_core.util.artifacts import atomic_save, write_sidecar
 from msmem_core.util.validation import error_lines
-from msmem_core.world.scene import model_classes
+from msmem_core.world.scene import CLASS_NAMES, model_classes
 
 WEIGHTS_FORMAT = "msmem-cnabu-map"
 WEIGHTS_VERSION = 1
@@ -80,6 +80,9 @@ class MapTrainConfig(BaseModel):
     batches: int | None = Field(None, ge=1)
     """Train exactly this many batches instead of ``epochs``, listing the data folder again at every pass
     (so a folder still being generated contributes its new shards; the sidecar lists the seeds used)."""
+    class_map: dict[str, str] | None = None
+    """Scene class -> built-in class, for data of other classes (``sequence``); the weights then serve
+    such scenes through ``cnabu-map``'s ``class_map`` with the same map. Built-in data is unaffected."""
     effect_models: dict[str, ComponentRef] = Field(
         default_factory=lambda: {"push": ComponentRef(name="push-analytic")})
     """The effect model (a belief-model plugin with the role ``effect``) applied at a post-manipulation
@@ -133,9 +136,39 @@ def start_masks(shard: CNABUShard, w: float = 10.0) -> tuple[NDArray[np.bool_], 
     return free, occ, seen
 
 
-def sequence(shard: CNABUShard) -> Sequence_:
+def sequence(shard: CNABUShard, class_map: dict[str, str] | None = None) -> Sequence_:
     """The start view and the recorded views of an observe shard, in order, each with the ground truth
-    when it was taken, and the manipulations between them."""
+    when it was taken, and the manipulations between them. A shard of other classes than the built-ins
+    (``msmem datagen cnabu --generator``; its ``info["classes"]``) needs ``class_map`` (scene class ->
+    built-in class, as ``cnabu-map``'s parameter): its masks and labels are moved onto the built-in
+    classes it maps to (``remap_classes``), so the network sees them as ``cnabu-map`` with that map
+    does in an episode."""
+    seq = _sequence(shard)
+    classes = tuple(shard.info.get("classes") or CLASS_NAMES)
+    if classes == CLASS_NAMES:
+        return seq
+    if class_map is None:
+        raise UserError(f"shard of scene {shard.seed} holds the classes {', '.join(classes[1:])}, not the built-in "
+                        "ones: give a class map onto the built-ins (--class-map)")
+    from msmem_cnabu.mapmodel import mapped_classes
+
+    mapped, index = mapped_classes(class_map, CLASS_NAMES)
+    if mapped != classes:
+        raise UserError(f"shard of scene {shard.seed} holds the classes {', '.join(classes[1:])}; the class map "
+                        f"names {', '.join(mapped[1:])} (the same classes, in the scene's order, are needed)")
+    return remap_classes(seq, index, len(CLASS_NAMES))
+
+
+def remap_classes(seq: Sequence_, index: NDArray[np.int64], num_classes: int) -> Sequence_:
+    """``seq`` with its class ``c`` moved to class ``index[c]`` of ``num_classes``: the class masks (the
+    others stay empty) and the ground-truth labels."""
+    seen = np.zeros((seq.seen.shape[0], num_classes, *seq.seen.shape[2:]), dtype=bool)
+    seen[:, index] = seq.seen
+    lut = index.astype(np.int8)
+    return replace(seq, seen=seen, step_gt_cls=lut[seq.step_gt_cls])
+
+
+def _sequence(shard: CNABUShard) -> Sequence_:
     from msmem_cnabu.training import mirror_ok
 
     f0, o0, s0 = start_masks(shard)
@@ -335,7 +368,7 @@ def train_map(data_dir: str | Path | Sequence[str | Path], out: str | Path, cfg:
     if not dirs:
         raise UserError("no training data folder given")
     listing = _folders(dirs, cfg.max_scenes)
-    firsts = [sequence(load_shard(paths[0])) for paths in listing]
+    firsts = [sequence(load_shard(paths[0]), cfg.class_map) for paths in listing]
     first = max(firsts, key=len)
     shape = first.gt_occ.shape
     for d, f in zip(dirs, firsts, strict=True):
@@ -375,7 +408,7 @@ def train_map(data_dir: str | Path | Sequence[str | Path], out: str | Path, cfg:
             listing = _folders(dirs, cfg.max_scenes)
         for chosen in _batches(listing, cfg.batch, rng):
             used.update(chosen)
-            seqs = [sequence(load_shard(p)) for p in chosen]
+            seqs = [sequence(load_shard(p), cfg.class_map) for p in chosen]
             flips = [bool(rng.integers(2)) and q.mirror_ok for q in seqs]
             manipulated.update(q.seed for q in seqs if q.manipulations)
             batch = _batch(seqs, flips)
@@ -407,7 +440,7 @@ def train_map(data_dir: str | Path | Sequence[str | Path], out: str | Path, cfg:
     if heldout_dir is not None:
         from msmem_cnabu.mapeval import evaluate_rollouts
 
-        record["heldout"] = evaluate_rollouts(net, heldout_dir, log=log, effects=effects)
+        record["heldout"] = evaluate_rollouts(net, heldout_dir, log=log, effects=effects, class_map=cfg.class_map)
     return write_weights(net, out, record)
 
 
