@@ -55,7 +55,7 @@ sapien: setup
 	$(PY) -m msmem_sapien
 
 test-sapien: sapien
-	$(PY) -m pytest -q tests/test_sapien_sim.py
+	$(PY) -m pytest -q tests/test_sapien_sim.py tests/test_arm_execution.py
 
 # Optional Ray executor: local and Ray runs of the benchmark must give identical tables.
 test-ray: setup

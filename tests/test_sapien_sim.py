@@ -400,12 +400,24 @@ def test_a_mesh_class_is_built_from_its_convex_pieces_and_labelled(tmp_path) -> 
     assert set(np.unique(obs.labels[obs.object_ids == 0]).tolist()) == {15}
 
 
-def test_a_robot_with_an_arm_is_refused_in_one_line_naming_what_is_missing() -> None:
+def test_a_robot_with_an_arm_needs_the_native_renderer_and_says_so_in_one_line() -> None:
     from msmem_core.errors import UserError
 
-    cfg = load_config("view-only", None, {"simulator": {"name": "sapien"}, "robot": {"name": "panda"}, "steps": 1})
+    cfg = load_config("view-only", None, {"simulator": {"name": "sapien", "params": {"renderer": "raycast"}},
+                                          "robot": {"name": "panda"}, "steps": 1})
     with pytest.raises(UserError) as err:
         build_episode(cfg, get_plugin_manager())
     msg = str(err.value)
     assert "\n" not in msg
-    assert msg.startswith("simulator 'sapien' cannot drive robot 'panda': it does not load robots from URDF")
+    assert msg.startswith("simulator 'sapien' cannot load robot 'panda': SAPIEN's URDF loader needs its renderer")
+    assert "make sapien" in msg
+
+
+@needs_native
+def test_an_episode_with_the_panda_runs_on_sapien() -> None:
+    cfg = load_config("view-only", None, {"simulator": {"name": "sapien", "params": {"renderer": "native"}},
+                                          "robot": {"name": "panda"}, "steps": 2, "threads": 1})
+    ep = build_episode(cfg, get_plugin_manager())
+    run_episode(ep)
+    assert len(ep.records) == 2
+    assert all(r["arm"]["reachable"] for r in ep.records)  # views are proposed only where the wrist camera reaches

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from msmem_core.interfaces import Simulator
+from msmem_core.sim.arm import ArmDriver
 from msmem_core.world.geometry import matrix_to_quat, pose_matrix, quat_angle, quat_to_matrix, rotation_vector, slerp
 from msmem_core.world.scene import SceneSpec
 
@@ -90,6 +91,8 @@ class FloatingGripperSimulator(Simulator):
     """
 
     _parked: bool
+    _arm: ArmDriver | None = None
+    """The attached robot's arm, when a backend drives one (it then replaces the floating gripper)."""
 
     # ------------------------------------------------------------------------------------------ hooks
     @property
@@ -161,7 +164,12 @@ class FloatingGripperSimulator(Simulator):
 
     def _leave_park(self, first: NDArray[np.float64]) -> None:
         """Teleport out of the parking pose to the first clear pose of ``start_candidates(first)``
-        (the waypoint itself if none is). The move then reaches the waypoint under physics."""
+        (the waypoint itself if none is). The move then reaches the waypoint under physics. An arm is set
+        at the waypoint by the robot's verified IK, or stays parked (and notes why)."""
+        if self._arm is not None:
+            reach = self._arm.place(first, self._require_scene().shelf, "the first waypoint")
+            self._parked = not reach.reachable
+            return
         start = next((c for c in start_candidates(first) if self._start_is_clear(c, first)), first)
         self._teleport_gripper(start)
         self._parked = False
@@ -172,7 +180,8 @@ class FloatingGripperSimulator(Simulator):
         """Drive the gripper through the waypoints (linear position, slerped rotation) under physics.
 
         The opening is set first. From the parking pose the gripper first teleports next to the first
-        waypoint (see ``_leave_park``). Returns the reached pose.
+        waypoint (see ``_leave_park``). An arm that cannot reach the first waypoint from its parked or
+        view configuration does not move (``robot_notes`` says why). Returns the reached pose.
         """
         self._require_scene()
         if speed_mps <= 0:
@@ -184,6 +193,8 @@ class FloatingGripperSimulator(Simulator):
             return self.gripper_pose()
         if self._parked:
             self._leave_park(poses[0])
+            if self._parked:  # an arm that cannot get there
+                return self.gripper_pose()
         dt = self._time_step_s
         for target in path_targets(self.gripper_pose(), poses, speed_mps, dt):
             self._track(target)
@@ -200,7 +211,11 @@ class FloatingGripperSimulator(Simulator):
         return self.gripper_pose()
 
     def park_gripper(self) -> None:
-        """Teleport the gripper back to its parking pose out of view."""
+        """Teleport the gripper back to its parking pose out of view (an arm: to its home configuration,
+        out of the shelf)."""
         self._require_scene()
-        self._teleport_gripper(pose_matrix(PARK_POSITION_M, PARK_QUAT_XYZW))
+        if self._arm is not None:
+            self._arm.park()
+        else:
+            self._teleport_gripper(pose_matrix(PARK_POSITION_M, PARK_QUAT_XYZW))
         self._parked = True

@@ -22,10 +22,10 @@ import pybullet as p
 from numpy.typing import NDArray
 
 from msmem_core.errors import UserError
-from msmem_core.interfaces import Reach, Robot
+from msmem_core.interfaces import Robot
+from msmem_core.sim.arm import ArmDriver
 from msmem_core.util.quiet import quiet_stdio
 from msmem_core.world.geometry import matrix_to_quat, pose_matrix
-from msmem_core.world.scene import ShelfSpec
 
 POSITION_GAIN = 0.3
 """Joint position gain of the motors (pybullet's default 0.1 lags a 5 cm/s path by centimetres)."""
@@ -33,26 +33,14 @@ TRACK_IK_ITERATIONS = 30
 """IK iterations per physics step while tracking (each starts from the current joints, a step away)."""
 
 
-class ArmDrive:
+class ArmDrive(ArmDriver):
     """``robot`` built into the pybullet client ``client`` and driven by its joint motors."""
 
     def __init__(self, robot: Robot, client: int, finger_force_n: float, finger_friction: float) -> None:
-        model = robot.model()
-        if model.urdf is None or model.flange_link is None:
-            raise UserError(f"robot {model.name!r} has no URDF or flange link to build an arm from")
-        if not model.finger_joints:
-            raise UserError(f"robot {model.name!r} names no finger joints (RobotModel.finger_joints): the "
-                            "simulator cannot open or close its hand")
-        if len(model.home) != len(model.joint_names):
-            raise UserError(f"robot {model.name!r} gives no home configuration (RobotModel.home) of its "
-                            f"{len(model.joint_names)} joints: the simulator needs one to park the arm")
-        self.robot, self.model, self.client = robot, model, client
+        super().__init__(robot, "PyBullet")
+        self.client = client
         self.finger_force_n, self.finger_friction = finger_force_n, finger_friction
-        self.tool = robot.tool_mount()
-        self.tool_inv = np.linalg.inv(self.tool)
         self.uid = -1
-        self.notes: list[str] = []
-        self._target = np.asarray(model.home, dtype=np.float64)
 
     # ------------------------------------------------------------------------------------ building
     def build(self) -> int:
@@ -126,10 +114,6 @@ class ArmDrive:
         self.drive(np.asarray(arm_target, dtype=np.float64))
         self.set_fingers(opening_m)
 
-    def targets(self) -> tuple[float, ...]:
-        """The arm motors' current targets (for snapshots)."""
-        return tuple(float(q) for q in self._target)
-
     # ------------------------------------------------------------------------------------ hand
     def tool_pose(self) -> NDArray[np.float64]:
         """The gripper frame (``GripperSpec``'s) of the hand: the flange's pose times ``Robot.tool_mount``."""
@@ -155,28 +139,6 @@ class ArmDrive:
                                     maxVelocity=self.max_speed[j], physicsClientId=self.client)
 
     # ------------------------------------------------------------------------------------ motion
-    def place(self, tool_pose: NDArray[np.float64], shelf: ShelfSpec, what: str) -> Reach:
-        """Set the arm where its gripper frame is at ``tool_pose`` (the robot's verified IK); when it cannot,
-        leave the arm and note why (``what`` names the pose in the note)."""
-        reach = self.robot.ik(np.asarray(tool_pose) @ self.tool_inv, shelf)
-        self._apply(reach, what)
-        return reach
-
-    def place_camera(self, camera_to_world: NDArray[np.float64], shelf: ShelfSpec) -> Reach:
-        """Set the arm where its wrist camera is at ``camera_to_world``; when it cannot, note why."""
-        reach = self.robot.reach_camera(camera_to_world, shelf)
-        self._apply(reach, "the camera pose")
-        return reach
-
-    def _apply(self, reach: Reach, what: str) -> None:
-        if reach.reachable and reach.joints is not None:
-            self.set_joints(np.asarray(reach.joints, dtype=np.float64))
-        else:
-            self.notes.append(f"{what}: {reach.reason} (the arm did not move)")
-
-    def park(self) -> None:
-        self.set_joints(np.asarray(self.model.home, dtype=np.float64))
-
     def track(self, position: NDArray[np.float64], quat_xyzw: NDArray[np.float64]) -> None:
         """Joint targets for the gripper frame at (``position``, ``quat_xyzw``): IK of the flange pose from
         the arm's current joints (also the null-space rest pose), clipped to the limits."""
@@ -194,7 +156,3 @@ class ArmDrive:
     def touching(self, uids: Sequence[int], margin: float) -> bool:
         """Whether any link comes within ``margin`` of one of the bodies ``uids``."""
         return any(p.getClosestPoints(self.uid, u, margin, physicsClientId=self.client) for u in uids)
-
-    def take_notes(self) -> list[str]:
-        out, self.notes = self.notes, []
-        return out

@@ -524,34 +524,6 @@ class PyBulletSimulator(FloatingGripperSimulator):
         self._drive_fingers()
         return self._wait_for_fingers(self._finger_target_m)
 
-    def park_gripper(self) -> None:
-        """Floating gripper: its parking pose out of view. Arm: its home configuration (out of the shelf)."""
-        if self._arm is None:
-            super().park_gripper()
-            return
-        self._require_scene()
-        self._arm.park()
-        self._parked = True
-
-    def _leave_park(self, first: NDArray[np.float64]) -> None:
-        if self._arm is None:
-            super()._leave_park(first)
-            return
-        reach = self._arm.place(first, self._require_scene().shelf, "the first waypoint")
-        self._parked = not reach.reachable
-
-    def move_gripper(self, waypoints: Sequence[NDArray[np.float64]], opening_m: float | None = None,
-                     speed_mps: float = 0.1) -> NDArray[np.float64]:
-        """As ``FloatingGripperSimulator.move_gripper``; an arm that cannot reach the first waypoint of a
-        move from its parked or view configuration does not move (``robot_notes`` says why)."""
-        if self._arm is not None and self._parked and len(waypoints):
-            if opening_m is not None:
-                self.set_gripper(opening_m)
-            self._leave_park(np.asarray(waypoints[0], dtype=np.float64))
-            if self._parked:
-                return self.gripper_pose()
-        return super().move_gripper(waypoints, opening_m, speed_mps)
-
     def _set_target(self, pos: NDArray[np.float64], quat: NDArray[np.float64]) -> None:
         self._gripper_target = (tuple(pos.tolist()), tuple(quat.tolist()))
         p.changeConstraint(

@@ -285,8 +285,19 @@ class SceneBuilder:
         )
 
     def _build_gripper(self) -> None:
-        """Palm link (its frame is the gripper frame) with two prismatic fingers along gripper x."""
+        """Palm link (its frame is the gripper frame) with two prismatic fingers along gripper x; with an
+        attached robot, its arm instead (``msmem_sapien.arm``)."""
         assert self._sapien is not None
+        arm = getattr(self, "_arm", None)
+        if arm is not None:
+            art = arm.build(self._sapien, _GRIPPER_GROUPS, self._materials["finger"], FINGER_STIFFNESS, FINGER_DAMPING)
+            art.solver_position_iterations = self.config.solver_position_iterations
+            for link in art.links:
+                self._ids[link.entity.per_scene_id] = GRIPPER_ID
+            self._links, self._articulation = list(art.links), art
+            self._fingers = arm.finger_entities
+            self._joints = arm.finger_joints
+            return
         g = self.config.gripper
         _, finger_half = g.boxes(0.0)[0]
         _, palm_half = g.boxes(0.0)[2]

@@ -31,7 +31,7 @@ with warnings.catch_warnings():  # "Failed to find system libvulkan": SAPIEN the
     import sapien
 
 from msmem_core.errors import UserError
-from msmem_core.interfaces import GRIPPER_ID, Capabilities, Contact
+from msmem_core.interfaces import GRIPPER_ID, Capabilities, Contact, Observation, Robot
 from msmem_core.sim.motion import (
     FINGER_SPEED_MPS,
     PARK_POSITION_M,
@@ -41,6 +41,7 @@ from msmem_core.sim.motion import (
 )
 from msmem_core.world.geometry import boxes_overlap, matrix_to_quat, pose_matrix
 from msmem_core.world.scene import SceneSpec, ShelfSpec
+from msmem_sapien.arm import SapienArm
 from msmem_sapien.camera import CameraView
 from msmem_sapien.config import SapienConfig
 from msmem_sapien.scene import SceneBuilder, _BodyState, _matrix, _Object, _sapien_pose
@@ -71,6 +72,9 @@ class _Snapshot:
     parked: bool
     contacts: tuple[_ContactPoint, ...]
     """The touching points of the last step (PhysX reports them only after a step)."""
+    arm: tuple[tuple[float, ...], tuple[float, ...]] = ((), ())
+    """With an arm: every joint's position and velocity (the fields above then hold no finger state)."""
+    arm_target: tuple[float, ...] = ()
 
 
 
@@ -106,6 +110,23 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
         self._shelf_mesh_cache: tuple[ShelfSpec, list[Any]] | None = None
         self._pixel_rays: NDArray[np.float32] | None = None
         self._contact_cache: list[_ContactPoint] | None = None
+        self._arm: SapienArm | None = None
+
+    def attach_robot(self, robot: Robot) -> None:
+        """From the next ``reset`` on, the robot's arm (its URDF, at its base pose) replaces the floating
+        gripper and is driven by its joint drives (``msmem_sapien.arm``). A robot without an arm changes
+        nothing. The arm needs SAPIEN's renderer (its URDF loader builds visuals): refused in one line
+        without it."""
+        if not robot.arm:
+            return
+        if not self._native:
+            raise UserError(f"simulator 'sapien' cannot load robot {robot.model().name!r}: SAPIEN's URDF loader needs "
+                            "its renderer, which has no Vulkan device here (run `make sapien` for a CPU one), or use "
+                            "the pybullet simulator")
+        self._arm = SapienArm(robot, self.config.gripper.finger_force_n)
+
+    def robot_notes(self) -> list[str]:
+        return self._arm.take_notes() if self._arm is not None else []
 
     # ------------------------------------------------------------------------------------- lifecycle
     def reset(self, scene: SceneSpec) -> None:
@@ -116,8 +137,11 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
         self._gripper_target = (PARK_POSITION_M, PARK_QUAT_XYZW)
         self._parked = True
         self._build_world(scene, [(o, None) for o in scene.objects])
-        q = g.max_opening_m / 2
-        self._articulation.set_qpos(np.array([q, q], dtype=np.float32))
+        if self._arm is None:
+            q = g.max_opening_m / 2
+            self._articulation.set_qpos(np.array([q, q], dtype=np.float32))
+        else:
+            self._finger_goal_m = self._finger_command_m = self._arm.max_opening()
         self._drive_fingers(0.0)
         self.step(self.config.settle_s)
 
@@ -129,6 +153,14 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
         for name in ("_articulation", "_drive", "_links", "_joints"):
             self.__dict__.pop(name, None)
         self._sapien = None
+
+    def observe(self, camera_to_world: NDArray[np.float64]) -> Observation:
+        """``CameraView.observe``; with an arm, the wrist camera takes the view: the arm is set there first
+        (and is in the image), or a note says why it could not be."""
+        if self._arm is not None:
+            self._arm.place_camera(np.asarray(camera_to_world, dtype=np.float64), self._require_scene().shelf)
+            self._parked = True  # the next move starts at its first waypoint, as from the parking pose
+        return super().observe(camera_to_world)
 
     def capabilities(self) -> Capabilities:
         camera = "SAPIEN renderer (Vulkan) depth and labels" if self._native else "open3d ray-cast depth and labels"
@@ -176,6 +208,9 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
     def _drive_fingers(self, speed: float) -> None:
         """Send the commanded half-opening (and its rate) to both finger drives."""
         self._finger_velocity = speed
+        if self._arm is not None:
+            self._arm.drive_fingers(self._finger_command_m, speed)
+            return
         for joint in self._joints:
             joint.set_drive_target(self._finger_command_m / 2)
             joint.set_drive_velocity_target(speed)
@@ -201,7 +236,7 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
     def snapshot(self) -> _Snapshot:
         scene = self._require_scene()
         art = self._articulation
-        qpos, qvel = art.get_qpos(), art.get_qvel()
+        qpos, qvel = (np.zeros(2), np.zeros(2)) if self._arm is not None else (art.get_qpos(), art.get_qvel())
         return _Snapshot(
             owner=self._owner,
             scene=scene,
@@ -219,6 +254,8 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
             gripper_target=self._gripper_target,
             parked=self._parked,
             contacts=tuple(self._contact_points()),
+            arm=self._arm.state() if self._arm is not None else ((), ()),
+            arm_target=self._arm.targets() if self._arm is not None else (),
         )
 
     def restore(self, token: Any) -> None:
@@ -233,6 +270,12 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
         self._parked = token.parked
         contacts = list(token.contacts)
         self._build_world(token.scene, [(specs[oid], s) for oid, s in token.objects])
+        if self._arm is not None:
+            self._arm.set_state(token.arm, token.arm_target)
+            self._drive_fingers(0.0 if token.finger_goal_m == token.finger_command_m else
+                                math.copysign(FINGER_SPEED_MPS, token.finger_goal_m - token.finger_command_m))
+            self._contact_cache = contacts
+            return
         art = self._articulation
         art.set_root_pose(sapien.Pose(np.array(token.palm.p, np.float32), np.array(token.palm.q, np.float32)))
         art.set_root_linear_velocity(np.array(token.palm.linear_velocity, np.float32))
@@ -248,19 +291,26 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
     def gripper_pose(self) -> NDArray[np.float64]:
         """Pose of the gripper frame (origin between the fingertip pads, z = approach)."""
         self._require_scene()
+        if self._arm is not None:
+            return self._arm.tool_pose()
         return _matrix(self._articulation.root_pose)
 
     def _opening(self) -> float:
+        if self._arm is not None:
+            return self._arm.opening()
         return float(np.sum(self._articulation.get_qpos()))
 
     def _finger_speed(self) -> float:
+        if self._arm is not None:
+            return self._arm.finger_speed()
         return float(np.abs(self._articulation.get_qvel()).sum())
 
     def set_gripper(self, opening_m: float) -> float:
         """Drive both fingers to ``opening_m`` (clamped); stop when reached or blocked (<= 0.5 s)."""
         self._require_scene()
         g = self.config.gripper
-        self._finger_goal_m = float(np.clip(opening_m, 0.0, g.max_opening_m))
+        top = g.max_opening_m if self._arm is None else min(g.max_opening_m, self._arm.max_opening())
+        self._finger_goal_m = float(np.clip(opening_m, 0.0, top))
         return self._wait_for_fingers(self._finger_goal_m)
 
     def _set_target(self, pos: NDArray[np.float64], quat: NDArray[np.float64],
@@ -274,6 +324,9 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
         )
 
     def _teleport_gripper(self, pose: NDArray[np.float64]) -> None:
+        if self._arm is not None:
+            self._arm.place(pose, self._require_scene().shelf, "the gripper pose")
+            return
         art = self._articulation
         art.set_root_pose(_sapien_pose(pose))
         art.set_root_linear_velocity(np.zeros(3, dtype=np.float32))
@@ -281,9 +334,15 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
         self._set_target(pose[:3, 3], matrix_to_quat(pose[:3, :3]))
 
     def _track(self, target: PathTarget) -> None:
+        if self._arm is not None:
+            self._arm.track(target.position, target.quat_xyzw)
+            return
         self._set_target(target.position, target.quat_xyzw, target.velocity, target.spin)
 
     def _end_path(self, position: NDArray[np.float64], quat_xyzw: NDArray[np.float64]) -> None:
+        if self._arm is not None:
+            self._arm.track(position, quat_xyzw)
+            return
         self._set_target(position, quat_xyzw)  # hold still there: zero velocity target
 
     def _gripper_boxes(self, pose: NDArray[np.float64], inflate: float) -> list[tuple[Any, Any, Any]]:
@@ -306,7 +365,12 @@ class SapienSimulator(SceneBuilder, CameraView, FloatingGripperSimulator):
         return np.concatenate(cs), np.concatenate(rs), np.concatenate(hs)
 
     def _collides(self, pose: NDArray[np.float64], clearance: float, with_objects: bool) -> bool:
-        """Whether the gripper at ``pose``, grown by ``clearance``, overlaps an obstacle (bounding boxes)."""
+        """Whether the gripper at ``pose``, grown by ``clearance``, overlaps an obstacle (bounding boxes). With
+        an arm: also whether the robot cannot reach ``pose`` without touching the shelf (its own check)."""
+        if self._arm is not None:
+            reach = self._arm.robot.ik(pose @ self._arm.tool_inv, self._require_scene().shelf)
+            if not reach.reachable:
+                return True
         cb, rb, hb = self._obstacles(with_objects)
         return any(bool(np.any(boxes_overlap(cb, rb, hb, c, r, h, margin=1e-9)))
                    for c, r, h in self._gripper_boxes(pose, clearance))

@@ -1,0 +1,113 @@
+"""Scripted arm moves both physics backends are held to (``tests/test_arm_execution.py``, parametrised
+over PyBullet and SAPIEN): the same robot, the same moves, the same outcomes."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from msmem_core.interfaces import Robot, Simulator
+from msmem_core.testing.conformance import single_object_scene
+from msmem_core.world.scene import ObjectSpec, SceneSpec
+from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
+
+INTO_SHELF = np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+"""Gripper frame pointing into the shelf (+y), fingers closing along x."""
+
+
+def hand(x: float, y: float, z: float) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, :3] = INTO_SHELF
+    t[:3, 3] = (x, y, z)
+    return t
+
+
+def joints(sim: Simulator) -> np.ndarray:
+    """The simulated arm's joint positions (``RobotModel.joint_names`` order)."""
+    return sim._arm.joint_positions()  # type: ignore[attr-defined]
+
+
+def check_grasp_and_carry_out(sim: Simulator, robot: Robot) -> None:
+    """The arm grasps a soup can 10 cm deep and carries it out of the shelf."""
+    sim.reset(single_object_scene("tomato_soup_can", (0.2, 0.10, 0.0)))
+    start = sim.object_poses()[7]
+    sim.move_gripper([hand(0.2, -0.08, 0.05)], opening_m=0.08, speed_mps=0.1)
+    reached = sim.move_gripper([hand(0.2, 0.10, 0.05)], speed_mps=0.05)
+    assert np.linalg.norm(reached[:3, 3] - (0.2, 0.10, 0.05)) < 0.002  # joint control tracks the path
+    assert np.linalg.norm(sim.object_poses()[7][:3, 3] - start[:3, 3]) < 0.005  # the open hand slid around it
+    closed = sim.set_gripper(0.0)
+    assert 0.06 < closed < 0.07  # stopped by the can (6.6 cm across)
+    assert sim.held_object() == 7
+    sim.move_gripper([hand(0.2, 0.10, 0.08)], speed_mps=0.05)
+    sim.move_gripper([hand(0.2, -0.15, 0.08)], speed_mps=0.1)
+    assert sim.held_object() == 7
+    assert sim.object_poses()[7][1, 3] < -0.1  # out of the shelf with the hand
+    assert sim.robot_notes() == []
+    # the gripper frame is the robot's own forward kinematics of the simulated joints, times its tool mount
+    np.testing.assert_allclose(sim.gripper_pose(), robot.flange_pose(joints(sim)) @ robot.tool_mount(),  # type: ignore[attr-defined]
+                               atol=1e-5)
+
+
+def check_push_and_exact_restore(sim: Simulator, restore_atol: float) -> None:
+    """A hand driven into a box moves it (not a brick elsewhere); restoring and repeating is bit-exact."""
+    scene = SceneSpec(objects=(ObjectSpec(id=0, class_name="sugar_box", position_m=(0.25, 0.12, 0.0)),
+                               ObjectSpec(id=1, class_name="foam_brick", position_m=(-0.2, 0.2, 0.0))))
+    sim.reset(scene)
+    sim.move_gripper([hand(0.25, -0.08, 0.08)], opening_m=0.08)
+    token = sim.snapshot()
+    before = sim.object_poses()
+
+    def push() -> dict[int, np.ndarray]:
+        sim.move_gripper([hand(0.25, 0.16, 0.08)], speed_mps=0.1)
+        sim.step(0.5)
+        return sim.object_poses()
+
+    after = push()
+    assert np.linalg.norm(after[0][:3, 3] - before[0][:3, 3]) > 0.03  # the hand entered where the box stood
+    assert np.linalg.norm(after[1][:3, 3] - before[1][:3, 3]) < 1e-3  # the brick is elsewhere
+    sim.restore(token)
+    for oid, pose in sim.object_poses().items():
+        np.testing.assert_allclose(pose, before[oid], atol=restore_atol)
+    np.testing.assert_allclose(sim.gripper_pose(), hand(0.25, -0.08, 0.08), atol=2e-3)  # the arm came back
+    again = push()
+    sim.restore(token)
+    third = push()
+    for oid, pose in third.items():  # restoring and repeating the same calls gives the same result, bit for bit
+        np.testing.assert_array_equal(pose, again[oid])
+        assert np.linalg.norm(pose[:3, 3] - after[oid][:3, 3]) < 0.01  # (the live run differs by solver warm starts)
+
+
+def check_unreachable_start_is_not_made(sim: Simulator) -> None:
+    """A move whose first waypoint is out of reach is not made, and the note says why (once)."""
+    sim.reset(single_object_scene("foam_brick", (0.0, 0.2, 0.0)))
+    sim.park_gripper()
+    parked = sim.gripper_pose()
+    got = sim.move_gripper([hand(0.0, -3.0, 0.1), hand(0.0, 0.2, 0.1)], opening_m=0.08)
+    np.testing.assert_allclose(got, parked, atol=1e-4)  # no teleport, no motion (the hand opened meanwhile)
+    notes = sim.robot_notes()
+    assert len(notes) == 1
+    assert notes[0].startswith("the first waypoint: no IK answer within")
+    assert "the arm did not move" in notes[0]
+    assert sim.robot_notes() == []  # taken once
+
+
+def check_view_moves_the_wrist_camera(sim: Simulator, robot: Robot, bare: Callable[[], Simulator]) -> None:
+    """A view puts the wrist camera there, and the fingers are in the picture (against ``bare()``, the
+    same backend without the arm)."""
+    scene = single_object_scene("foam_brick", (0.0, 0.2, 0.0))
+    sim.reset(scene)
+    views = generate_viewpoints(ViewpointConfig(), scene.shelf)
+    view = views[int(np.flatnonzero(robot.reachable_views(views, scene.shelf))[0])]
+    obs = sim.observe(view)
+    camera = robot.flange_pose(joints(sim)) @ robot.camera_mount()  # type: ignore[attr-defined]
+    assert np.linalg.norm(camera[:3, 3] - view[:3, 3]) < 0.006
+    assert np.degrees(np.arccos(np.clip((np.trace(camera[:3, :3].T @ view[:3, :3]) - 1) / 2, -1, 1))) < 2.5
+    floating = bare()
+    floating.reset(scene)
+    free = floating.observe(view)
+    floating.close()
+    own = (obs.depth > 0) & (obs.depth < 0.15) & ~((free.depth > 0) & (free.depth < 0.15))
+    assert 0.005 < own.mean() < 0.1  # the fingers in front of the lens occlude a few per cent, as a real one's
+    assert (obs.labels[own] == 0).all()
+    assert (obs.object_ids[own] == -1).all()
