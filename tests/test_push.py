@@ -298,6 +298,29 @@ def test_chain_clearance_with_max_height_ratio_stops_before_a_thin_tall_neighbou
     assert max(a.length_m for a in chain_only) > 0.06 + standoff + voxel
 
 
+def test_chain_travel_limits_how_far_a_driven_neighbour_moves() -> None:
+    """The row of the chain-clearance test: the neighbour starts moving after 6 cm of the first box's
+    travel. With ``chain_travel_m`` 3 cm, pushes to the right end 3 cm later (9 cm of travel) instead of
+    at the wall (14 cm, less the clearance); pushes into the shelf, which drive nothing known, keep
+    their full length."""
+    x_hi = WORKSPACE.shelf.interior_box[3]
+    b = _row_belief({3: ((-0.08, 0.04), (0.08, 0.06)), 5: ((0.14, 0.03), (x_hi - 0.08, 0.07))})
+    standoff, voxel = PushConfig().standoff_m, GRID.voxel_m
+
+    def pushes(cfg: PushConfig) -> list[PushAction]:
+        return [a for seed in range(6) for a in PushSkill(cfg).propose(_ctx(b, seed=seed)) if a.target_class == 3]
+
+    limited = pushes(PushConfig(chain_travel_m=0.03))
+    right = [a for a in limited if a.direction[0] > 0.95]
+    into = [a for a in limited if a.direction[1] > 0.95]
+    assert right
+    assert max(a.length_m for a in right) <= 0.06 + 0.03 + standoff + voxel
+    assert max(a.length_m for a in right) > 0.06 + standoff + voxel, "the neighbour is still pushed, a little"
+    unlimited = [a for a in pushes(PushConfig()) if a.direction[0] > 0.95]
+    assert max(a.length_m for a in unlimited) > 0.06 + 0.03 + standoff + voxel
+    assert max(a.length_m for a in into) > PushConfig().max_length_m - voxel
+
+
 def test_max_height_ratio_refuses_to_push_a_thin_tall_object() -> None:
     """A 16 x 2 cm box 15 cm tall (7.5 times as tall as its narrowest width) is pushed without the
     check, not at all with ``max_height_ratio`` 3, and again with 8."""

@@ -204,6 +204,12 @@ class PushConfig(BaseModel):
     not a row of them into a wall. With ``max_height_ratio`` set, a chain must also not reach a thin,
     tall object. The default since it was measured (docs/push.md, "Falls"): on ``hard25`` scenes 0-9
     push-only 0 of 10 episodes with a fall against 5 of 10, as many pushes. None: no check."""
+    chain_travel_m: float | None = Field(None, gt=0.0, le=0.3)
+    """With ``chain_clearance_m``: an object the chain drives (pushed by another object, not by the tool)
+    moves at most this far: the push is shortened to end that far after the object starts moving. The
+    tool pushes 2 cm above the board, where a pushed object slides; an object pushed by another is
+    pushed wherever they touch, often high, and a long way of that tips tall objects over (docs/push.md,
+    "Falls"). None: no limit."""
     speed_mps: float = Field(0.1, gt=0.0, le=1.0)
     travel_speed_mps: float = Field(0.25, gt=0.0, le=2.0)
     """Speed of the approach and the retreat."""
@@ -472,6 +478,8 @@ class PushSkill(Skill):
                 elif d < start.get(j, np.inf) and d < room:
                     start[j] = d
                     queue = [(q, i) for q, i in queue if i != j] + [(d, j)]
+                    if cfg.chain_travel_m is not None:  # a driven object moves at most this far
+                        room = min(room, d + cfg.chain_travel_m + float(cfg.chain_clearance_m or 0.0))
         return room - float(cfg.chain_clearance_m or 0.0)
 
     def _candidate(self, t: _Target, rng: np.random.Generator, grid: Any, interior_m: Interior,
