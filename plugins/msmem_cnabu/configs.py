@@ -54,7 +54,8 @@ class CNABUMapConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     weights: Path | None = None
-    """Weights file (None: the shipped ``msmem_cnabu/weights/cnabu_map.pt``)."""
+    """Weights file (None: the shipped ``msmem_cnabu/weights/cnabu_map.pt``; a relative
+    ``msmem_cnabu/weights/NAME`` names another shipped file, e.g. ``cnabu_map_mesh.pt``)."""
     margin_voxels: int = Field(1, ge=1, le=10)
     """The grid's margin around the shelf interior (``grid.margin_voxels``): the boards get no residual."""
     pixel_stride: int = Field(2, gt=0)

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from msmem_cnabu.configs import CNABUMapConfig
 from msmem_cnabu.features import grid_interior, wall_mask
+from msmem_cnabu.weights import resolve_weights
 from msmem_core.errors import UserError
 from msmem_core.interfaces import Observation, ObservationModel
 from msmem_core.map.belief import EvidentialMap
@@ -29,8 +30,9 @@ class CNABUMapObservationModel(ObservationModel):
         from msmem_cnabu.maptrain import load_map_net
 
         self.config = cfg = config or CNABUMapConfig()
-        self.net, self.meta = load_map_net(cfg.weights if cfg.weights is not None else SHIPPED)
-        self.meta["weights"] = str(cfg.weights if cfg.weights is not None else SHIPPED)
+        path = resolve_weights(cfg.weights) if cfg.weights is not None else SHIPPED
+        self.net, self.meta = load_map_net(path)
+        self.meta["weights"] = str(path)
         trained = model_classes(self.meta.get("classes"), self.net.config.num_classes)
         self.classes = trained
         self._index: NDArray[np.int64] | None = None
