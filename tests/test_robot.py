@@ -109,6 +109,20 @@ def test_a_configuration_inside_a_shelf_board_collides(panda):
         wide.close()
 
 
+def test_a_configuration_folded_onto_itself_collides_unless_self_collision_is_off(panda):
+    # joint 4 near its lower limit folds the forearm back: link 7 and the hand end against link 1
+    folded = (-0.29, 1.09, -1.6, -2.98, -0.57, 0.69, -2.43)
+    hits = panda.collisions(folded, SHELF)
+    assert "panda_link1-panda_hand" in hits, hits
+    assert all("-panda_" in h for h in hits), hits  # only the arm's own links: the shelf is far
+    assert panda.collisions(panda.model().home, SHELF) == []
+    loose = PandaRobot(PandaConfig(self_collision=False, disk_cache=False))
+    try:
+        assert loose.collisions(folded, SHELF) == []
+    finally:
+        loose.close()
+
+
 def test_ik_refuses_a_pose_it_reaches_only_through_a_board(panda):
     # inside the top board, 5 cm into the shelf: kinematically easy, but the hand is in the board
     inside_top = flange((0.0, 0.05, SHELF.height_m + SHELF.wall_m / 2))

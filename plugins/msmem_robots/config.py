@@ -34,6 +34,9 @@ class PandaConfig(BaseModel):
     looks along the flange's z (OpenCV: x right, y down, z forward)."""
     collision_margin_m: float = Field(0.01, ge=0.0, le=0.2)
     """An arm link closer than this to a shelf board collides."""
+    self_collision: bool = True
+    """Also refuse configurations in which two of the arm's links touch (pairs at least three joints
+    apart along the chain: neighbours and the two fingers always touch or nearly)."""
     position_tolerance_m: float = Field(0.005, gt=0.0, le=0.1)
     """Largest flange position error (forward kinematics of the IK answer) counted as reached."""
     orientation_tolerance_deg: float = Field(2.0, gt=0.0, le=45.0)

@@ -99,11 +99,33 @@ class PandaRobot(Robot):
                 lower.append(float(info[8]))
                 upper.append(float(info[9]))
         self._body, self._movable, self._links = body, movable, links
+        self._self_pairs = self._distant_link_pairs(client, body) if self.config.self_collision else []
         self._flange = next(j for j, n in links.items() if n == FLANGE_LINK)
         self._names = tuple(names[:ARM_JOINTS])
         self._lower, self._upper = np.array(lower), np.array(upper)
         self._client = client
         return client
+
+    @staticmethod
+    def _distant_link_pairs(client: Any, body: int) -> list[tuple[int, int]]:
+        """Pairs of links with collision shapes at least three joints apart along the kinematic tree (the
+        ones that can touch only when the arm folds onto itself)."""
+        parent = {j: client.getJointInfo(body, j)[16] for j in range(client.getNumJoints(body))}
+
+        def chain(j: int) -> list[int]:
+            out = [j]
+            while j != -1:
+                j = parent[j]
+                out.append(j)
+            return out
+
+        def apart(i: int, j: int) -> int:
+            a, b = chain(i), chain(j)
+            common = next(x for x in a if x in b)
+            return a.index(common) + b.index(common)
+
+        shaped = [j for j in range(-1, len(parent)) if client.getCollisionShapeData(body, j)]
+        return [(i, j) for k, i in enumerate(shaped) for j in shaped[k + 1:] if apart(i, j) >= 3]
 
     def _set(self, arm: NDArray[np.float64]) -> None:
         c = self._client
@@ -174,8 +196,9 @@ class PandaRobot(Robot):
             elif jump > cfg.path_joint_step_rad:
                 why = f"a joint would jump {jump:.2f} rad (more than {cfg.path_joint_step_rad:g})"
             elif hits := self._hits():
+                what = ", ".join(hits[:3])
                 return Reach(False, None, perr, aerr, tuple(hits),
-                             f"path point {k} of {n}: the arm collides with the shelf ({', '.join(hits[:3])})")
+                             f"path point {k} of {n}: the arm collides with the shelf or itself ({what})")
             if why:
                 return Reach(False, None, perr, aerr, (), f"path point {k} of {n}: {why}")
             q = new
@@ -230,11 +253,16 @@ class PandaRobot(Robot):
         return self._hits()
 
     def _hits(self) -> list[str]:
+        """What the arm in its current configuration touches: ``link-board`` within the collision margin of
+        a shelf board, and ``link-link`` for two of its own links in contact (``self_collision``)."""
         c, margin = self._client, self.config.collision_margin_m
         out = []
         for name, board in zip(BOARDS, self._boards, strict=True):
             links = sorted({p[3] for p in c.getClosestPoints(self._body, board, distance=margin) if p[8] < margin})
             out += [f"{self._links[i]}-{name}" for i in links]
+        b = self._body
+        out += [f"{self._links[i]}-{self._links[j]}" for i, j in self._self_pairs
+                if c.getClosestPoints(b, b, 0.0, i, j)]
         return out
 
     def ik(self, flange_pose: NDArray[np.float64], shelf: ShelfSpec) -> Reach:
@@ -251,7 +279,8 @@ class PandaRobot(Robot):
                 return Reach(True, tuple(float(x) for x in q), perr, aerr)
             score = 0.0 if reached else max(perr / tol_m, aerr / tol_deg)  # colliding answers first
             if score < best_score:
-                why = (f"every IK answer that reaches it collides with the shelf ({', '.join(hits[:3])})" if hits
+                what = ", ".join(hits[:3])
+                why = (f"every IK answer that reaches it collides with the shelf or itself ({what})" if hits
                        else f"no IK answer within {tol_m * 1000:g} mm and {tol_deg:g} deg (best: "
                        f"{perr * 1000:.1f} mm, {aerr:.1f} deg)")
                 best, best_score = Reach(False, None, perr, aerr, tuple(hits), why), score
