@@ -86,3 +86,46 @@ def test_train_map_learns_from_mesh_scenes_through_the_class_map(mesh_dir, tmp_p
     with pytest.raises(UserError, match="give a class map"):
         train_map(mesh_dir, tmp_path / "no.pt", MapTrainConfig(batches=1, batch=1), log=lambda _: None,
                   arch={"width": 8, "embed": 4, "levels": 1})
+
+
+# ------------------------------------------------------------------------------ the shipped mesh-tuned weights
+MESH_WEIGHTS = ROOT / "plugins" / "msmem_cnabu" / "weights" / "cnabu_map_mesh.pt"
+SHIPPED = ROOT / "plugins" / "msmem_cnabu" / "weights" / "cnabu_map.pt"
+MESH_HELDOUT = ROOT / "tests" / "data" / "map_mesh_heldout"
+"""Two shards of ``msmem datagen cnabu --kind observe --generator examples/suites/mesh25.generator.yaml
+--require-hard --seed 690000 --scenes 2 --samples 12 --min-views 0 --max-views 0``: held-out seeds (the
+mesh-tuned weights were trained on seeds 600000 and up, below 690000; their model card)."""
+
+
+@pytest.fixture(scope="module")
+def mesh_heldout():
+    import torch
+    from msmem_cnabu.mapeval import evaluate_rollouts
+    from msmem_cnabu.maptrain import load_map_net
+
+    torch.set_num_threads(1)
+    tuned, _ = load_map_net(MESH_WEIGHTS)
+    base, _ = load_map_net(SHIPPED)
+    got = evaluate_rollouts(tuned, MESH_HELDOUT, class_map=CLASS_MAP, log=lambda _: None)["final"]
+    untuned = evaluate_rollouts(base, MESH_HELDOUT, class_map=CLASS_MAP, log=lambda _: None)["final"]
+    got["untuned"] = untuned["cnabu-map"]
+    return got
+
+
+def test_the_mesh_tuned_weights_load_as_plain_tensors_stay_small_and_record_their_class_map():
+    from msmem_cnabu.maptrain import load_map_net
+
+    net, meta = load_map_net(MESH_WEIGHTS)
+    assert not net.training
+    assert MESH_WEIGHTS.stat().st_size < 8e6
+    assert meta["train"]["class_map"] == CLASS_MAP
+    assert meta["seeds"][-1] < 690000  # the held-out shards are seeds 690000 and up
+
+
+def test_the_mesh_tuned_weights_beat_the_analytic_update_and_the_untuned_weights_on_heldout_mesh_scenes(mesh_heldout):
+    tuned, analytic, untuned = mesh_heldout["cnabu-map"], mesh_heldout["analytic-observation"], mesh_heldout["untuned"]
+    assert tuned["occ_nll"] + tuned["sem_nll"] < analytic["occ_nll"] + analytic["sem_nll"], (tuned, analytic)
+    assert tuned["occupancy_miou"] > analytic["occupancy_miou"]
+    assert tuned["semantic_miou_2d"] > analytic["semantic_miou_2d"]
+    assert tuned["sem_nll"] < untuned["sem_nll"]  # the classes the untuned network named by shape
+    assert tuned["semantic_miou_2d"] > untuned["semantic_miou_2d"] + 0.1
