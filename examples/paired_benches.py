@@ -65,8 +65,10 @@ def main(folders: list[str]) -> None:
     print("| difference | occupancy mIoU | semantic mIoU 2-D |")
     print("|---|---|---|")
     base_counts = read_paper_counts(first)
+    methods = {m for m, _ in base}
+    only = next(iter(methods)) if len(methods) == 1 else None  # the same method in a folder of several
     for folder in others:
-        counts = read_paper_counts(folder)
+        counts = read_paper_counts(folder, only)
         cells = []
         for k in ("occupancy_miou", "semantic_miou_2d"):
             d, lo, hi = cumulative_difference(base_counts, counts, k)
