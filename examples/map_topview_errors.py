@@ -1,12 +1,16 @@
 """Where cnabu-map's top view goes wrong: the analytic update's 40 views replayed through both models.
 
     .venv/bin/python examples/map_topview_errors.py --scenes 0,1 [--weights W] [--suite tune10]
+    .venv/bin/python examples/map_topview_errors.py --suite mesh25 --scenes 0-4 \
+        --config examples/scenes/mesh25-cnabu-map-mesh.yaml      # cnabu-map's params from a run config
 
 For each scene, a view-only episode with the analytic update chooses 40 views; they are replayed
 open loop through the analytic update and cnabu-map. Printed per model, over the shelf interior's
 columns of the paper's top-view class map: columns with the right object class, a wrong object
 class, an object where the truth is free, free where the truth holds an object, and the classes
-predicted that are not in the scene (each is a class with IoU 0 in the mean) with their columns.
+predicted that are not in the scene (each is a class with IoU 0 in the mean) with their columns; for
+cnabu-map also how many of its wrong-class columns the analytic update names right, and how many of
+its object-on-free columns the analytic update leaves free.
 Last, the 2-D semantic mIoU over the classes in the scene only (background included): the same
 mean without the absent classes' zeros. Then two changes to cnabu-map's final hard classes, tried
 on the same belief (offline checks, not models): ``smooth3``, each voxel's object-class
@@ -37,24 +41,36 @@ def main() -> None:
     ap.add_argument("--suite", default="tune10")
     ap.add_argument("--scenes", default="0")
     ap.add_argument("--weights", default=None, help="cnabu-map weights (default: the shipped ones)")
+    ap.add_argument("--config", default=None, help="a run config whose observation_model.params (weights, "
+                    "class_map) cnabu-map takes, and whose effect_models both episodes use")
     args = ap.parse_args()
     pm = get_plugin_manager()
     scenes = suite_scenes(args.suite)
     totals: dict[str, list[object]] = {}
-    net_cfg = {"observation_model": {"name": "cnabu-map", "params": {"weights": args.weights} if args.weights else {}}}
+    params: dict[str, object] = {"weights": args.weights} if args.weights else {}
+    extra: dict[str, object] = {}
+    if args.config:
+        from msmem_core.config import read_config_file
+
+        given = read_config_file(args.config)
+        params = {**given.get("observation_model", {}).get("params", {}), **params}
+        extra = {k: v for k, v in given.items() if k == "effect_models"}
+    net_cfg = {"observation_model": {"name": "cnabu-map", "params": params}, **extra}
     for i in parse_range(args.scenes, len(scenes)):
-        ana = build_episode(load_config("view-only", None, {"steps": 40, "threads": 1}), pm, scene=scenes[i])
+        ana = build_episode(load_config("view-only", None, {**extra, "steps": 40, "threads": 1}), pm, scene=scenes[i])
         net = build_episode(load_config("view-only", None, {**net_cfg, "steps": 40, "threads": 1}), pm, scene=scenes[i])
         run_episode(ana)
         views = [ana.start_view] + [r["action"]["view"] for r in ana.records]
         net.sim.reset(net.scene)
         truth = MetricTracker(net)
-        bn, ba = EvidentialMap.empty(net.ig.grid), EvidentialMap.empty(net.ig.grid)
+        k = net.scene.num_classes
+        bn, ba = EvidentialMap.empty(net.ig.grid, k), EvidentialMap.empty(net.ig.grid, k)
         for v in views:
             obs = net.sim.observe(net.viewpoints[v])
             bn, ba = net.observe_model.update(bn, obs), ana.observe_model.update(ba, obs)
         inside, keep = truth.interior, truth.interior.any(axis=2)
         gt = top_view_classes(np.where(inside, truth.gt_cls, 0))[keep]
+        top_a = None
         for name, b in (("analytic", ba), ("cnabu-map", bn)):
             m = truth(b)
             _, cls = prediction_from_belief(b.expected_occupancy(), b.class_probs())
@@ -63,6 +79,11 @@ def main() -> None:
             obj, truth_obj = top > 0, gt > 0
             counts = {"right class": (top == gt) & truth_obj, "wrong class": (top != gt) & truth_obj & obj,
                       "object on free": ~truth_obj & obj, "free on object": truth_obj & ~obj}
+            if top_a is None:
+                top_a = top
+            else:  # where the analytic update (what the rays say) was right and the network is not
+                counts["wrong class where analytic right"] = counts["wrong class"] & (top_a == gt)
+                counts["object on free where analytic free"] = counts["object on free"] & (top_a == 0)
             inter, union = class_iou_counts(top, gt, b.num_classes)
             present = np.bincount(gt, minlength=b.num_classes) > 0
             absent = np.flatnonzero((union > 0) & ~present)

@@ -773,3 +773,36 @@ def test_a_bad_class_map_is_refused_in_one_line(class_map, message):
     with pytest.raises(UserError, match=message) as err:
         mapped_classes(class_map, CLASS_NAMES)
     assert "\n" not in str(err.value)
+
+
+def test_known_classes_from_rays_keeps_only_the_classes_this_episodes_rays_labelled(shard):
+    """``known_classes: rays``: the classes a ray of the episode labelled, collected view by view and
+    started afresh with an episode's first view (an empty belief); a network that guesses classes
+    everywhere names no other."""
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+
+    model = CNABUMapObservationModel(CNABUMapConfig(unseen_class_weight=1e-3, known_classes="rays"))
+    model.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for prm in model.net.head[-1].parameters():
+            prm.normal_(0, 0.5)  # a network that guesses classes everywhere
+    seq = sequence(shard)
+
+    def named(b: EvidentialMap) -> set[int]:
+        occ = (b.expected_occupancy() > 0.5) & seq.valid
+        return set((np.unique(np.argmax(b.class_probs()[1:], 0)[occ]) + 1).tolist())
+
+    b = EvidentialMap.empty(shard.grid, seq.seen.shape[1])
+    for t in range(3):
+        b = model.update_masks(b, seq.free[t], seq.occ[t], seq.seen[t])
+    hit = set((np.flatnonzero(seq.seen[:3, 1:].any(axis=(0, 2, 3, 4))) + 1).tolist())
+    assert len(hit) > 1
+    assert named(b) <= hit
+    # a new episode: its first view shows one class only; the classes of the episode before are not known
+    only = min(hit)
+    seen = np.zeros_like(seq.seen[0])
+    seen[only] = seq.seen[0][only]
+    fresh = model.update_masks(EvidentialMap.empty(shard.grid, seq.seen.shape[1]), seq.free[0], seq.occ[0], seen)
+    assert named(fresh) <= {only}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -69,6 +70,10 @@ class CNABUMapConfig(BaseModel):
     unseen_class_weight: float = Field(1.0, gt=0.0, le=1.0)
     """Object classes the map does not know are in the scene (no ray has shown them where the map
     believes them) are down-weighted by this everywhere; 1: off (``mapnet.restrict_classes``)."""
+    known_classes: Literal["belief", "rays"] = "belief"
+    """With ``unseen_class_weight`` < 1, which classes count as known to be in the scene: ``belief``, those
+    the map names or a ray hits where it names them (``mapnet.known_object_classes``); ``rays``, those any
+    ray of the episode has labelled (what the analytic update has class evidence for)."""
     class_map: dict[str, str] | None = None
     """For scenes whose classes the weights were not trained on: each object class of the scene, in the
     scene's order, to a distinct class the weights know (e.g. ``{cereal: cracker_box, ...}``). The

@@ -41,6 +41,8 @@ class CNABUMapObservationModel(ObservationModel):
         self.rays = AnalyticObservationModel(AnalyticObservationConfig(
             pixel_stride=cfg.pixel_stride, surface_offset_m=cfg.surface_offset_m, far_m=cfg.far_m))
         self._valid: dict[Any, torch.Tensor] = {}
+        self._ray_classes = np.zeros(0, dtype=bool)
+        """``known_classes: rays``: the classes a ray of the current episode has labelled."""
 
     def valid(self, belief: EvidentialMap) -> torch.Tensor:
         g = belief.grid
@@ -74,11 +76,19 @@ class CNABUMapObservationModel(ObservationModel):
         old = torch.get_num_threads()
         if self.config.threads is not None:
             torch.set_num_threads(self.config.threads)
+        known = None
+        if self.config.known_classes == "rays":  # every class a ray of this episode labelled
+            fresh = belief.observed is None or not belief.observed.any()  # an episode's first view
+            if fresh or self._ray_classes.shape != (seen.shape[0],):
+                self._ray_classes = np.zeros(seen.shape[0], dtype=bool)
+            self._ray_classes |= seen.reshape(seen.shape[0], -1).any(axis=1)
+            self._ray_classes[0] = False
+            known = torch.from_numpy(self._ray_classes.copy())[None]
         try:
             t = torch.from_numpy
             a, b, e = self.net.step(t(belief.alpha)[None], t(belief.beta)[None], t(eta)[None],
                                     t(free)[None], t(occ)[None], t(seen)[None], valid,
-                                    self.config.unseen_class_weight)
+                                    self.config.unseen_class_weight, known)
         finally:
             torch.set_num_threads(old)
         ray = free | occ | seen.any(axis=0)

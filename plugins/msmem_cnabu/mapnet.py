@@ -237,14 +237,16 @@ class MapNet(nn.Module):
         return o, torch.cat([F.logsigmoid(-o)[:, None], F.logsigmoid(o)[:, None] + r], 1)
 
     def step(self, alpha: Tensor, beta: Tensor, eta: Tensor, free: Tensor, occ: Tensor, seen: Tensor,
-             valid: Tensor, unseen_class_weight: float = 1.0) -> tuple[Tensor, Tensor, Tensor]:
+             valid: Tensor, unseen_class_weight: float = 1.0, known: Tensor | None = None
+             ) -> tuple[Tensor, Tensor, Tensor]:
         """The next belief's bounded evidence (alpha, beta, eta). With ``unseen_class_weight`` < 1 the
         object classes the map does not know are in the scene (``known_object_classes``) are
         down-weighted by it everywhere (``restrict_classes``)."""
         o, c = self(alpha, beta, eta, free, occ, seen, valid)
         if unseen_class_weight < 1.0:
             prev_logit = (torch.log(alpha) - torch.log(beta)).clamp(-LOGIT_CLIP, LOGIT_CLIP)
-            known = known_object_classes(prev_logit, torch.log(eta), c, seen, valid)
+            if known is None:
+                known = known_object_classes(prev_logit, torch.log(eta), c, seen, valid)
             c = restrict_classes(c, known, unseen_class_weight)
         a, b, e, _, _ = bounded_evidence(o, c, self.config.s_max, self.config.t_max)
         return a, b, e
