@@ -6,6 +6,7 @@ quick: about 5 s)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -129,3 +130,15 @@ def test_the_mesh_tuned_weights_beat_the_analytic_update_and_the_untuned_weights
     assert tuned["semantic_miou_2d"] > analytic["semantic_miou_2d"]
     assert tuned["sem_nll"] < untuned["sem_nll"]  # the classes the untuned network named by shape
     assert tuned["semantic_miou_2d"] > untuned["semantic_miou_2d"] + 0.1
+
+
+def test_the_class_map_also_moves_a_manipulations_target_class(mesh_shard):
+    from msmem_cnabu.maptrain import remap_classes
+    from msmem_push.skill import PushAction
+
+    raw = _sequence(mesh_shard)
+    push = PushAction(start_m=(0.0, 0.05), direction=(0.0, 1.0), length_m=0.1, height_m=0.02, target_class=2)
+    index = np.array([0, *(CLASS_NAMES.index(CLASS_MAP[c]) for c in mesh_shard.info["classes"][1:])])
+    moved = remap_classes(replace(raw, manipulations={3: push}), index, len(CLASS_NAMES))
+    assert moved.manipulations[3].target_class == CLASS_NAMES.index(CLASS_MAP["book"])  # scene class 2 is book
+    assert moved.manipulations[3].start_m == push.start_m

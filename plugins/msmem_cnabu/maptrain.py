@@ -161,11 +161,13 @@ def sequence(shard: CNABUShard, class_map: dict[str, str] | None = None) -> Sequ
 
 def remap_classes(seq: Sequence_, index: NDArray[np.int64], num_classes: int) -> Sequence_:
     """``seq`` with its class ``c`` moved to class ``index[c]`` of ``num_classes``: the class masks (the
-    others stay empty) and the ground-truth labels."""
+    others stay empty), the ground-truth labels and the target class of its manipulations."""
     seen = np.zeros((seq.seen.shape[0], num_classes, *seq.seen.shape[2:]), dtype=bool)
     seen[:, index] = seq.seen
     lut = index.astype(np.int8)
-    return replace(seq, seen=seen, step_gt_cls=lut[seq.step_gt_cls])
+    manipulations = {t: a.model_copy(update={"target_class": int(index[a.target_class])})
+                     if getattr(a, "target_class", None) is not None else a for t, a in seq.manipulations.items()}
+    return replace(seq, seen=seen, step_gt_cls=lut[seq.step_gt_cls], manipulations=manipulations)
 
 
 def _sequence(shard: CNABUShard) -> Sequence_:
