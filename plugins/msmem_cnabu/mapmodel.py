@@ -68,11 +68,8 @@ class CNABUMapObservationModel(ObservationModel):
         valid = self.valid(belief)
         eta = belief.eta
         if self._index is not None:  # the scene's classes into the trained ones (no evidence on the others)
-            eta = np.ones((self.net.config.num_classes, *eta.shape[1:]), dtype=belief.eta.dtype)
-            eta[self._index] = belief.eta
-            wide = np.zeros((self.net.config.num_classes, *seen.shape[1:]), dtype=bool)
-            wide[self._index] = seen
-            seen = wide
+            k = self.net.config.num_classes
+            eta, seen = onto_slots(eta, self._index, k, fill=1), onto_slots(seen, self._index, k, fill=False)
         old = torch.get_num_threads()
         if self.config.threads is not None:
             torch.set_num_threads(self.config.threads)
@@ -95,6 +92,16 @@ class CNABUMapObservationModel(ObservationModel):
         observed = ray if belief.observed is None else belief.observed | ray
         out_eta = e[0].numpy() if self._index is None else np.ascontiguousarray(e[0].numpy()[self._index])
         return EvidentialMap(belief.grid, a[0].numpy(), b[0].numpy(), out_eta, observed)
+
+
+def onto_slots(a: NDArray[Any], index: NDArray[np.int64], num_classes: int, fill: Any, axis: int = 0) -> NDArray[Any]:
+    """``a`` with its class axis ``axis`` spread onto ``num_classes`` slots: class ``c`` to slot ``index[c]``,
+    every other slot ``fill`` (a class map's scene classes onto the trained ones)."""
+    shape = list(a.shape)
+    shape[axis] = num_classes
+    out = np.full(shape, fill, dtype=a.dtype)
+    out[(slice(None),) * axis + (index,)] = a
+    return out
 
 
 def mapped_classes(class_map: dict[str, str], trained: tuple[str, ...] | None

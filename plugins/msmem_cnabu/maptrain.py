@@ -162,8 +162,9 @@ def sequence(shard: CNABUShard, class_map: dict[str, str] | None = None) -> Sequ
 def remap_classes(seq: Sequence_, index: NDArray[np.int64], num_classes: int) -> Sequence_:
     """``seq`` with its class ``c`` moved to class ``index[c]`` of ``num_classes``: the class masks (the
     others stay empty), the ground-truth labels and the target class of its manipulations."""
-    seen = np.zeros((seq.seen.shape[0], num_classes, *seq.seen.shape[2:]), dtype=bool)
-    seen[:, index] = seq.seen
+    from msmem_cnabu.mapmodel import onto_slots
+
+    seen = onto_slots(seq.seen, index, num_classes, fill=False, axis=1)
     lut = index.astype(np.int8)
     manipulations = {t: a.model_copy(update={"target_class": int(index[a.target_class])})
                      if getattr(a, "target_class", None) is not None else a for t, a in seq.manipulations.items()}

@@ -30,6 +30,7 @@ from msmem_core.errors import UserError
 from msmem_core.interfaces import Robot
 from msmem_core.sim.arm import ArmDriver
 from msmem_core.world.geometry import pose_matrix
+from msmem_sapien.scene import _matrix, _sapien_pose
 
 ARM_STIFFNESS = 2.0e4
 """N m/rad of an arm joint's drive (PhysX force mode): stiff enough to follow a 10 cm/s path."""
@@ -66,10 +67,6 @@ class SapienArm(ArmDriver):
         """Load the arm into ``scene`` (a fresh ``sapien.Scene``) in its home configuration; its links'
         shapes get the collision ``groups`` (colliding with everything but each other), the fingers'
         ``finger_material``. Returns the articulation."""
-        import sapien
-
-        from msmem_sapien.scene import _sapien_pose
-
         m = self.model
         loader = scene.create_urdf_loader()
         loader.fix_root_link = True
@@ -104,7 +101,6 @@ class SapienArm(ArmDriver):
                 shape.set_collision_groups(groups)
                 if lk.name in finger_links:
                     shape.set_physical_material(finger_material)
-        self.links = list(art.links)
         self.finger_entities = tuple(lk.entity.per_scene_id for lk in art.links if lk.name in finger_links)
         self.flange = links[str(m.flange_link)]
         self.pinocchio = art.create_pinocchio_model()
@@ -113,7 +109,6 @@ class SapienArm(ArmDriver):
         self._lower = np.asarray(m.joint_lower, dtype=np.float64)
         self._upper = np.asarray(m.joint_upper, dtype=np.float64)
         self.articulation = art
-        self._sapien = sapien
         q = art.get_qpos().astype(np.float64)
         q[self.finger_index] = self.finger_upper
         art.set_qpos(q.astype(np.float32))
@@ -153,8 +148,6 @@ class SapienArm(ArmDriver):
     # ------------------------------------------------------------------------------------ hand
     def tool_pose(self) -> NDArray[np.float64]:
         """The gripper frame (``GripperSpec``'s) of the hand: the flange's pose times ``Robot.tool_mount``."""
-        from msmem_sapien.scene import _matrix
-
         return _matrix(self.flange.entity_pose) @ self.tool
 
     def opening(self) -> float:
@@ -177,8 +170,6 @@ class SapienArm(ArmDriver):
     def track(self, position: NDArray[np.float64], quat_xyzw: NDArray[np.float64]) -> None:
         """Joint targets for the gripper frame at (``position``, ``quat_xyzw``): CLIK of the flange pose in
         the base frame from the arm's current joints, clipped to the limits."""
-        from msmem_sapien.scene import _sapien_pose
-
         target = self.base_inv @ pose_matrix(position, quat_xyzw) @ self.tool_inv
         q, _, _ = self.pinocchio.compute_inverse_kinematics(
             self.flange.index, _sapien_pose(target), initial_qpos=self.articulation.get_qpos().astype(np.float64),
