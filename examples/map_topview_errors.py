@@ -18,7 +18,9 @@ distribution averaged with its 3x3x3 neighbours' (weighted by believed occupancy
 class kept only within D voxels of one the analytic update has object-class evidence for
 (background elsewhere); ``confT``, background where the object-class distribution's top probability
 is at most T; ``seen``, only object classes the analytic update has class evidence for anywhere
-(``seen+confT``: both). The last line sums intersections and unions over the scenes (suite-cumulative).
+(``seen+confT``: both); ``colsD``, whole columns abstain (background) unless within D columns of one
+in which the analytic update has object-class evidence. The last line sums intersections and unions
+over the scenes (suite-cumulative).
 """
 
 from __future__ import annotations
@@ -132,6 +134,12 @@ def _variants(bn: EvidentialMap, ba: EvidentialMap, walls: np.ndarray) -> dict[s
     r3 = q3[1:] / (q3[1:].sum(0, keepdims=True) + 1e-12)
     for tau in (0.5, 0.7):
         out[f"seen+conf{tau}"] = np.where(r3.max(0) > tau, out["seen"], 0)
+    # column-level abstention: keep the network's column only within D columns (xy) of one in which the
+    # analytic update has object-class evidence, or where the column's top object-class probability > T
+    col_known = known.any(axis=2)
+    col_dist = ndimage.distance_transform_edt(~col_known)
+    for d in (0, 1, 2):
+        out[f"cols{d}"] = np.where((col_dist > d)[:, :, None], 0, cls)
     for c in out.values():
         c[walls] = 0
     return out

@@ -23,7 +23,7 @@ from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
 from msmem_core.world.camera import Observation
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.scene import NUM_CLASSES, ShelfSpec
+from msmem_core.world.scene import NUM_CLASSES, ObjectClass, ShelfSpec
 
 if TYPE_CHECKING:
     from msmem_core.map.ig import IGField, IGService
@@ -51,6 +51,10 @@ class Workspace:
     robot: Robot | None = None
     """The run's robot (config ``robot``): what the camera and the gripper can reach. None: no arm,
     everything is reachable (as the ``floating`` robot)."""
+    classes: tuple[ObjectClass, ...] = ()
+    """The belief's object classes, ``classes[i]`` being class id ``i + 1``: their shapes are what the
+    robot knows of its classes (a skill may judge an object by its believed class's shape). Empty:
+    no shapes known."""
 
     @property
     def interior_box(self) -> tuple[float, float, float, float, float, float]:

@@ -37,6 +37,7 @@ from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import look_at, quat_to_matrix, yaw_quat
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.meshes import stance_ratio
 from msmem_core.world.scene import OBJECT_CLASSES, ObjectSpec, SceneSpec, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 from msmem_core.world.voxelize import interior_mask, voxelize
@@ -339,6 +340,87 @@ def test_max_height_ratio_refuses_to_push_a_thin_tall_object() -> None:
     assert pushes(PushConfig())
     assert pushes(PushConfig(max_height_ratio=3.0)) == []
     assert pushes(PushConfig(max_height_ratio=8.0))
+
+
+def _class_ctx(belief: EvidentialMap, seed: int, classes: tuple = OBJECT_CLASSES) -> DecisionContext:  # type: ignore[type-arg]
+    """``_ctx`` in a workspace that knows the built-in classes' shapes (as a run's does)."""
+    ws = Workspace(GRID, SHELF, GripperSpec(), classes=classes)
+    return DecisionContext(5, belief, None, np.zeros((0, 4, 4)), set(), ws,  # type: ignore[arg-type]
+                           np.random.default_rng(seed), True, 0.5)
+
+
+def test_stance_ratio_judges_a_class_by_the_axis_standing_up() -> None:
+    """A sugar box (9 x 4 x 17.5 cm) standing is 17.5 / 4 tall for its width, lying on its side 4 / 9;
+    a cracker box (16 x 6 x 21 cm) standing 21 / 6. The axis standing up is the extent closest to the
+    believed height, so a top seen a little low still finds it."""
+    sugar, cracker = (next(c for c in OBJECT_CLASSES if c.name == n) for n in ("sugar_box", "cracker_box"))
+    assert stance_ratio(sugar, 0.175) == pytest.approx(0.175 / 0.04)
+    assert stance_ratio(sugar, 0.15) == pytest.approx(0.175 / 0.04)
+    assert stance_ratio(sugar, 0.04) == pytest.approx(0.04 / 0.09)
+    assert stance_ratio(sugar, 0.09) == pytest.approx(0.09 / 0.04)  # on its long edge: thin again
+    assert stance_ratio(cracker, 0.21) == pytest.approx(0.21 / 0.06)
+
+
+def test_an_upright_class_tips_by_its_support_not_its_extents() -> None:
+    """Standing upright, a box's tip ratio is its height over its narrow width, as its extents say; a
+    10 cm cube of a box on a 1 cm thin foot (extents 10 x 10 x 10 cm) tips as its mass centre (7.4 cm
+    up) over its foot's radius (1 cm) says."""
+    from msmem_core.world.scene import ObjectClass, Part
+
+    cracker = next(c for c in OBJECT_CLASSES if c.name == "cracker_box")
+    assert stance_ratio(cracker, 0.21) == pytest.approx(0.21 / 0.06)
+    foot, top = np.pi * 0.01**2 * 0.05, 0.1 * 0.1 * 0.05
+    com_z = (foot * 0.025 + top * 0.075) / (foot + top)
+    mushroom = ObjectClass(name="mushroom", class_id=1, mass_kg=0.1, parts=(
+        Part(kind="cylinder", size_m=(0.01, 0.05), position_m=(0.0, 0.0, 0.025)),
+        Part(kind="box", size_m=(0.1, 0.1, 0.05), position_m=(0.0, 0.0, 0.075))))
+    assert stance_ratio(mushroom, 0.1) == pytest.approx(com_z / 0.01, rel=0.01)  # the foot is a 48-gon
+
+
+def test_class_height_ratio_refuses_a_standing_sugar_box_from_its_front_face_alone() -> None:
+    """A sugar box (class 2) seen from the front only: its believed footprint is 9 cm wide and 4 cm
+    deep. Standing (17.5 cm tall) it is not pushed by default, judged by its class's shape; lying
+    (4 cm tall) it is; without the check, or without class shapes in the workspace, it is pushed
+    standing too."""
+    def belief(height: float) -> EvidentialMap:
+        b = EvidentialMap.empty(GRID)
+        c = GRID.centers()
+        floor = c[..., 2] > 0
+        known = ((c[..., 1] < 0.04) | (np.abs(c[..., 0]) >= 0.08)) & (c[..., 1] > 0) & floor
+        b.beta[known], b.eta[0][known] = 21.0, 21.0
+        m = (np.abs(c[..., 0]) < 0.045) & (c[..., 1] > 0.04) & (c[..., 1] < 0.08) & floor & (c[..., 2] < height)
+        b.alpha[m], b.beta[m], b.eta[:, m] = 21.0, 1.0, 1.0
+        b.eta[2, m] = 21.0
+        return b
+
+    def pushes(b: EvidentialMap, cfg: PushConfig, classes: tuple = OBJECT_CLASSES) -> list:  # type: ignore[type-arg]
+        return [a for seed in range(3) for a in PushSkill(cfg).propose(_class_ctx(b, seed, classes))]
+
+    standing, lying = belief(0.175), belief(0.04)
+    assert pushes(standing, PushConfig()) == []
+    assert pushes(lying, PushConfig())
+    assert pushes(standing, PushConfig(class_height_ratio=None))
+    assert pushes(standing, PushConfig(), classes=())
+    assert pushes(standing, PushConfig(class_height_ratio=5.0)), "4.4 is below a ratio of 5"
+
+
+def test_chain_clearance_stops_before_a_neighbour_standing_thin_by_its_class() -> None:
+    """The chain-clearance row, the neighbour a sugar box (class 2) believed 15 cm tall, its footprint
+    4 cm deep and 8 cm wide: by its class's shape it stands thin (17.5 / 4), so pushes to the right end
+    before contact (after 6 cm, less the clearance); as a mustard bottle (class 5, 19 / 5.8) it is
+    driven as before."""
+    x_hi = WORKSPACE.shelf.interior_box[3]
+    clearance, standoff, voxel = 0.01, PushConfig().standoff_m, GRID.voxel_m
+
+    def right(neighbour: int) -> list[PushAction]:
+        b = _row_belief({3: ((-0.08, 0.04), (0.08, 0.06)), neighbour: ((0.14, 0.03), (x_hi - 0.08, 0.07))})
+        return [a for seed in range(6) for a in PushSkill(PushConfig()).propose(_class_ctx(b, seed))
+                if a.target_class == 3 and a.direction[0] > 0.95]  # type: ignore[attr-defined]
+
+    thin, sturdy = right(2), right(5)
+    assert thin
+    assert max(a.length_m for a in thin) <= 0.06 - clearance + standoff + voxel
+    assert max(a.length_m for a in sturdy) > 0.06 + standoff + voxel
 
 
 # ------------------------------------------------------------------------------------ effect model

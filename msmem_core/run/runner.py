@@ -91,8 +91,9 @@ class Episode:
 
     @property
     def workspace(self) -> Workspace:
-        """The grid, shelf, gripper and robot every skill, effect model and term of the episode works in."""
-        return Workspace(self.ig.grid, self.scene.shelf, self.cfg.gripper, self.scene.num_classes, self.robot)
+        """The grid, shelf, gripper, robot and classes every skill, effect model and term of the episode works in."""
+        return Workspace(self.ig.grid, self.scene.shelf, self.cfg.gripper, self.scene.num_classes, self.robot,
+                         self.scene.object_classes)
 
     @property
     def start_view(self) -> int:

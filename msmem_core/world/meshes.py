@@ -15,7 +15,7 @@ import trimesh
 from numpy.typing import NDArray
 
 from msmem_core.world.geometry import pose_matrix
-from msmem_core.world.scene import ObjectClass, ObjectSpec, Part, ShelfSpec, object_class
+from msmem_core.world.scene import ObjectClass, ObjectSpec, Part, ShelfSpec, object_class, parts_centroid
 
 CYLINDER_SECTIONS = 48
 
@@ -47,6 +47,50 @@ def _class_mesh(cls: ObjectClass) -> trimesh.Trimesh:
     mesh = trimesh.util.concatenate(list(_class_part_meshes(cls)))
     assert isinstance(mesh, trimesh.Trimesh)
     return mesh
+
+
+@cache
+def class_extents_m(cls: ObjectClass) -> tuple[float, float, float]:
+    """The class's axis-aligned extents (x, y, z) in its object frame, over all its parts (metres)."""
+    lo, hi = _class_mesh(cls).bounds
+    x, y, z = (float(v) for v in hi - lo)
+    return x, y, z
+
+
+@cache
+def upright_tip_ratio(cls: ObjectClass) -> float:
+    """How easily the class tips standing as in its object frame (z up): the height of its mass centre
+    (``parts_centroid``) above its lowest point over the distance from the centre's projection to the
+    nearest edge of its support (the hull of its mesh's points within 5 mm of the lowest). A box of
+    height h on a face of narrow width w: (h / 2) / (w / 2) = h / w; a bunny standing on its small feet
+    more than its extents say."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    v = np.asarray(_class_mesh(cls).vertices)
+    com = parts_centroid(cls.parts)
+    z0 = float(v[:, 2].min())
+    base = v[v[:, 2] < z0 + 0.005, :2]
+    try:
+        edges = ConvexHull(base).equations  # n . p + c <= 0 inside
+    except (QhullError, ValueError):  # a support of one point or a line: tips at once
+        return float("inf")
+    margin = float((-(edges[:, :2] @ com[:2] + edges[:, 2])).min())
+    return float("inf") if margin <= 0 else (float(com[2]) - z0) / margin
+
+
+def stance_ratio(cls: ObjectClass, height_m: float) -> float:
+    """How thin and tall an object of class ``cls`` stands when its top is ``height_m`` above its
+    support. The axis standing up is, of the class's three extents, the one closest to ``height_m``
+    (z on a tie).
+    Standing as in its object frame (z up): ``upright_tip_ratio``. On another axis (lying, or on an
+    edge): that extent over the narrower of the other two. A book of 15 x 3.5 x 20 cm standing on its
+    3.5 cm edge: 20 / 3.5 = 5.7; the same book lying flat: 3.5 / 15 = 0.23."""
+    e = np.asarray(class_extents_m(cls))
+    off = np.abs(e - height_m)
+    up = 2 if off[2] <= off.min() + 1e-9 else int(np.argmin(off))  # a tie: upright, as the class stands
+    if up == 2:
+        return upright_tip_ratio(cls)
+    return float(e[up] / np.delete(e, up).min())
 
 
 def class_mesh(cls: str | ObjectClass) -> trimesh.Trimesh:

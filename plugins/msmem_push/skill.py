@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
@@ -57,7 +58,8 @@ from scipy import ndimage
 from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill, Workspace
 from msmem_core.map.ig import shelf_wall_mask
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.scene import ShelfSpec
+from msmem_core.world.meshes import stance_ratio
+from msmem_core.world.scene import ObjectClass, ShelfSpec
 from msmem_push.geometry import (
     Box,
     footprint_sweep_hits,
@@ -191,6 +193,14 @@ class PushConfig(BaseModel):
     """If set, an object whose believed height exceeds this multiple of its believed footprint's
     narrowest width is not pushed (a thin, tall object turns under an oblique push and tips over its
     thin side; measured in docs/push.md, "Falls"). None: no check."""
+    class_height_ratio: float | None = Field(4.0, gt=0.0)
+    """If set, an object that stands thin and tall by the shape of its believed class (``stance_ratio``:
+    the class's extent along the axis standing up, the one closest to the object's believed height, over
+    the narrower of its other two extents) above this ratio is neither pushed nor, with
+    ``chain_clearance_m``, driven by a chain. Judged from the class's shape (``Workspace.classes``), not
+    from the believed footprint as ``max_height_ratio`` is, so it holds from the first view, when a
+    footprint is one face deep. Refuses a standing book (5.7) or sugar box (4.4), not a cracker box
+    (3.5). Without class shapes (an empty ``Workspace.classes``) no object is judged. None: no check."""
     clear_into_unknown: bool = True
     """With ``clearance_m``: whether the pushed object may move into columns not believed free
     (unknown space, where hidden objects may stand). False: only into believed-free columns (every
@@ -296,10 +306,12 @@ class PushSkill(Skill):
     def propose(self, ctx: Any) -> list[Action]:
         if not ctx.manipulation_allowed:
             return []
-        return list(self.sample(ctx.belief, ctx.shelf, ctx.rng))
+        return list(self.sample(ctx.belief, ctx.shelf, ctx.rng, ctx.workspace.classes))
 
-    def sample(self, belief: Any, shelf: ShelfSpec, rng: np.random.Generator) -> list[PushAction]:
-        """UPS: push candidates from the belief (see the module docstring)."""
+    def sample(self, belief: Any, shelf: ShelfSpec, rng: np.random.Generator,
+               classes: tuple[ObjectClass, ...] = ()) -> list[PushAction]:
+        """UPS: push candidates from the belief (see the module docstring); ``classes`` are the belief's
+        object classes (``Workspace.classes``), whose shapes ``class_height_ratio`` judges."""
         cfg = self.config
         grid = belief.grid
         s = grid.voxel_m
@@ -321,6 +333,8 @@ class PushSkill(Skill):
         pick = rng.choice(len(cells), size=min(cfg.seeds, len(cells)), replace=False, p=w / w.sum())
         seeds = o[:2] + (cells[pick] + 0.5) * s
         targets = self._trace(seeds, conf, conf_bev, cls, grid, shelf)
+        standing = self._standing_thin(classes, shelf.interior_box[2])
+        targets = [t for t in targets if not standing(t.cls, t.top_z)]
         if not targets:
             return []
         occupied = (p > cfg.occupied_threshold).ravel()
@@ -329,7 +343,8 @@ class PushSkill(Skill):
             blocked = self._blocked(conf_bev, grid, shelf.interior_box)
             if not cfg.clear_into_unknown:
                 blocked |= (interior & (p > cfg.free_threshold)).any(axis=2)
-        chain = self._chain_data(conf, cls, grid, shelf.interior_box) if cfg.chain_clearance_m is not None else None
+        chain = (self._chain_data(conf, cls, grid, shelf.interior_box, standing)
+                 if cfg.chain_clearance_m is not None else None)
         per_target = max(2, math.ceil(2 * cfg.max_samples / len(targets)))
         groups: list[list[PushAction]] = [[] for _ in targets]
         interior_m = shelf.interior_box
@@ -417,12 +432,25 @@ class PushSkill(Skill):
         free = float(steps[first[0]] - s / 2) if len(first) else np.inf
         return free - float(self.config.clearance_m)
 
-    def _chain_data(self, conf: NDArray[np.bool_], cls: NDArray[np.int64], grid: Any, interior_m: Interior
-                    ) -> _Chain:
+    def _standing_thin(self, classes: tuple[ObjectClass, ...], floor_z: float) -> Callable[[int, float], bool]:
+        """Whether an object of class id ``c`` whose believed top is at ``top_z`` stands thin and tall by
+        its class's shape (``class_height_ratio``); never without the ratio or the class's shape."""
+        ratio = self.config.class_height_ratio
+
+        def judge(c: int, top_z: float) -> bool:
+            if ratio is None or not 1 <= c <= len(classes):
+                return False
+            return stance_ratio(classes[c - 1], top_z - floor_z) > ratio
+
+        return judge
+
+    def _chain_data(self, conf: NDArray[np.bool_], cls: NDArray[np.int64], grid: Any, interior_m: Interior,
+                    standing: Callable[[int, float], bool] | None = None) -> _Chain:
         """Object label per BEV cell (the 8-connected components of each class's confident columns, 0 where
-        none, numbered across classes), the cells beyond the interior's sides and back, and with
-        ``max_height_ratio`` the labels of thin, tall objects (believed height above that multiple of
-        the footprint's narrowest width), which a chain must not reach."""
+        none, numbered across classes), the cells beyond the interior's sides and back, and the labels
+        of thin, tall objects a chain must not reach: with ``max_height_ratio`` those whose believed
+        height is above that multiple of the footprint's narrowest width, and those ``standing`` judges
+        thin by their class's shape (``class_height_ratio``)."""
         labels = np.zeros(conf.shape[:2], dtype=np.int32)
         fragile: set[int] = set()
         n = 0
@@ -432,14 +460,15 @@ class PushSkill(Skill):
             lab, k = ndimage.label(col.any(axis=2), structure=np.ones((3, 3), dtype=bool))
             free = labels == 0  # a column two classes share keeps the first label
             labels[free & (lab > 0)] = lab[free & (lab > 0)] + n
-            if ratio is not None:
+            if ratio is not None or standing is not None:
                 zs = np.arange(conf.shape[2])
                 top = np.where(col, zs[None, None, :] + 1, 0).max(axis=2)  # voxels up to the top, per column
                 for i in range(1, k + 1):
                     foot = lab == i
-                    height = (grid.origin[2] + top[foot].max() * s) - interior_m[2]
-                    width = narrowest_width_cells(np.argwhere(foot)) * s
-                    if height > ratio * width:
+                    top_z = grid.origin[2] + top[foot].max() * s
+                    thin_class = standing is not None and standing(int(c), float(top_z))
+                    if thin_class or (ratio is not None and
+                                      top_z - interior_m[2] > ratio * narrowest_width_cells(np.argwhere(foot)) * s):
                         fragile.add(i + n)
             n += k
         return _Chain(labels, self._wall_cells(grid, interior_m), fragile)
