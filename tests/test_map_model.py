@@ -806,3 +806,40 @@ def test_known_classes_from_rays_keeps_only_the_classes_this_episodes_rays_label
     seen[only] = seq.seen[0][only]
     fresh = model.update_masks(EvidentialMap.empty(shard.grid, seq.seen.shape[1]), seq.free[0], seq.occ[0], seen)
     assert named(fresh) <= {only}
+
+
+def test_restrict_state_false_restricts_the_returned_belief_and_keeps_the_networks_own_map(shard):
+    """``restrict_state: false``: the belief returned is the restricted one, but the network's next input
+    is its unrestricted map, so the returned occupancy and the state follow the unrestricted model
+    view by view; a belief the model did not return (a copy: an effect model's prediction) is taken as
+    it is, as with ``restrict_state: true``."""
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+
+    def model(**kw):  # type: ignore[no-untyped-def]
+        m = CNABUMapObservationModel(CNABUMapConfig(**kw))
+        m.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
+        torch.manual_seed(0)
+        with torch.no_grad():
+            for prm in m.net.head[-1].parameters():
+                prm.normal_(0, 0.5)  # a network that guesses classes everywhere
+        return m
+
+    restricted = {"unseen_class_weight": 1e-3, "known_classes": "rays"}
+    own, fed, free_run = model(**restricted, restrict_state=False), model(**restricted), model()
+    seq = sequence(shard)
+    empty = EvidentialMap.empty(shard.grid, seq.seen.shape[1])
+    b_own, b_fed, b_free = empty, empty, empty
+    for t in range(3):
+        b_own = own.update_masks(b_own, seq.free[t], seq.occ[t], seq.seen[t])
+        b_fed = fed.update_masks(b_fed, seq.free[t], seq.occ[t], seq.seen[t])
+        b_free = free_run.update_masks(b_free, seq.free[t], seq.occ[t], seq.seen[t])
+        for mine, unrestricted in zip(own._state[1], (b_free.alpha, b_free.beta, b_free.eta), strict=True):
+            assert np.allclose(mine, unrestricted, atol=1e-5)
+        assert np.allclose(b_own.expected_occupancy(), b_free.expected_occupancy(), atol=1e-5)
+    assert not np.allclose(b_own.class_probs(), b_free.class_probs(), atol=1e-3)  # the output is restricted
+    assert not np.allclose(b_own.class_probs(), b_fed.class_probs(), atol=1e-3)  # fed back, the maps part
+    copy = EvidentialMap(b_fed.grid, b_fed.alpha.copy(), b_fed.beta.copy(), b_fed.eta.copy(), b_fed.observed)
+    nxt_own = own.update_masks(copy, seq.free[3], seq.occ[3], seq.seen[3])
+    nxt_fed = fed.update_masks(b_fed, seq.free[3], seq.occ[3], seq.seen[3])
+    assert np.allclose(nxt_own.eta, nxt_fed.eta, atol=1e-5)

@@ -74,6 +74,11 @@ class CNABUMapConfig(BaseModel):
     """With ``unseen_class_weight`` < 1, which classes count as known to be in the scene: ``belief``, those
     the map names or a ray hits where it names them (``mapnet.known_object_classes``); ``rays``, those any
     ray of the episode has labelled (what the analytic update has class evidence for)."""
+    restrict_state: bool = True
+    """With ``unseen_class_weight`` < 1: whether the restricted belief is also the network's next input.
+    False: the model keeps the network's unrestricted map as its own state, and only the belief it
+    returns (what the planner and the metrics read) is restricted; a belief the model did not return
+    itself (an episode's first, or an effect model's prediction) is taken as it is."""
     class_map: dict[str, str] | None = None
     """For scenes whose classes the weights were not trained on: each object class of the scene, in the
     scene's order, to a distinct class the weights know (e.g. ``{cereal: cracker_box, ...}``). The

@@ -43,6 +43,9 @@ class CNABUMapObservationModel(ObservationModel):
         self._valid: dict[Any, torch.Tensor] = {}
         self._ray_classes = np.zeros(0, dtype=bool)
         """``known_classes: rays``: the classes a ray of the current episode has labelled."""
+        self._state: tuple[EvidentialMap, tuple[NDArray[np.float32], ...]] | None = None
+        """``restrict_state: false``: the belief last returned and the network's unrestricted evidence
+        behind it (alpha, beta, eta), the next input when that belief comes back."""
 
     def valid(self, belief: EvidentialMap) -> torch.Tensor:
         g = belief.grid
@@ -66,10 +69,14 @@ class CNABUMapObservationModel(ObservationModel):
                      seen: NDArray[np.bool_]) -> EvidentialMap:
         """The update from a view's ray masks (free, occ [X, Y, Z], seen [C, X, Y, Z])."""
         valid = self.valid(belief)
-        eta = belief.eta
+        alpha, beta, eta = belief.alpha, belief.beta, belief.eta
+        own = self._state is not None and self._state[0] is belief
+        if own:  # the unrestricted map behind the belief this model returned (in the trained slots)
+            alpha, beta, eta = self._state[1]  # type: ignore[index]
         if self._index is not None:  # the scene's classes into the trained ones (no evidence on the others)
             k = self.net.config.num_classes
-            eta, seen = onto_slots(eta, self._index, k, fill=1), onto_slots(seen, self._index, k, fill=False)
+            eta = eta if own else onto_slots(eta, self._index, k, fill=1)
+            seen = onto_slots(seen, self._index, k, fill=False)
         old = torch.get_num_threads()
         if self.config.threads is not None:
             torch.set_num_threads(self.config.threads)
@@ -83,15 +90,18 @@ class CNABUMapObservationModel(ObservationModel):
             known = torch.from_numpy(self._ray_classes.copy())[None]
         try:
             t = torch.from_numpy
-            a, b, e = self.net.step(t(belief.alpha)[None], t(belief.beta)[None], t(eta)[None],
-                                    t(free)[None], t(occ)[None], t(seen)[None], valid,
-                                    self.config.unseen_class_weight, known)
+            raw, (a, b, e) = self.net.step_both(t(alpha)[None], t(beta)[None], t(eta)[None],
+                                                t(free)[None], t(occ)[None], t(seen)[None], valid,
+                                                self.config.unseen_class_weight, known)
         finally:
             torch.set_num_threads(old)
         ray = free | occ | seen.any(axis=0)
         observed = ray if belief.observed is None else belief.observed | ray
         out_eta = e[0].numpy() if self._index is None else np.ascontiguousarray(e[0].numpy()[self._index])
-        return EvidentialMap(belief.grid, a[0].numpy(), b[0].numpy(), out_eta, observed)
+        out = EvidentialMap(belief.grid, a[0].numpy(), b[0].numpy(), out_eta, observed)
+        if not self.config.restrict_state and self.config.unseen_class_weight < 1.0:
+            self._state = (out, tuple(x[0].numpy() for x in raw))  # the trained slots: the next input as is
+        return out
 
 
 def onto_slots(a: NDArray[Any], index: NDArray[np.int64], num_classes: int, fill: Any, axis: int = 0) -> NDArray[Any]:
