@@ -90,16 +90,17 @@ class CNABUMapObservationModel(ObservationModel):
             known = torch.from_numpy(self._ray_classes.copy())[None]
         try:
             t = torch.from_numpy
-            raw, (a, b, e) = self.net.step_both(t(alpha)[None], t(beta)[None], t(eta)[None],
-                                                t(free)[None], t(occ)[None], t(seen)[None], valid,
-                                                self.config.unseen_class_weight, known)
+            args = (t(alpha)[None], t(beta)[None], t(eta)[None], t(free)[None], t(occ)[None], t(seen)[None],
+                    valid, self.config.unseen_class_weight, known)
+            keep = not self.config.restrict_state and self.config.unseen_class_weight < 1.0
+            raw, (a, b, e) = self.net.step_both(*args) if keep else (None, self.net.step(*args))
         finally:
             torch.set_num_threads(old)
         ray = free | occ | seen.any(axis=0)
         observed = ray if belief.observed is None else belief.observed | ray
         out_eta = e[0].numpy() if self._index is None else np.ascontiguousarray(e[0].numpy()[self._index])
         out = EvidentialMap(belief.grid, a[0].numpy(), b[0].numpy(), out_eta, observed)
-        if not self.config.restrict_state and self.config.unseen_class_weight < 1.0:
+        if raw is not None:
             self._state = (out, tuple(x[0].numpy() for x in raw))  # the trained slots: the next input as is
         return out
 

@@ -242,7 +242,9 @@ class MapNet(nn.Module):
         """The next belief's bounded evidence (alpha, beta, eta). With ``unseen_class_weight`` < 1 the
         object classes the map does not know are in the scene (``known_object_classes``) are
         down-weighted by it everywhere (``restrict_classes``)."""
-        return self.step_both(alpha, beta, eta, free, occ, seen, valid, unseen_class_weight, known)[1]
+        o, c = self(alpha, beta, eta, free, occ, seen, valid)
+        c = self._restricted(c, alpha, beta, eta, seen, valid, unseen_class_weight, known)
+        return bounded_evidence(o, c, self.config.s_max, self.config.t_max)[:3]
 
     def step_both(self, alpha: Tensor, beta: Tensor, eta: Tensor, free: Tensor, occ: Tensor, seen: Tensor,
                   valid: Tensor, unseen_class_weight: float = 1.0, known: Tensor | None = None
@@ -250,15 +252,22 @@ class MapNet(nn.Module):
         """``step``'s evidence before and after the class restriction, from one forward pass (the same
         twice when ``unseen_class_weight`` is 1)."""
         o, c = self(alpha, beta, eta, free, occ, seen, valid)
-        a, b, e, _, _ = bounded_evidence(o, c, self.config.s_max, self.config.t_max)
+        raw = bounded_evidence(o, c, self.config.s_max, self.config.t_max)[:3]
         if unseen_class_weight >= 1.0:
-            return (a, b, e), (a, b, e)
-        prev_logit = (torch.log(alpha) - torch.log(beta)).clamp(-LOGIT_CLIP, LOGIT_CLIP)
+            return raw, raw
+        c = self._restricted(c, alpha, beta, eta, seen, valid, unseen_class_weight, known)
+        return raw, bounded_evidence(o, c, self.config.s_max, self.config.t_max)[:3]
+
+    @staticmethod
+    def _restricted(c: Tensor, alpha: Tensor, beta: Tensor, eta: Tensor, seen: Tensor, valid: Tensor,
+                    unseen_class_weight: float, known: Tensor | None) -> Tensor:
+        """The class log probabilities ``c`` with the classes not known down-weighted (unchanged at 1)."""
+        if unseen_class_weight >= 1.0:
+            return c
         if known is None:
+            prev_logit = (torch.log(alpha) - torch.log(beta)).clamp(-LOGIT_CLIP, LOGIT_CLIP)
             known = known_object_classes(prev_logit, torch.log(eta), c, seen, valid)
-        ra, rb, re, _, _ = bounded_evidence(o, restrict_classes(c, known, unseen_class_weight),
-                                            self.config.s_max, self.config.t_max)
-        return (a, b, e), (ra, rb, re)
+        return restrict_classes(c, known, unseen_class_weight)
 
 
 def map_loss(occ_logit: Tensor, cls_logit: Tensor, gt_occ: Tensor, gt_cls: Tensor, valid: Tensor,

@@ -436,16 +436,19 @@ class PushSkill(Skill):
         """Whether an object of class id ``c`` whose believed top is at ``top_z`` stands thin and tall by
         its class's shape (``class_height_ratio``); never without the ratio or the class's shape."""
         ratio = self.config.class_height_ratio
+        seen: dict[tuple[int, float], bool] = {}  # tops are voxel-quantised: each (class, top) once
 
         def judge(c: int, top_z: float) -> bool:
             if ratio is None or not 1 <= c <= len(classes):
                 return False
-            return stance_ratio(classes[c - 1], top_z - floor_z) > ratio
+            if (c, top_z) not in seen:  # a mesh class hashes in about 0.3 ms (stance_ratio's cache)
+                seen[c, top_z] = stance_ratio(classes[c - 1], top_z - floor_z) > ratio
+            return seen[c, top_z]
 
         return judge
 
     def _chain_data(self, conf: NDArray[np.bool_], cls: NDArray[np.int64], grid: Any, interior_m: Interior,
-                    standing: Callable[[int, float], bool] | None = None) -> _Chain:
+                    standing: Callable[[int, float], bool]) -> _Chain:
         """Object label per BEV cell (the 8-connected components of each class's confident columns, 0 where
         none, numbered across classes), the cells beyond the interior's sides and back, and the labels
         of thin, tall objects a chain must not reach: with ``max_height_ratio`` those whose believed
@@ -455,21 +458,20 @@ class PushSkill(Skill):
         fragile: set[int] = set()
         n = 0
         ratio, s = self.config.max_height_ratio, grid.voxel_m
+        zs = np.arange(conf.shape[2])
         for c in np.unique(cls[conf]):
             col = conf & (cls == c)
             lab, k = ndimage.label(col.any(axis=2), structure=np.ones((3, 3), dtype=bool))
             free = labels == 0  # a column two classes share keeps the first label
             labels[free & (lab > 0)] = lab[free & (lab > 0)] + n
-            if ratio is not None or standing is not None:
-                zs = np.arange(conf.shape[2])
-                top = np.where(col, zs[None, None, :] + 1, 0).max(axis=2)  # voxels up to the top, per column
-                for i in range(1, k + 1):
-                    foot = lab == i
-                    top_z = grid.origin[2] + top[foot].max() * s
-                    thin_class = standing is not None and standing(int(c), float(top_z))
-                    if thin_class or (ratio is not None and
-                                      top_z - interior_m[2] > ratio * narrowest_width_cells(np.argwhere(foot)) * s):
-                        fragile.add(i + n)
+            top = np.where(col, zs[None, None, :] + 1, 0).max(axis=2)  # voxels up to the top, per column
+            for i in range(1, k + 1):
+                foot = lab == i
+                top_z = grid.origin[2] + top[foot].max() * s
+                if standing(int(c), float(top_z)) or (ratio is not None and
+                                                      top_z - interior_m[2] > ratio * narrowest_width_cells(
+                                                          np.argwhere(foot)) * s):
+                    fragile.add(i + n)
             n += k
         return _Chain(labels, self._wall_cells(grid, interior_m), fragile)
 
