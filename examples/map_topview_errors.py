@@ -140,6 +140,19 @@ def _variants(bn: EvidentialMap, ba: EvidentialMap, walls: np.ndarray) -> dict[s
     col_dist = ndimage.distance_transform_edt(~col_known)
     for d in (0, 1, 2):
         out[f"cols{d}"] = np.where((col_dist > d)[:, :, None], 0, cls)
+    # object-level abstention: a connected object of the network's hard map (26-connected voxels of one
+    # class) is kept only if the rays gave evidence of that class somewhere in it (``comp``) or of any
+    # object class in it (``company``); ``seen+comp``: the same on the ``seen`` classes
+    ray_cls = np.argmax(ba.eta[1:], axis=0) + 1
+    for name, base in (("comp", cls), ("seen+comp", out["seen"])):
+        for any_class in (False, True):
+            kept = np.zeros_like(base)
+            for c in np.unique(base[base > 0]):
+                lab, _n = ndimage.label(base == c, structure=np.ones((3, 3, 3), dtype=bool))
+                hits = known & (True if any_class else ray_cls == c)
+                good = np.unique(lab[hits & (lab > 0)])
+                kept[np.isin(lab, good[good > 0])] = c
+            out[name + ("any" if any_class else "")] = kept
     for c in out.values():
         c[walls] = 0
     return out

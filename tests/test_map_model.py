@@ -843,3 +843,73 @@ def test_restrict_state_false_restricts_the_returned_belief_and_keeps_the_networ
     nxt_own = own.update_masks(copy, seq.free[3], seq.occ[3], seq.seen[3])
     nxt_fed = fed.update_masks(b_fed, seq.free[3], seq.occ[3], seq.seen[3])
     assert np.allclose(nxt_own.eta, nxt_fed.eta, atol=1e-5)
+
+
+def test_unlabelled_objects_are_the_components_no_ray_labelled_with_their_class() -> None:
+    """Three believed objects: one a ray labelled with its class somewhere (kept), one labelled only with
+    another class (unlabelled), one never labelled (unlabelled); two touching objects of different
+    classes are judged apart, and invalid voxels (the boards) are never objects."""
+    from msmem_cnabu.mapmodel import unlabelled_objects
+
+    shape, c = (12, 8, 6), 4
+    occ = np.zeros(shape, dtype=bool)
+    eta = np.ones((c, *shape), dtype=np.float32)
+    for (x0, x1), k in (((0, 3), 1), ((3, 5), 2), ((8, 11), 3)):  # 1 and 2 touch
+        occ[x0:x1, 2:5, 0:3] = True
+        eta[k, x0:x1, 2:5, 0:3] = 9.0
+    labelled = np.zeros((c, *shape), dtype=bool)
+    labelled[1, 0, 2, 2] = True  # object 1, its class, one voxel
+    labelled[1, 3, 2, 2] = True  # object 2, the wrong class
+    valid = np.ones(shape, dtype=bool)
+    out = unlabelled_objects(occ, eta, labelled, valid)
+    assert not out[0:3].any()
+    assert out[3:5, 2:5, 0:3].all()
+    assert out[8:11, 2:5, 0:3].all()
+    assert out.sum() == occ[3:5].sum() + occ[8:11].sum()
+    valid[8:11] = False
+    assert not unlabelled_objects(occ, eta, labelled, valid)[8:11].any()
+
+
+def test_unlabelled_objects_unknown_abstains_in_the_output_and_keeps_the_networks_own_map(shard):
+    """``unlabelled_objects: unknown``: the returned belief is the network's except on the objects no ray
+    labelled, where the expected occupancy is 0.5 (a tie: free in the hard map) and the total evidence
+    is kept; the network's next input stays its own map, so its state follows the plain model."""
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+
+    from msmem_core.run.metrics import prediction_from_belief
+
+    def model(**kw):  # type: ignore[no-untyped-def]
+        m = CNABUMapObservationModel(CNABUMapConfig(**kw))
+        torch.manual_seed(0)  # the same network for both models
+        m.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
+        with torch.no_grad():
+            for prm in m.net.head[-1].parameters():
+                prm.normal_(0, 0.5)  # a network that guesses objects and classes everywhere
+        return m
+
+    drop, plain = model(unlabelled_objects="unknown"), model()
+    seq = sequence(shard)
+    empty = EvidentialMap.empty(shard.grid, seq.seen.shape[1])
+    b_drop, b_plain = empty, empty
+    for t in range(3):
+        b_drop = drop.update_masks(b_drop, seq.free[t], seq.occ[t], seq.seen[t])
+        b_plain = plain.update_masks(b_plain, seq.free[t], seq.occ[t], seq.seen[t])
+        for mine, plain_map in zip(drop._state[1], (b_plain.alpha, b_plain.beta, b_plain.eta), strict=True):
+            assert np.allclose(mine, plain_map, atol=1e-5)
+    p_drop, p_plain = b_drop.expected_occupancy(), b_plain.expected_occupancy()
+    changed = ~np.isclose(p_drop, p_plain, atol=1e-6)
+    assert changed.any(), "the guessing network predicts objects no ray labelled"
+    assert np.all(p_drop[changed] == 0.5)
+    assert np.allclose((b_drop.alpha + b_drop.beta), (b_plain.alpha + b_plain.beta), rtol=1e-5)
+    occ_drop, _ = prediction_from_belief(p_drop, b_drop.class_probs())
+    occ_plain, _ = prediction_from_belief(p_plain, b_plain.class_probs())
+    assert (occ_drop <= occ_plain).all()
+    assert occ_drop.sum() < occ_plain.sum()
+    labelled = np.zeros_like(seq.seen[0])
+    for t in range(3):
+        labelled |= seq.seen[t]
+    from msmem_cnabu.mapmodel import unlabelled_objects
+
+    expect = unlabelled_objects(p_plain > 0.5, b_plain.eta, labelled, drop.valid(b_plain).numpy())
+    assert np.array_equal(changed, expect & ~np.isclose(p_plain, 0.5, atol=1e-6))

@@ -242,16 +242,18 @@ def test_clearance_keeps_the_pushed_object_clear_of_its_neighbour() -> None:
     assert max(a.length_m for a in toward) <= 0.06 - clearance + PushConfig().standoff_m + 0.011
 
 
-def _row_belief(boxes: dict[int, tuple[tuple[float, float], tuple[float, float]]]) -> EvidentialMap:
+def _row_belief(boxes: dict[int, tuple[tuple[float, float], tuple[float, float]]],
+                heights: dict[int, float] | None = None) -> EvidentialMap:
     """Free space known in front of y = 4 cm and beside |x| = 8 cm, unknown elsewhere; each box (class:
-    (x0, y0), (x1, y1)) 15 cm tall and confidently of its class."""
+    (x0, y0), (x1, y1)) 15 cm tall (or ``heights[class]``) and confidently of its class."""
     b = EvidentialMap.empty(GRID)
     c = GRID.centers()
     floor = c[..., 2] > 0
     known = ((c[..., 1] < 0.04) | (np.abs(c[..., 0]) >= 0.08)) & (c[..., 1] > 0) & floor
     b.beta[known], b.eta[0][known] = 21.0, 21.0
     for k, ((x0, y0), (x1, y1)) in boxes.items():
-        m = (c[..., 0] > x0) & (c[..., 0] < x1) & (c[..., 1] > y0) & (c[..., 1] < y1) & floor & (c[..., 2] < 0.15)
+        top = (heights or {}).get(k, 0.15)
+        m = (c[..., 0] > x0) & (c[..., 0] < x1) & (c[..., 1] > y0) & (c[..., 1] < y1) & floor & (c[..., 2] < top)
         b.alpha[m], b.beta[m], b.eta[:, m] = 21.0, 1.0, 1.0
         b.eta[k, m] = 21.0
     return b
@@ -320,6 +322,30 @@ def test_chain_travel_limits_how_far_a_driven_neighbour_moves() -> None:
     unlimited = [a for a in pushes(PushConfig()) if a.direction[0] > 0.95]
     assert max(a.length_m for a in unlimited) > 0.06 + 0.03 + standoff + voxel
     assert max(a.length_m for a in into) > PushConfig().max_length_m - voxel
+
+
+def test_trip_height_ratio_stops_a_tall_object_before_a_much_lower_one() -> None:
+    """The row of the chain-clearance test with a 4 cm low neighbour: with ``trip_height_ratio`` 2 the 15 cm
+    tall box is not driven into it (pushes to the right end before contact, after 6 cm of travel less the
+    clearance) but still pushed into the shelf; at ratio 4 (15 < 4 x 4) and without the check the
+    neighbour is driven. A low box driving a tall neighbour trips nothing."""
+    b = _row_belief({3: ((-0.08, 0.04), (0.08, 0.10)), 5: ((0.14, 0.03), (0.17, 0.11))}, {5: 0.04})
+    clearance, standoff, voxel = PushConfig().chain_clearance_m, PushConfig().standoff_m, GRID.voxel_m
+    contact = 0.06 - clearance + standoff + voxel  # the longest push that stops before the neighbour
+
+    def right(cfg: PushConfig, belief: EvidentialMap = b) -> list[PushAction]:
+        return [a for seed in range(6) for a in PushSkill(cfg).propose(_ctx(belief, seed=seed))
+                if a.target_class == 3 and a.direction[0] > 0.95]
+
+    tripping = [a for seed in range(6) for a in PushSkill(PushConfig(trip_height_ratio=2.0)).propose(
+        _ctx(b, seed=seed)) if a.target_class == 3]
+    assert [a for a in tripping if a.direction[0] > 0.95]
+    assert max(a.length_m for a in tripping if a.direction[0] > 0.95) <= contact
+    assert max(a.length_m for a in tripping if a.direction[1] > 0.95) > PushConfig().max_length_m - voxel
+    for cfg in (PushConfig(), PushConfig(trip_height_ratio=4.0)):
+        assert max(a.length_m for a in right(cfg)) > 0.06 + standoff + voxel
+    low_first = _row_belief({3: ((-0.08, 0.04), (0.08, 0.10)), 5: ((0.14, 0.03), (0.17, 0.11))}, {3: 0.04})
+    assert max(a.length_m for a in right(PushConfig(trip_height_ratio=2.0), low_first)) > 0.06 + standoff + voxel
 
 
 def test_max_height_ratio_refuses_to_push_a_thin_tall_object() -> None:

@@ -79,6 +79,13 @@ class CNABUMapConfig(BaseModel):
     False: the model keeps the network's unrestricted map as its own state, and only the belief it
     returns (what the planner and the metrics read) is restricted; a belief the model did not return
     itself (an episode's first, or an effect model's prediction) is taken as it is."""
+    unlabelled_objects: Literal["keep", "unknown"] = "keep"
+    """What the returned belief says of an object the network predicts but no ray has labelled with its
+    class (a 26-connected component of voxels believed occupied with one top object class, none of
+    them labelled with it by a ray of the episode): ``keep`` it as predicted, or return it as
+    ``unknown`` (expected occupancy 0.5, the total evidence kept; a tie counts as free), so that a
+    hidden object's guessed class does not enter the maps. With ``unknown`` the network's own map
+    stays its next input (docs/map-prediction.md)."""
     class_map: dict[str, str] | None = None
     """For scenes whose classes the weights were not trained on: each object class of the scene, in the
     scene's order, to a distinct class the weights know (e.g. ``{cereal: cracker_box, ...}``). The

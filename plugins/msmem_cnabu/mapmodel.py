@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import torch
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from msmem_cnabu.configs import CNABUMapConfig
 from msmem_cnabu.features import grid_interior, wall_mask
@@ -44,8 +45,10 @@ class CNABUMapObservationModel(ObservationModel):
         self._ray_classes = np.zeros(0, dtype=bool)
         """``known_classes: rays``: the classes a ray of the current episode has labelled."""
         self._state: tuple[EvidentialMap, tuple[NDArray[np.float32], ...]] | None = None
-        """``restrict_state: false``: the belief last returned and the network's unrestricted evidence
-        behind it (alpha, beta, eta), the next input when that belief comes back."""
+        """``restrict_state: false`` or ``unlabelled_objects: unknown``: the belief last returned and the
+        network's own evidence behind it (alpha, beta, eta), the next input when that belief comes back."""
+        self._labelled = np.zeros((0, 0, 0, 0), dtype=bool)
+        """``unlabelled_objects: unknown``: [C, X, Y, Z] where a ray of the current episode labelled class c."""
 
     def valid(self, belief: EvidentialMap) -> torch.Tensor:
         g = belief.grid
@@ -73,6 +76,7 @@ class CNABUMapObservationModel(ObservationModel):
         own = self._state is not None and self._state[0] is belief
         if own:  # the unrestricted map behind the belief this model returned (in the trained slots)
             alpha, beta, eta = self._state[1]  # type: ignore[index]
+        labels = seen  # in the belief's class slots
         if self._index is not None:  # the scene's classes into the trained ones (no evidence on the others)
             k = self.net.config.num_classes
             eta = eta if own else onto_slots(eta, self._index, k, fill=1)
@@ -92,17 +96,43 @@ class CNABUMapObservationModel(ObservationModel):
             t = torch.from_numpy
             args = (t(alpha)[None], t(beta)[None], t(eta)[None], t(free)[None], t(occ)[None], t(seen)[None],
                     valid, self.config.unseen_class_weight, known)
-            keep = not self.config.restrict_state and self.config.unseen_class_weight < 1.0
+            drop = self.config.unlabelled_objects == "unknown"
+            keep = drop or (not self.config.restrict_state and self.config.unseen_class_weight < 1.0)
             raw, (a, b, e) = self.net.step_both(*args) if keep else (None, self.net.step(*args))
         finally:
             torch.set_num_threads(old)
         ray = free | occ | seen.any(axis=0)
         observed = ray if belief.observed is None else belief.observed | ray
         out_eta = e[0].numpy() if self._index is None else np.ascontiguousarray(e[0].numpy()[self._index])
-        out = EvidentialMap(belief.grid, a[0].numpy(), b[0].numpy(), out_eta, observed)
+        out_a, out_b = a[0].numpy(), b[0].numpy()
+        if drop:
+            if belief.observed is None or not belief.observed.any() or self._labelled.shape != labels.shape:
+                self._labelled = np.zeros(labels.shape, dtype=bool)  # an episode's first view
+            self._labelled |= labels
+            if self.config.restrict_state and self.config.unseen_class_weight < 1.0:
+                raw = (a, b, e)  # the restricted map is the next input, the objects' abstention is not
+            unknown = unlabelled_objects(out_a / (out_a + out_b) > 0.5, out_eta, self._labelled, valid.numpy())
+            out_a, out_b = out_a.copy(), out_b.copy()
+            out_a[unknown] = out_b[unknown] = (out_a[unknown] + out_b[unknown]) / 2  # p = 0.5: a tie is free
+        out = EvidentialMap(belief.grid, out_a, out_b, out_eta, observed)
         if raw is not None:
             self._state = (out, tuple(x[0].numpy() for x in raw))  # the trained slots: the next input as is
         return out
+
+
+def unlabelled_objects(occupied: NDArray[np.bool_], eta: NDArray[np.floating], labelled: NDArray[np.bool_],
+                       valid: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """[X, Y, Z] voxels of the objects no ray has labelled: the 26-connected components of the ``valid``
+    voxels believed ``occupied`` whose top object class (of ``eta`` [C, X, Y, Z]) is one class c, for which
+    no voxel of the component is ``labelled`` [C, X, Y, Z] with c."""
+    top = np.argmax(eta[1:], axis=0) + 1
+    hard = np.where(occupied & valid, top, 0)
+    out = np.zeros(hard.shape, dtype=bool)
+    for c in np.unique(hard[hard > 0]).tolist():
+        lab, _ = ndimage.label(hard == c, structure=np.ones((3, 3, 3), dtype=bool))
+        good = np.unique(lab[labelled[c] & (lab > 0)])
+        out |= (lab > 0) & ~np.isin(lab, good)
+    return out
 
 
 def onto_slots(a: NDArray[Any], index: NDArray[np.int64], num_classes: int, fill: Any, axis: int = 0) -> NDArray[Any]:

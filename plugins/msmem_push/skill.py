@@ -220,6 +220,11 @@ class PushConfig(BaseModel):
     tool pushes 2 cm above the board, where a pushed object slides; an object pushed by another is
     pushed wherever they touch, often high, and a long way of that tips tall objects over (docs/push.md,
     "Falls"). None: no limit."""
+    trip_height_ratio: float | None = Field(None, gt=1.0)
+    """With ``chain_clearance_m``: a moving object (the target, or one the chain drives) whose believed
+    height is more than this multiple of the believed height of an object it meets stops before that
+    object instead of driving it: the push is shortened to end there. A tall object pushed low trips
+    over a much lower one in its way and falls (docs/push.md, "Falls"). None: no check."""
     speed_mps: float = Field(0.1, gt=0.0, le=1.0)
     travel_speed_mps: float = Field(0.25, gt=0.0, le=2.0)
     """Speed of the approach and the retreat."""
@@ -277,6 +282,8 @@ class _Chain:
     labels: NDArray[np.int32]
     wall: NDArray[np.bool_]
     fragile: set[int]
+    heights: dict[int, float] = field(default_factory=dict)
+    """Each label's believed height above the shelf floor (m)."""
     cells: dict[int, NDArray[np.int64]] = field(default_factory=dict)
     """Each label's cells [N, 2], filled as chains reach them (shared by all candidates of a proposal)."""
 
@@ -456,6 +463,7 @@ class PushSkill(Skill):
         thin by their class's shape (``class_height_ratio``)."""
         labels = np.zeros(conf.shape[:2], dtype=np.int32)
         fragile: set[int] = set()
+        heights: dict[int, float] = {}
         n = 0
         ratio, s = self.config.max_height_ratio, grid.voxel_m
         zs = np.arange(conf.shape[2])
@@ -468,16 +476,19 @@ class PushSkill(Skill):
             for i in range(1, k + 1):
                 foot = lab == i
                 top_z = grid.origin[2] + top[foot].max() * s
+                heights[i + n] = float(top_z - interior_m[2])
                 if standing(int(c), float(top_z)) or (ratio is not None and
                                                       top_z - interior_m[2] > ratio * narrowest_width_cells(
                                                           np.argwhere(foot)) * s):
                     fragile.add(i + n)
             n += k
-        return _Chain(labels, self._wall_cells(grid, interior_m), fragile)
+        return _Chain(labels, self._wall_cells(grid, interior_m), fragile, heights)
 
-    def _chain_room(self, t: _Target, u: NDArray[np.float64], grid: Any, chain: _Chain, cap: float = np.inf) -> float:
+    def _chain_room(self, t: _Target, u: NDArray[np.float64], grid: Any, chain: _Chain, cap: float = np.inf,
+                    floor_z: float = 0.0) -> float:
         """How far the target can be pushed along ``u`` before an object of the chain it drives enters a
-        wall cell or meets a thin, tall object, minus ``chain_clearance_m``. Each moving object's
+        wall cell or meets a thin, tall object (or, with ``trip_height_ratio``, a moving object meets a
+        much lower one), minus ``chain_clearance_m``; ``floor_z`` is the shelf floor's height. Each moving object's
         footprint is swept along ``u``; an object it meets starts moving when the target has travelled
         as far as that contact (the earliest over the objects that meet it); every object moves the
         rest of the push."""
@@ -497,6 +508,7 @@ class PushSkill(Skill):
             if e >= room:
                 break
             cells = t.cells if k == 0 else chain.cells_of(k)  # 0: the target itself
+            height = t.top_z - floor_z if k == 0 else chain.heights.get(k, 0.0)
             at_wall, first = footprint_sweep_hits(cells, u, steps, s, labels, wall)
             if at_wall >= 0:
                 room = min(room, e + float(steps[at_wall] - s / 2))
@@ -504,7 +516,9 @@ class PushSkill(Skill):
                 if j in own or j == k:
                     continue
                 d = e + float(steps[first[j]] - s / 2)
-                if j in fragile:  # a thin, tall object would be pushed: stop before it
+                trips = (cfg.trip_height_ratio is not None
+                         and height > cfg.trip_height_ratio * chain.heights.get(j, np.inf))
+                if j in fragile or trips:  # a thin, tall object would be pushed or trip the mover: stop before it
                     room = min(room, d)
                 elif d < start.get(j, np.inf) and d < room:
                     start[j] = d
@@ -559,7 +573,8 @@ class PushSkill(Skill):
         if blocked is not None:  # the object moves once the tool has closed the standoff gap
             hi_len = min(hi_len, self._object_room(t, u, grid, blocked) + cfg.standoff_m)
         if chain is not None and hi_len >= cfg.min_length_m:
-            hi_len = min(hi_len, self._chain_room(t, u, grid, chain, hi_len - cfg.standoff_m) + cfg.standoff_m)
+            hi_len = min(hi_len, self._chain_room(t, u, grid, chain, hi_len - cfg.standoff_m, interior_m[2])
+                         + cfg.standoff_m)
         if hi_len < cfg.min_length_m:
             return None
         return PushAction(
