@@ -818,8 +818,8 @@ def test_restrict_state_false_restricts_the_returned_belief_and_keeps_the_networ
 
     def model(**kw):  # type: ignore[no-untyped-def]
         m = CNABUMapObservationModel(CNABUMapConfig(**kw))
+        torch.manual_seed(0)  # the same network for every model (whatever ran before in the process)
         m.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
-        torch.manual_seed(0)
         with torch.no_grad():
             for prm in m.net.head[-1].parameters():
                 prm.normal_(0, 0.5)  # a network that guesses classes everywhere
@@ -913,3 +913,43 @@ def test_unlabelled_objects_unknown_abstains_in_the_output_and_keeps_the_network
 
     expect = unlabelled_objects(p_plain > 0.5, b_plain.eta, labelled, drop.valid(b_plain).numpy())
     assert np.array_equal(changed, expect & ~np.isclose(p_plain, 0.5, atol=1e-6))
+
+
+def test_the_networks_own_map_carries_through_a_manipulation_where_the_belief_is_unchanged(shard):
+    """A belief the model did not return but made from the one it did (an effect model's prediction):
+    the network's next input is its own map wherever every value is still the returned belief's, and the
+    given belief where the prediction changed it. Without the carry the returned abstentions (p = 0.5)
+    would be the network's input everywhere."""
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+
+    def model(**kw):  # type: ignore[no-untyped-def]
+        m = CNABUMapObservationModel(CNABUMapConfig(**kw))
+        torch.manual_seed(0)
+        m.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
+        with torch.no_grad():
+            for prm in m.net.head[-1].parameters():
+                prm.normal_(0, 0.5)
+        return m
+
+    drop, plain = model(unlabelled_objects="unknown"), model()
+    seq = sequence(shard)
+    b = EvidentialMap.empty(shard.grid, seq.seen.shape[1])
+    for t in range(2):
+        b = drop.update_masks(b, seq.free[t], seq.occ[t], seq.seen[t])
+    sa, sb, se = (x.copy() for x in drop._state[1])
+    assert not np.allclose(b.alpha, sa), "the returned belief abstains somewhere"
+    moved = np.zeros(b.alpha.shape, dtype=bool)
+    moved[20:40, 5:20, :10] = True  # the region a push changed: reset to the prior
+    pred = EvidentialMap(b.grid, np.where(moved, 1.0, b.alpha).astype(np.float32),
+                         np.where(moved, 1.0, b.beta).astype(np.float32),
+                         np.where(moved[None], 1.0, b.eta).astype(np.float32), b.observed)
+    nxt = drop.update_masks(pred, seq.free[2], seq.occ[2], seq.seen[2])
+    expect_in = EvidentialMap(b.grid, np.where(moved, pred.alpha, sa), np.where(moved, pred.beta, sb),
+                              np.where(moved[None], pred.eta, se), b.observed)
+    ref = plain.update_masks(expect_in, seq.free[2], seq.occ[2], seq.seen[2])
+    for mine, theirs in zip(drop._state[1], (ref.alpha, ref.beta, ref.eta), strict=True):
+        assert np.allclose(mine, theirs, atol=1e-5)
+    naive = plain.update_masks(pred, seq.free[2], seq.occ[2], seq.seen[2])
+    assert not np.allclose(drop._state[1][0], naive.alpha, atol=1e-3)
+    assert nxt.observed is not None

@@ -77,15 +77,17 @@ class CNABUMapConfig(BaseModel):
     restrict_state: bool = True
     """With ``unseen_class_weight`` < 1: whether the restricted belief is also the network's next input.
     False: the model keeps the network's unrestricted map as its own state, and only the belief it
-    returns (what the planner and the metrics read) is restricted; a belief the model did not return
-    itself (an episode's first, or an effect model's prediction) is taken as it is."""
+    returns (what the planner and the metrics read) is restricted. An episode's first belief is taken as
+    it is; an effect model's prediction (made from the belief last returned) is the next input where it
+    changed that belief, the network's own map everywhere else."""
     unlabelled_objects: Literal["keep", "unknown"] = "keep"
     """What the returned belief says of an object the network predicts but no ray has labelled with its
     class (a 26-connected component of voxels believed occupied with one top object class, none of
     them labelled with it by a ray of the episode): ``keep`` it as predicted, or return it as
     ``unknown`` (expected occupancy 0.5, the total evidence kept; a tie counts as free), so that a
     hidden object's guessed class does not enter the maps. With ``unknown`` the network's own map
-    stays its next input (docs/map-prediction.md)."""
+    stays its next input, through a manipulation too where the effect model's prediction left the
+    returned belief unchanged (as with ``restrict_state: false``; docs/map-prediction.md)."""
     class_map: dict[str, str] | None = None
     """For scenes whose classes the weights were not trained on: each object class of the scene, in the
     scene's order, to a distinct class the weights know (e.g. ``{cereal: cracker_box, ...}``). The

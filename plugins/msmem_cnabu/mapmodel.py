@@ -67,6 +67,20 @@ class CNABUMapObservationModel(ObservationModel):
     def update(self, belief: EvidentialMap, observation: Observation) -> EvidentialMap:
         return self.update_masks(belief, *self.rays.masks(belief, observation))
 
+    def _carried(self, belief: EvidentialMap, alpha: NDArray[np.float32], beta: NDArray[np.float32],
+                 eta: NDArray[np.float32]) -> tuple[NDArray[np.float32], ...]:
+        """A belief this model did not return, within an episode (an effect model's prediction made from the
+        belief it last returned, perhaps with MSAS's evidence cap): the network's own map where every
+        value is still the returned belief's, the given belief where something changed it."""
+        prev, (sa, sb, se) = self._state  # type: ignore[misc]
+        if prev.alpha.shape != belief.alpha.shape or prev.eta.shape != belief.eta.shape:
+            return alpha, beta, eta
+        same = (prev.alpha == belief.alpha) & (prev.beta == belief.beta) & (prev.eta == belief.eta).all(axis=0)
+        if not same.any():
+            return alpha, beta, eta
+        return (np.where(same, sa, alpha).astype(np.float32), np.where(same, sb, beta).astype(np.float32),
+                np.where(same[None], se, eta).astype(np.float32))
+
     @torch.no_grad()
     def update_masks(self, belief: EvidentialMap, free: NDArray[np.bool_], occ: NDArray[np.bool_],
                      seen: NDArray[np.bool_]) -> EvidentialMap:
@@ -81,6 +95,8 @@ class CNABUMapObservationModel(ObservationModel):
             k = self.net.config.num_classes
             eta = eta if own else onto_slots(eta, self._index, k, fill=1)
             seen = onto_slots(seen, self._index, k, fill=False)
+        if not own and self._state is not None and belief.observed is not None and belief.observed.any():
+            alpha, beta, eta = self._carried(belief, alpha, beta, eta)
         old = torch.get_num_threads()
         if self.config.threads is not None:
             torch.set_num_threads(self.config.threads)
