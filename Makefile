@@ -32,9 +32,10 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[dev]"
 	@touch $(STAMP)
 
-# The demo runs `ours` with the learned whole-map observation model and the effect models fine-tuned on
-# its beliefs (README, "make demo"); `make demo DEMO_CONFIG=` runs the library defaults (analytic update).
-DEMO_CONFIG ?= examples/observe/cnabu-map-effects-map.yaml
+# The demo runs `ours` under the library defaults (msmem_core/presets/defaults.yaml: the learned whole-map
+# observation model and the effect models fine-tuned on its beliefs; README, "make demo");
+# `make demo DEMO_CONFIG=examples/analytic.yaml` runs the defaults before session 21 (the analytic update).
+DEMO_CONFIG ?=
 
 demo: setup
 	$(VENV)/bin/msmem run --out runs/demo --overwrite $(if $(DEMO_CONFIG),-c $(DEMO_CONFIG))

@@ -49,7 +49,8 @@ def main() -> None:
     pm = get_plugin_manager()
     scenes = suite_scenes(args.suite)
     totals: dict[str, list[object]] = {}
-    params: dict[str, object] = {"weights": args.weights} if args.weights else {}
+    # the network's own output, as these offline checks were measured (before session 21's default, unknown)
+    params: dict[str, object] = {"unlabelled_objects": "keep", **({"weights": args.weights} if args.weights else {})}
     extra: dict[str, object] = {}
     if args.config:
         from msmem_core.config import read_config_file
@@ -59,7 +60,8 @@ def main() -> None:
         extra = {k: v for k, v in given.items() if k == "effect_models"}
     net_cfg = {"observation_model": {"name": "cnabu-map", "params": params}, **extra}
     for i in parse_range(args.scenes, len(scenes)):
-        ana = build_episode(load_config("view-only", None, {**extra, "steps": 40, "threads": 1}), pm, scene=scenes[i])
+        ana_cfg = {"observation_model": {"name": "analytic-observation"}, **extra, "steps": 40, "threads": 1}
+        ana = build_episode(load_config("view-only", None, ana_cfg), pm, scene=scenes[i])
         net = build_episode(load_config("view-only", None, {**net_cfg, "steps": 40, "threads": 1}), pm, scene=scenes[i])
         run_episode(ana)
         views = [ana.start_view] + [r["action"]["view"] for r in ana.records]

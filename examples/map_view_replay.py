@@ -41,8 +41,10 @@ def main() -> None:
     args = ap.parse_args()
     pm = get_plugin_manager()
     scenes = suite_scenes(args.suite)
-    params = {"weights": args.weights} if args.weights else {}
-    configs = {"analytic": {}, "cnabu-map": {"observation_model": {"name": "cnabu-map", "params": params}}}
+    # the network's own output, as measured before session 21 (its default since then: unknown)
+    params = {"unlabelled_objects": "keep", **({"weights": args.weights} if args.weights else {})}
+    configs = {"analytic": {"observation_model": {"name": "analytic-observation"}},
+               "cnabu-map": {"observation_model": {"name": "cnabu-map", "params": params}}}
     scores: dict[tuple[str, str], list[list[float]]] = {}
     for i in parse_range(args.scenes, len(scenes)):
         episodes, views = {}, {}

@@ -29,6 +29,12 @@ METHODS = ("view-only", "push-only", "grasp-only", "no-cdc", "ours")
 DEFAULT_METHOD = "ours"
 
 
+def library_defaults() -> dict[str, Any]:
+    """The settings every run starts from (``msmem_core/presets/defaults.yaml``): a preset, a config file
+    and flags go over them."""
+    return load_yaml(resources.files("msmem_core.presets").joinpath("defaults.yaml").read_text()) or {}
+
+
 class _Strict(BaseModel):
     model_config = MODEL_CONFIG
 
@@ -124,12 +130,17 @@ class RunConfig(_Strict):
     robot: ComponentRef = ComponentRef(name="floating")
     """The arm that carries the camera and the gripper (docs/robots.md): ``floating`` (no arm, everything
     reachable) or ``panda`` (the view skill proposes only the views its wrist camera reaches)."""
-    observation_model: ComponentRef = ComponentRef(name="analytic-observation")
+    observation_model: ComponentRef = Field(
+        default_factory=lambda: ComponentRef.model_validate(library_defaults()["observation_model"]))
+    """sigma_o, the observation update (default ``cnabu-map``: ``msmem_core/presets/defaults.yaml``)."""
     skills: list[SkillRef] = Field(default_factory=lambda: [SkillRef(name="view")], min_length=1)
-    effect_models: dict[str, ComponentRef] = Field(default_factory=dict)
+    effect_models: dict[str, ComponentRef] = Field(
+        default_factory=lambda: {k: ComponentRef.model_validate(v)
+                                 for k, v in library_defaults().get("effect_models", {}).items()})
     """Per skill name, the effect model of that skill wherever the method uses it and its ``skills``
     entry names none (e.g. ``{push: {name: push-analytic}}``): one file for every method, without
-    changing any method's skills. Names no registered skill has are refused."""
+    changing any method's skills. Names no registered skill has are refused. Default: the push and
+    grasp models fine-tuned on ``cnabu-map``'s beliefs (``msmem_core/presets/defaults.yaml``)."""
     skill_params: dict[str, dict[str, Any]] = Field(default_factory=dict)
     """Per skill name, parameters merged over that skill's ``params`` wherever the method uses it
     (e.g. ``{push: {clearance_m: 0.01}}``): like ``effect_models``, one file for every method without
@@ -167,10 +178,14 @@ class RunConfig(_Strict):
 
 
 def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    """Recursively merge ``over`` into a copy of ``base`` (lists and scalars are replaced)."""
+    """Recursively merge ``over`` into a copy of ``base`` (lists and scalars are replaced). A component
+    (a mapping with a ``name``) that names another component replaces the one below whole: the other
+    component's parameters do not carry over."""
     out = dict(base)
     for k, v in over.items():
-        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        below = out.get(k)
+        other = isinstance(v, dict) and isinstance(below, dict) and "name" in v and v["name"] != below.get("name")
+        out[k] = deep_merge(below, v) if isinstance(v, dict) and isinstance(below, dict) and not other else v
     return out
 
 
@@ -237,8 +252,8 @@ def load_config(
     method: str | None = None, config_file: str | Path | None = None, overrides: dict[str, Any] | None = None
 ) -> RunConfig:
     """Resolve preset < file < overrides into a validated ``RunConfig``."""
-    data: dict[str, Any] = {}
-    sources = []
+    data: dict[str, Any] = library_defaults()
+    sources = ["library defaults"]
     file_data = read_config_file(config_file) if config_file else {}
     chosen = method or file_data.get("method") or DEFAULT_METHOD
     data = deep_merge(data, preset(chosen))

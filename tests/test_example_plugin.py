@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from msmem_core.config import deep_merge
+from tests.support.defaults import ANALYTIC
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "msmem-nudge"
@@ -57,7 +58,7 @@ def test_msas_proposes_scores_and_executes_the_nudge(nudge_package, tmp_path):
     nudge wins as soon as one is proposed: the composed objective, not the test, decides) and a small
     camera."""
     cfg = yaml.safe_load((EXAMPLE / "slow_camera.yaml").read_text())
-    cfg = deep_merge(cfg, {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 4}})
+    cfg = deep_merge(cfg, {**ANALYTIC, "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 4}})
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(cfg))
     run = tmp_path / "run"
     out = subprocess.run([MSMEM, "run", "-q", "--no-report", "--config", str(tmp_path / "config.yaml"), "--scene",

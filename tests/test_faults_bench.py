@@ -277,7 +277,8 @@ def test_the_fingerprint_follows_the_weights_a_component_may_load(tmp_path):
     from msmem_core.run.runner import check_components
 
     pm = get_plugin_manager()
-    assert "weights" not in check_components(load_config("view-only"), pm)  # the analytic update loads none
+    analytic = {"observation_model": {"name": "analytic-observation"}}
+    assert "weights" not in check_components(load_config("view-only", None, analytic), pm)  # the analytic loads none
     shipped = check_components(load_config("ours"), pm)["weights"]  # the learned effect models, FE-vMF
     w = tmp_path / "map.pt"
     w.write_bytes(b"first weights")

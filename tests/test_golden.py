@@ -12,12 +12,13 @@ import json
 
 import pytest
 
-from msmem_core.config import METHODS
-from tests.golden.episodes import GOLDEN_DIR, record
+from tests.golden.episodes import DEFAULTS_EPISODE, GOLDEN_DIR, NAMES, record
 
 
-# the default method's episode guards every fast run; the other presets run in the slow suite (CI runs both)
-@pytest.mark.parametrize("method", [m if m == "ours" else pytest.param(m, marks=pytest.mark.slow) for m in METHODS])
+# the default method's episodes (analytic and library defaults) guard every fast run; the other presets run
+# in the slow suite (CI runs both)
+@pytest.mark.parametrize("method", [m if m in ("ours", DEFAULTS_EPISODE) else pytest.param(m, marks=pytest.mark.slow)
+                                    for m in NAMES])
 def test_golden_episode(method: str) -> None:
     want = json.loads((GOLDEN_DIR / f"{method}.json").read_text())
     got = json.loads(json.dumps(record(method)))

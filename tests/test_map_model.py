@@ -741,10 +741,10 @@ def test_a_class_map_feeds_the_network_the_mapped_classes_and_maps_its_answer_ba
     f0, o0, s0 = start_masks(shard)
     b0 = AnalyticObservationModel().apply_masks(EvidentialMap.empty(shard.grid), f0, o0, s0)
     f, o, s = shard.masks(0)
-    plain = CNABUMapObservationModel()
+    plain = CNABUMapObservationModel(CNABUMapConfig(unlabelled_objects="keep"))
     keep = np.random.default_rng(0).permutation(np.arange(1, 15))[:11]  # scene class i is trained class keep[i-1]
     cmap = {f"thing{i}": plain.classes[k] for i, k in enumerate(keep, 1)}
-    mapped = CNABUMapObservationModel(CNABUMapConfig(class_map=cmap))
+    mapped = CNABUMapObservationModel(CNABUMapConfig(class_map=cmap, unlabelled_objects="keep"))
     assert mapped.classes == ("background", *cmap)
     idx = np.r_[0, keep]
     unmapped = np.setdiff1d(np.arange(15), idx)
@@ -782,7 +782,8 @@ def test_known_classes_from_rays_keeps_only_the_classes_this_episodes_rays_label
     from msmem_cnabu.configs import CNABUMapConfig
     from msmem_cnabu.mapmodel import CNABUMapObservationModel
 
-    model = CNABUMapObservationModel(CNABUMapConfig(unseen_class_weight=1e-3, known_classes="rays"))
+    model = CNABUMapObservationModel(CNABUMapConfig(unseen_class_weight=1e-3, known_classes="rays",
+                                                            unlabelled_objects="keep"))
     model.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
     torch.manual_seed(0)
     with torch.no_grad():
@@ -817,7 +818,7 @@ def test_restrict_state_false_restricts_the_returned_belief_and_keeps_the_networ
     from msmem_cnabu.mapmodel import CNABUMapObservationModel
 
     def model(**kw):  # type: ignore[no-untyped-def]
-        m = CNABUMapObservationModel(CNABUMapConfig(**kw))
+        m = CNABUMapObservationModel(CNABUMapConfig(**{"unlabelled_objects": "keep", **kw}))
         torch.manual_seed(0)  # the same network for every model (whatever ran before in the process)
         m.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
         with torch.no_grad():
@@ -880,7 +881,7 @@ def test_unlabelled_objects_unknown_abstains_in_the_output_and_keeps_the_network
     from msmem_core.run.metrics import prediction_from_belief
 
     def model(**kw):  # type: ignore[no-untyped-def]
-        m = CNABUMapObservationModel(CNABUMapConfig(**kw))
+        m = CNABUMapObservationModel(CNABUMapConfig(**{"unlabelled_objects": "keep", **kw}))
         torch.manual_seed(0)  # the same network for both models
         m.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
         with torch.no_grad():
@@ -924,7 +925,7 @@ def test_the_networks_own_map_carries_through_a_manipulation_where_the_belief_is
     from msmem_cnabu.mapmodel import CNABUMapObservationModel
 
     def model(**kw):  # type: ignore[no-untyped-def]
-        m = CNABUMapObservationModel(CNABUMapConfig(**kw))
+        m = CNABUMapObservationModel(CNABUMapConfig(**{"unlabelled_objects": "keep", **kw}))
         torch.manual_seed(0)
         m.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
         with torch.no_grad():

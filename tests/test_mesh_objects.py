@@ -21,10 +21,11 @@ from msmem_core.world.grid import GridSpec
 from msmem_core.world.meshparts import load_mesh, mesh_pieces
 from msmem_core.world.scene import ObjectSpec, Part, SceneSpec
 from msmem_core.world.voxelize import _part_voxels
+from tests.support.defaults import ANALYTIC
 
 GRID = GridSpec(origin_m=(-0.2, -0.2, -0.05), voxel_m=0.01, shape=(40, 40, 35))
 POSE = pose_matrix((0.013, -0.021, 0.07), (0.2, -0.3, 0.1, 0.9))
-SMALL = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
+SMALL = {**ANALYTIC, "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
 
 
 @pytest.mark.parametrize("part", [

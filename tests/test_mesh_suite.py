@@ -20,6 +20,7 @@ from msmem_core.run.bench import SUITES, suite_scenes
 from msmem_core.world.meshparts import mesh_pieces, shipped_cache_dir
 from msmem_core.world.scene import NUM_CLASSES, ClassSpec, Part, SceneSpec
 from msmem_core.world.scenegen import SceneGenConfig, _box_bodied, _class_pool, footprint_fraction, generate_scene
+from tests.support.defaults import ANALYTIC
 
 TALL = {"name": "crate", "parts": [{"kind": "box", "size_m": [0.14, 0.05, 0.2], "position_m": [0, 0, 0.1]}],
         "mass_kg": 0.4}
@@ -205,7 +206,7 @@ def test_an_episode_on_a_mesh25_scene_maps_its_mesh_classes_only() -> None:
     from msmem_core.run.runner import build_episode, run_episode
 
     scene = suite_scenes("mesh25")[3]
-    small = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}, "steps": 3}
+    small = {**ANALYTIC, "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}, "steps": 3}
     ep = build_episode(load_config("view-only", None, small), get_plugin_manager(), scene=scene)
     metrics = run_episode(ep)
     assert ep.workspace.num_classes == 1 + len(scene.classes) == 12

@@ -69,4 +69,4 @@ def test_the_observation_update_is_timed_and_reported(small):
     res, lines = small
     assert res["observe_s"] > 0
     assert 0 <= res["observe_view"] < 27
-    assert any(line.strip().startswith("observation update (analytic-observation)") for line in lines)
+    assert any(line.strip().startswith("observation update (cnabu-map)") for line in lines)

@@ -16,8 +16,9 @@ from msmem_core.plugins.manager import PluginLoadWarning
 from msmem_core.run.runner import build_episode, run_episode
 from msmem_core.world.scene import NUM_CLASSES, SceneSpec
 from tests.support import class_plugin
+from tests.support.defaults import ANALYTIC
 
-SMALL = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
+SMALL = {**ANALYTIC, "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
 SCENE = {"name": "plugin-classes", "objects": [
     {"id": 0, "class_name": "toy_brick", "position_m": [-0.1, 0.15, 0.0]},
     {"id": 1, "class_name": "cracker_box", "position_m": [0.1, 0.15, 0.0]},

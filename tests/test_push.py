@@ -41,6 +41,7 @@ from msmem_core.world.meshes import stance_ratio
 from msmem_core.world.scene import OBJECT_CLASSES, ObjectSpec, SceneSpec, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 from msmem_core.world.voxelize import interior_mask, voxelize
+from tests.support.defaults import ANALYTIC
 
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)
@@ -674,7 +675,7 @@ def test_push_only_episode_executes_a_push_and_records_it(tmp_path: Path, monkey
         ObjectSpec(id=1, class_name="tomato_soup_can", position_m=(-0.1, 0.25, 0.0)),
     ))
     over = {
-        "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 4}, "steps": 3,
+        **ANALYTIC, "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 4}, "steps": 3,
         "msas": {"manipulation_window": [1, 5]},
         "objective": [{"name": "ig"}, {"name": "semantic-entropy", "weight": 0.2},
                       {"name": "manipulation-bonus"}],

@@ -17,11 +17,12 @@ import pytest
 
 from msmem_core.run.report import REPORT_FILES, render_html, write_report
 from msmem_core.run.runfolder import load_run
+from tests.support.defaults import ANALYTIC
 
 ROOT = Path(__file__).resolve().parents[1]
 MSMEM = str(Path(sys.executable).with_name("msmem"))
 STEPS = 3
-SMALL = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 4}}
+SMALL = {**ANALYTIC, "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 4}}
 SCENE = {"name": "three", "objects": [
     {"id": 0, "class_name": "cracker_box", "position_m": [-0.15, 0.08, 0.0]},
     {"id": 1, "class_name": "tomato_soup_can", "position_m": [-0.15, 0.25, 0.0]},

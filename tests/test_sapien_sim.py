@@ -39,6 +39,7 @@ from msmem_core.world.geometry import rotation_angle_deg
 from msmem_core.world.scene import ObjectSpec, SceneSpec
 from msmem_core.world.scenegen import SceneGenConfig, generate_scene
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+from tests.support.defaults import ANALYTIC
 from tests.support.sim_checks import (
     check_label_noise_relabels_whole_objects_and_follows_the_seed,
     check_restoring_a_snapshot_and_repeating_a_push_reproduces_it_exactly,
@@ -260,7 +261,7 @@ def test_top_grasp_of_an_isolated_object_succeeds_on_both_backends(class_name: s
 
 
 # ------------------------------------------------------------------------------------------- episodes
-EPISODE = {
+EPISODE = {**ANALYTIC,
     "camera": {"width_px": 160, "height_px": 120},
     "ig": {"ray_stride_px": 4},
     "scene": {"generator": {"require_hard": False}},

@@ -16,8 +16,9 @@ from msmem_core.plugins import get_plugin_manager
 from msmem_core.run.report import class_palette
 from msmem_core.run.runner import build_episode, run_episode
 from msmem_core.world.scene import CLASS_NAMES, NUM_CLASSES, ObjectSpec, SceneSpec, class_mismatch, model_classes
+from tests.support.defaults import ANALYTIC
 
-SMALL = {"camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
+SMALL = {**ANALYTIC, "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
 CHIPS = {"name": "chips_can", "parts": [{"kind": "cylinder", "size_m": [0.038, 0.25], "position_m": [0, 0, 0.125]}],
          "mass_kg": 0.2, "confusable_with": "master_chef_can", "color_rgb": [0.9, 0.1, 0.1]}
 
@@ -106,9 +107,14 @@ def test_msmem_run_writes_the_report_of_a_scene_with_its_own_class(tmp_path: Pat
 
 def test_a_learned_model_trained_on_other_classes_is_refused_naming_what_it_lacks() -> None:
     cfg = load_config("push-only", None, SMALL)  # the learned cnabu-push is push-only's effect model
-    with pytest.raises(PluginError, match=r"skills\.1\.effect_model: cnabu-push was trained on 15 classes and "
+    with pytest.raises(PluginError, match=r"effect_models\.push: cnabu-push was trained on 15 classes and "
                                           r"scene 'chips' has 16: it does not know chips_can"):
         build_episode(cfg, get_plugin_manager(), scene=chips_scene())
+    small = {k: v for k, v in SMALL.items() if k not in ANALYTIC}  # the library defaults: cnabu-map first
+    with pytest.raises(PluginError, match=r"observation_model: cnabu-map was trained on 15 classes and scene "
+                                          r"'chips' has 16: it does not know chips_can; use the analytic models "
+                                          r"there \(-c examples/scenes/analytic-effects.yaml"):
+        build_episode(load_config("view-only", None, small), get_plugin_manager(), scene=chips_scene())
     analytic = load_config("push-only", None, {**SMALL, "skills": [
         {"name": "view"}, {"name": "push", "effect_model": {"name": "push-analytic"}}]})
     assert build_episode(analytic, get_plugin_manager(), scene=chips_scene()).scene.num_classes == 16

@@ -226,8 +226,9 @@ def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | Non
     for where, name, model in models:
         if model.classes is not None and (why := class_mismatch(model.classes, scene.class_names)):
             raise PluginError(f"{where}: {name} was trained on {len(model.classes)} classes and scene "
-                              f"{scene.name!r} has {scene.num_classes}: {why}; use an analytic model there or "
-                              "train one on scenes with these classes")
+                              f"{scene.name!r} has {scene.num_classes}: {why}; use the analytic models there "
+                              "(-c examples/scenes/analytic-effects.yaml: analytic-observation, push-analytic, "
+                              "grasp-analytic) or train one on scenes with these classes")
     viewpoints = generate_viewpoints(cfg.viewpoints, scene.shelf)
     start = cfg.msas.start_view if cfg.msas.start_view is not None else default_start_view(cfg.viewpoints)
     reach = robot.reach_camera(viewpoints[start], scene.shelf)

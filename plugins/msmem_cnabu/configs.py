@@ -80,14 +80,15 @@ class CNABUMapConfig(BaseModel):
     returns (what the planner and the metrics read) is restricted. An episode's first belief is taken as
     it is; an effect model's prediction (made from the belief last returned) is the next input where it
     changed that belief, the network's own map everywhere else."""
-    unlabelled_objects: Literal["keep", "unknown"] = "keep"
+    unlabelled_objects: Literal["keep", "unknown"] = "unknown"
     """What the returned belief says of an object the network predicts but no ray has labelled with its
     class (a 26-connected component of voxels believed occupied with one top object class, none of
     them labelled with it by a ray of the episode): ``keep`` it as predicted, or return it as
-    ``unknown`` (expected occupancy 0.5, the total evidence kept; a tie counts as free), so that a
-    hidden object's guessed class does not enter the maps. With ``unknown`` the network's own map
-    stays its next input, through a manipulation too where the effect model's prediction left the
-    returned belief unchanged (as with ``restrict_state: false``; docs/map-prediction.md)."""
+    ``unknown`` (expected occupancy 0.5, the total evidence kept; a tie counts as free; the default
+    since session 21), so that a hidden object's guessed class does not enter the maps. With
+    ``unknown`` the network's own map stays its next input, through a manipulation too where the effect
+    model's prediction left the returned belief unchanged (as with ``restrict_state: false``;
+    docs/map-prediction.md)."""
     class_map: dict[str, str] | None = None
     """For scenes whose classes the weights were not trained on: each object class of the scene, in the
     scene's order, to a distinct class the weights know (e.g. ``{cereal: cracker_box, ...}``). The
