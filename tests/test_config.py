@@ -80,3 +80,25 @@ def test_unreadable_and_invalid_files_name_the_file(tmp_path):
     lst.write_text("- 1\n")
     with pytest.raises(UserError, match="mapping at the top level"):
         load_config(None, lst)
+
+
+def test_the_library_defaults_come_from_one_file_and_a_component_naming_another_replaces_it_whole() -> None:
+    """``msmem_core/presets/defaults.yaml`` is what a run without a file gets, and what ``RunConfig()``
+    gets; a file naming another observation or effect model does not inherit the default's parameters
+    (the learned push model's ``weights`` would be refused by ``push-analytic``), while one naming the
+    same model keeps them and adds its own."""
+    from msmem_core.config import RunConfig, deep_merge, library_defaults, load_config
+
+    d = library_defaults()
+    cfg = load_config("ours")
+    assert cfg.observation_model.model_dump() == RunConfig().observation_model.model_dump()
+    assert cfg.observation_model.name == d["observation_model"]["name"]
+    assert {k: v.model_dump() for k, v in cfg.effect_models.items()} == {
+        k: {"params": {}, **v} for k, v in d["effect_models"].items()}
+    swapped = load_config("ours", None, {"effect_models": {"push": {"name": "push-analytic"}}})
+    assert swapped.effect_models["push"].model_dump() == {"name": "push-analytic", "params": {}}
+    assert swapped.effect_models["grasp"] == cfg.effect_models["grasp"]
+    same = load_config("ours", None, {"effect_models": {"push": {"name": "cnabu-push", "params": {"threads": 1}}}})
+    assert same.effect_models["push"].params == {**cfg.effect_models["push"].params, "threads": 1}
+    assert deep_merge({"a": {"name": "x", "params": {"k": 1}}}, {"a": {"params": {"j": 2}}}) == {
+        "a": {"name": "x", "params": {"k": 1, "j": 2}}}
