@@ -349,6 +349,32 @@ def test_trip_height_ratio_stops_a_tall_object_before_a_much_lower_one() -> None
     assert max(a.length_m for a in right(PushConfig(trip_height_ratio=2.0), low_first)) > 0.06 + standoff + voxel
 
 
+def test_max_pushes_per_object_refuses_an_object_pushed_that_often_and_only_that_object() -> None:
+    """Two boxes of different classes: after one executed push of box 3 (recorded by ``record_push``, which
+    ``execute`` calls), ``max_pushes_per_object`` 1 proposes no more pushes of it but still of box 5; at 2,
+    box 3 is still pushed, and it is recognised where the push left it (its end contact) as well as where
+    it started."""
+    b = _row_belief({3: ((-0.08, 0.04), (0.0, 0.08)), 5: ((0.06, 0.04), (0.14, 0.08))})
+
+    def targets(skill: PushSkill) -> set[int | None]:
+        return {a.target_class for seed in range(4) for a in skill.propose(_ctx(b, seed=seed))}
+
+    once = PushSkill(PushConfig(max_pushes_per_object=1))
+    assert targets(once) == {3, 5}
+    first = next(a for a in once.propose(_ctx(b)) if a.target_class == 3)
+    once.record_push(first)
+    assert targets(once) == {5}
+    twice = PushSkill(PushConfig(max_pushes_per_object=2))
+    twice.record_push(first)
+    assert targets(twice) == {3, 5}
+    moved = PushSkill(PushConfig(max_pushes_per_object=1))  # only the end contact lies on the footprint now
+    far = first.model_copy(update={"contact_m": (first.contact_m[0] - 0.3, first.contact_m[1], 0.05),
+                                   "direction": (1.0, 0.0), "length_m": 0.3 + PushConfig().standoff_m})
+    moved.record_push(far)
+    assert targets(moved) == {5}
+    assert targets(PushSkill()) == {3, 5}
+
+
 def test_max_height_ratio_refuses_to_push_a_thin_tall_object() -> None:
     """A 16 x 2 cm box 15 cm tall (7.5 times as tall as its narrowest width) is pushed without the
     check, not at all with ``max_height_ratio`` 3, and again with 8."""

@@ -225,6 +225,11 @@ class PushConfig(BaseModel):
     height is more than this multiple of the believed height of an object it meets stops before that
     object instead of driving it: the push is shortened to end there. A tall object pushed low trips
     over a much lower one in its way and falls (docs/push.md, "Falls"). None: no check."""
+    max_pushes_per_object: int | None = Field(None, ge=1)
+    """An object the skill has pushed this many times in the episode is not pushed again. It is recognised
+    by its believed class and a believed footprint (with its 8 neighbours) that holds the contact point
+    of an earlier push of that class, where it started or where the push left it. A tall object pushed
+    again and again ends up falling (docs/push.md, "Falls"). None: no limit."""
     speed_mps: float = Field(0.1, gt=0.0, le=1.0)
     travel_speed_mps: float = Field(0.25, gt=0.0, le=2.0)
     """Speed of the approach and the retreat."""
@@ -300,6 +305,8 @@ class PushSkill(Skill):
         self.config = config or PushConfig()
         self.tool = tool_boxes(self.config.gripper, self.config.palm)
         self._grid_cache: dict[Any, Any] = {}
+        self._pushed: list[tuple[int, NDArray[np.float64]]] = []
+        """The pushes executed in this episode: target class and contact points [2, 2] (start, end) in xy."""
 
     # ------------------------------------------------------------------------------------ proposal
     def _grid_data(self, grid: Any, shelf: ShelfSpec) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
@@ -342,6 +349,8 @@ class PushSkill(Skill):
         targets = self._trace(seeds, conf, conf_bev, cls, grid, shelf)
         standing = self._standing_thin(classes, shelf.interior_box[2])
         targets = [t for t in targets if not standing(t.cls, t.top_z)]
+        if cfg.max_pushes_per_object is not None and self._pushed:
+            targets = [t for t in targets if self.times_pushed(t.cls, t.own, grid) < cfg.max_pushes_per_object]
         if not targets:
             return []
         occupied = (p > cfg.occupied_threshold).ravel()
@@ -367,6 +376,26 @@ class PushSkill(Skill):
             out += [g[i] for g in groups if i < len(g)][: cfg.max_samples - len(out)]
             i += 1
         return out
+
+    def record_push(self, action: PushAction) -> None:
+        """Remember an executed push of a believed object (``max_pushes_per_object``)."""
+        if action.target_class is None or action.contact_m is None:
+            return
+        start = np.asarray(action.contact_m[:2], dtype=np.float64)
+        end = start + max(action.length_m - self.config.standoff_m, 0.0) * action.u
+        self._pushed.append((action.target_class, np.stack([start, end])))
+
+    def times_pushed(self, cls: int, own: NDArray[np.bool_], grid: Any) -> int:
+        """How many executed pushes of class ``cls`` have a contact point (start or end) in the BEV cells
+        ``own`` (a believed footprint and its 8 neighbours)."""
+        n = 0
+        for c, pts in self._pushed:
+            if c != cls:
+                continue
+            ij = np.floor((pts - grid.origin[:2]) / grid.voxel_m).astype(np.int64)
+            ok = (ij[:, 0] >= 0) & (ij[:, 0] < own.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < own.shape[1])
+            n += int(own[ij[ok, 0], ij[ok, 1]].any())
+        return n
 
     def _trace(self, seeds: NDArray[np.float64], conf: NDArray[np.bool_], conf_bev: NDArray[np.bool_],
                cls: NDArray[np.int64], grid: Any, shelf: ShelfSpec) -> list[_Target]:
@@ -625,5 +654,6 @@ class PushSkill(Skill):
         sim.park_gripper()
         if cfg.settle_s > 0:
             sim.step(cfg.settle_s)
+        self.record_push(a)
         miss = float(np.linalg.norm(reached[:2, 3] - a.end))
         return Outcome(success=miss < 0.02, info={"tool_end_error_m": miss})
