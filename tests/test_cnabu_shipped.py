@@ -69,10 +69,17 @@ def test_shipped_weights_beat_no_change_on_heldout_scenes(kind):
 
 @pytest.mark.parametrize("kind", KIND_PARAMS)
 def test_default_model_per_role_is_the_one_with_better_heldout_nll(kind):
+    """Of a role's learned CNABU model and its analytic twin, the one with the better held-out NLL is the
+    default. The observation role has a third model since session 21: the whole-map ``cnabu-map`` is the
+    default there, chosen by the map-prediction benchmark (docs/results.md), so the rule only says the
+    per-view ``cnabu-observe`` is not the default while its twin is better."""
     better = heldout(kind)["better_nll"]
     want = f"cnabu-{kind}" if better == "learned" else TWIN[kind]
-    assert default_model(kind) == want, (kind, heldout(kind)["metrics"]["learned"]["affected"],
-                                         heldout(kind)["metrics"]["analytic"]["affected"])
+    why = (kind, heldout(kind)["metrics"]["learned"]["affected"], heldout(kind)["metrics"]["analytic"]["affected"])
+    if kind == "observe" and default_model(kind) == "cnabu-map":
+        assert want == TWIN[kind], why  # were cnabu-observe better than its twin, it would need a look
+        return
+    assert default_model(kind) == want, why
 
 
 @pytest.mark.slow
