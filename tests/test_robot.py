@@ -123,6 +123,25 @@ def test_a_configuration_folded_onto_itself_collides_unless_self_collision_is_of
         loose.close()
 
 
+def test_the_wrist_cameras_body_collides_and_may_not_sit_in_the_hand():
+    lean = (0.0, 0.8, 0.0, -1.2, 0.0, 3.0, 0.785)  # the flange inside the shelf, every link clear of the boards
+    far = dict(camera_offset_m=(-0.1, 0.1, 0.03), disk_cache=False)  # the camera 14 cm off the flange axis
+    out, bodiless = PandaRobot(PandaConfig(**far)), PandaRobot(PandaConfig(**far, camera_box_m=None))
+    try:
+        assert out.collisions(lean, SHELF) == ["camera-bottom"]  # only the camera touches
+        assert bodiless.collisions(lean, SHELF) == []
+    finally:
+        out.close()
+        bodiless.close()
+    # the mount before session 22 put the camera's body 25 mm into the hand: refused, naming the fields
+    inside = PandaRobot(PandaConfig(camera_offset_m=(0.0, 0.06, 0.03), camera_rpy_deg=(0.0, 0.0, 0.0),
+                                    disk_cache=False))
+    with pytest.raises(PluginError, match=r"camera_offset_m \(0.0, 0.06, 0.03\).*into panda_hand \(25 mm\)"):
+        inside.collisions(lean, SHELF)
+    assert PandaRobot(PandaConfig(camera_offset_m=(0.0, 0.06, 0.03), camera_box_m=None,
+                                  disk_cache=False)).collisions(lean, SHELF) == []
+
+
 def test_ik_refuses_a_pose_it_reaches_only_through_a_board(panda):
     # inside the top board, 5 cm into the shelf: kinematically easy, but the hand is in the board
     inside_top = flange((0.0, 0.05, SHELF.height_m + SHELF.wall_m / 2))

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, PositiveFloat
 
 from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Bool, Int
 
 Vec3 = tuple[float, float, float]
+Sizes3 = tuple[PositiveFloat, PositiveFloat, PositiveFloat]
 
 
 class FloatingConfig(BaseModel):
@@ -26,12 +27,21 @@ class PandaConfig(BaseModel):
     sweep this was chosen from)."""
     base_yaw_deg: float = Field(90.0, ge=-180.0, le=180.0)
     """Rotation of the base about z; 90 faces the shelf (+y)."""
-    camera_offset_m: Vec3 = (0.0, 0.06, 0.03)
-    """Wrist camera position in the flange frame (``panda_link8``: z along the last joint's axis, out of
-    the flange)."""
-    camera_rpy_deg: Vec3 = (0.0, 0.0, 0.0)
-    """Wrist camera orientation in the flange frame (roll, pitch, yaw about x, y, z); zero: the camera
-    looks along the flange's z (OpenCV: x right, y down, z forward)."""
+    camera_offset_m: Vec3 = (-0.042, 0.042, 0.03)
+    """Wrist camera position (its optical centre) in the flange frame (``panda_link8``: z along the last
+    joint's axis, out of the flange): 6 cm from the flange axis across the hand's thickness (the hand
+    is turned -45 deg about z), 3 cm out, so that its body (``camera_box_m``) clears the hand."""
+    camera_rpy_deg: Vec3 = (10.0, 0.0, 45.0)
+    """Wrist camera orientation in the flange frame (roll, pitch, yaw about the flange's x, y, z, applied
+    in that order): the camera (OpenCV: x right, y down, z forward) looks along the flange's z tilted 10
+    deg towards the fingers, so that their tips are in the top of the picture, its x along the hand's
+    width."""
+    camera_box_m: Sizes3 | None = (0.09, 0.025, 0.025)
+    """The camera's body, a box of these sizes along the camera's x, y and z (a RealSense D435 is
+    90 x 25 x 25 mm), its front face centred on the optical centre. It is checked for collisions like
+    the arm's links (``camera-<board>``, ``camera-<link>`` for the links from ``panda_link0`` to
+    ``panda_link5``), and a mount that puts it into the hand, the fingers or ``panda_link7`` is refused
+    when the robot is built. None: no camera body."""
     collision_margin_m: float = Field(0.01, ge=0.0, le=0.2)
     """An arm link closer than this to a shelf board collides."""
     self_collision: bool = True

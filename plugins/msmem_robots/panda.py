@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from msmem_core.errors import PluginError
 from msmem_core.interfaces import Reach, Robot, RobotModel, densify
 from msmem_core.util.artifacts import sha256_file
 from msmem_core.util.quiet import quiet_stdio
@@ -44,6 +45,10 @@ FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
 FINGERTIP_M = 0.112
 """Distance along the flange's z from ``panda_link8`` to the tips of the open fingers (the finger joints sit
 at 0.0584 m in the hand, the fingers reach 0.112 m: their collision boxes in pybullet, less its margin)."""
+CAMERA_NEIGHBOURS = ("panda_link6", "panda_link7", "panda_link8", "panda_hand", "panda_leftfinger",
+                     "panda_rightfinger")
+"""Links the wrist camera is not checked against in configurations: the flange and what it carries (a mount
+into them is refused once, ``_camera_overlap``), and the wrist link next to it."""
 BOARDS = ("bottom", "top", "left", "right", "back")
 """Names of ``ShelfSpec.boards()`` in its order."""
 STARTS: tuple[tuple[float, ...], ...] = (  # chosen greedily from 48 candidates by views and shelf-interior poses
@@ -80,6 +85,9 @@ class PandaRobot(Robot):
         mount[:3, :3] = Rotation.from_euler("xyz", c.camera_rpy_deg, degrees=True).as_matrix()
         mount[:3, 3] = c.camera_offset_m
         self._mount = mount
+        self._camera_body: int | None = None
+        self._camera_centre = np.eye(4)
+        """The camera box's centre in the flange frame (behind the optical centre by half its depth)."""
 
     # ------------------------------------------------------------------------------ pybullet client
     def _connect(self) -> Any:
@@ -104,7 +112,42 @@ class PandaRobot(Robot):
         self._names = tuple(names[:ARM_JOINTS])
         self._lower, self._upper = np.array(lower), np.array(upper)
         self._client = client
+        if self.config.camera_box_m is not None:
+            size = np.asarray(self.config.camera_box_m, dtype=np.float64)
+            shape = client.createCollisionShape(pybullet.GEOM_BOX, halfExtents=[float(h) for h in size / 2])
+            self._camera_body = client.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=shape,
+                                                       basePosition=[0.0, 0.0, 10.0])
+            back = np.eye(4)
+            back[2, 3] = -size[2] / 2
+            self._camera_centre = self._mount @ back
+            if overlap := self._camera_overlap():
+                self.close()
+                raise PluginError(
+                    f"robot panda: camera_box_m {tuple(self.config.camera_box_m)} at camera_offset_m "
+                    f"{tuple(self.config.camera_offset_m)}, camera_rpy_deg {tuple(self.config.camera_rpy_deg)} "
+                    f"puts the camera into {overlap}: move it out of the hand (docs/robots.md)")
         return client
+
+    def _place_camera(self) -> None:
+        """Put the camera box where the flange of the current configuration carries it."""
+        c = self._client
+        state = c.getLinkState(self._body, self._flange, computeForwardKinematics=True)
+        pose = pose_matrix(state[4], state[5]) @ self._camera_centre
+        c.resetBasePositionAndOrientation(self._camera_body, [float(x) for x in pose[:3, 3]],
+                                          [float(x) for x in matrix_to_quat(pose[:3, :3])])
+
+    def _camera_overlap(self) -> str:
+        """The links the flange carries that the camera box penetrates (home configuration; they are rigid
+        but for the fingers, open here), as ``link (depth mm)``; empty when it clears them all."""
+        self._set(np.asarray(STARTS[0]))
+        self._place_camera()
+        c, out = self._client, []
+        for j, name in self._links.items():
+            if name in CAMERA_NEIGHBOURS and name != "panda_link6":
+                depth = min((p[8] for p in c.getClosestPoints(self._camera_body, self._body, 0.0, -1, j)), default=0.0)
+                if depth < 0.0:
+                    out.append(f"{name} ({-depth * 1000:.0f} mm)")
+        return ", ".join(out)
 
     @staticmethod
     def _distant_link_pairs(client: Any, body: int) -> list[tuple[int, int]]:
@@ -150,7 +193,7 @@ class PandaRobot(Robot):
         if self._client is not None:
             self._client.disconnect()
             self._client = None
-            self._shelf, self._boards = None, []
+            self._shelf, self._boards, self._camera_body = None, [], None
 
     # ------------------------------------------------------------------------------------ interface
     def model(self) -> RobotModel:
@@ -254,7 +297,8 @@ class PandaRobot(Robot):
 
     def _hits(self) -> list[str]:
         """What the arm in its current configuration touches: ``link-board`` within the collision margin of
-        a shelf board, and ``link-link`` for two of its own links in contact (``self_collision``)."""
+        a shelf board, ``link-link`` for two of its own links in contact (``self_collision``), and the
+        same for the camera's body (``camera-board``, ``camera-link``; ``camera_box_m``)."""
         c, margin = self._client, self.config.collision_margin_m
         out = []
         for name, board in zip(BOARDS, self._boards, strict=True):
@@ -263,6 +307,13 @@ class PandaRobot(Robot):
         b = self._body
         out += [f"{self._links[i]}-{self._links[j]}" for i, j in self._self_pairs
                 if c.getClosestPoints(b, b, 0.0, i, j)]
+        if (cam := self._camera_body) is not None:
+            self._place_camera()
+            out += [f"camera-{name}" for name, board in zip(BOARDS, self._boards, strict=True)
+                    if any(p[8] < margin for p in c.getClosestPoints(cam, board, distance=margin))]
+            if self.config.self_collision:
+                out += [f"camera-{n}" for j, n in self._links.items()
+                        if n not in CAMERA_NEIGHBOURS and c.getClosestPoints(cam, b, 0.0, -1, j)]
         return out
 
     def ik(self, flange_pose: NDArray[np.float64], shelf: ShelfSpec) -> Reach:
