@@ -45,10 +45,10 @@ FINGER_JOINTS = ("panda_finger_joint1", "panda_finger_joint2")
 FINGERTIP_M = 0.112
 """Distance along the flange's z from ``panda_link8`` to the tips of the open fingers (the finger joints sit
 at 0.0584 m in the hand, the fingers reach 0.112 m: their collision boxes in pybullet, less its margin)."""
-CAMERA_NEIGHBOURS = ("panda_link6", "panda_link7", "panda_link8", "panda_hand", "panda_leftfinger",
-                     "panda_rightfinger")
-"""Links the wrist camera is not checked against in configurations: the flange and what it carries (a mount
-into them is refused once, ``_camera_overlap``), and the wrist link next to it."""
+CAMERA_CARRIERS = ("panda_link7", "panda_link8", "panda_hand", "panda_leftfinger", "panda_rightfinger")
+"""The links that move rigidly with the wrist camera (the fingers open along the hand only): a mount into
+them is refused once (``_camera_overlap``), and configurations do not check the camera against them or
+against ``panda_link6``, next to the flange."""
 BOARDS = ("bottom", "top", "left", "right", "back")
 """Names of ``ShelfSpec.boards()`` in its order."""
 STARTS: tuple[tuple[float, ...], ...] = (  # chosen greedily from 48 candidates by views and shelf-interior poses
@@ -86,6 +86,8 @@ class PandaRobot(Robot):
         mount[:3, 3] = c.camera_offset_m
         self._mount = mount
         self._camera_body: int | None = None
+        self._camera_links: list[tuple[int, str]] = []
+        """The arm's links a configuration checks the camera against (``self_collision``)."""
         self._camera_centre = np.eye(4)
         """The camera box's centre in the flange frame (behind the optical centre by half its depth)."""
 
@@ -120,6 +122,9 @@ class PandaRobot(Robot):
             back = np.eye(4)
             back[2, 3] = -size[2] / 2
             self._camera_centre = self._mount @ back
+            skip = (*CAMERA_CARRIERS, "panda_link6")
+            self._camera_links = [(j, n) for j, n in links.items()
+                                  if n not in skip and client.getCollisionShapeData(body, j)]
             if overlap := self._camera_overlap():
                 self.close()
                 raise PluginError(
@@ -143,7 +148,7 @@ class PandaRobot(Robot):
         self._place_camera()
         c, out = self._client, []
         for j, name in self._links.items():
-            if name in CAMERA_NEIGHBOURS and name != "panda_link6":
+            if name in CAMERA_CARRIERS:
                 depth = min((p[8] for p in c.getClosestPoints(self._camera_body, self._body, 0.0, -1, j)), default=0.0)
                 if depth < 0.0:
                     out.append(f"{name} ({-depth * 1000:.0f} mm)")
@@ -312,8 +317,7 @@ class PandaRobot(Robot):
             out += [f"camera-{name}" for name, board in zip(BOARDS, self._boards, strict=True)
                     if any(p[8] < margin for p in c.getClosestPoints(cam, board, distance=margin))]
             if self.config.self_collision:
-                out += [f"camera-{n}" for j, n in self._links.items()
-                        if n not in CAMERA_NEIGHBOURS and c.getClosestPoints(cam, b, 0.0, -1, j)]
+                out += [f"camera-{n}" for j, n in self._camera_links if c.getClosestPoints(cam, b, 0.0, -1, j)]
         return out
 
     def ik(self, flange_pose: NDArray[np.float64], shelf: ShelfSpec) -> Reach:
