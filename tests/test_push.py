@@ -343,7 +343,7 @@ def test_trip_height_ratio_stops_a_tall_object_before_a_much_lower_one() -> None
     assert [a for a in tripping if a.direction[0] > 0.95]
     assert max(a.length_m for a in tripping if a.direction[0] > 0.95) <= contact
     assert max(a.length_m for a in tripping if a.direction[1] > 0.95) > PushConfig().max_length_m - voxel
-    for cfg in (PushConfig(), PushConfig(trip_height_ratio=4.0)):
+    for cfg in (PushConfig(trip_height_ratio=None), PushConfig(trip_height_ratio=4.0)):
         assert max(a.length_m for a in right(cfg)) > 0.06 + standoff + voxel
     low_first = _row_belief({3: ((-0.08, 0.04), (0.08, 0.10)), 5: ((0.14, 0.03), (0.17, 0.11))}, {3: 0.04})
     assert max(a.length_m for a in right(PushConfig(trip_height_ratio=2.0), low_first)) > 0.06 + standoff + voxel
@@ -373,6 +373,11 @@ def test_max_pushes_per_object_refuses_an_object_pushed_that_often_and_only_that
     moved.record_push(far)
     assert targets(moved) == {5}
     assert targets(PushSkill()) == {3, 5}
+    once.track(_ctx(b))  # the same episode (step 5): still remembered
+    assert targets(once) == {5}
+    once.track(DecisionContext(0, b, None, np.zeros((0, 4, 4)), set(), WORKSPACE,  # type: ignore[arg-type]
+                               np.random.default_rng(0), True, 0.5))
+    assert targets(once) == {3, 5}, "a new episode (step 0) forgets the last one's pushes"
 
 
 def test_max_height_ratio_refuses_to_push_a_thin_tall_object() -> None:
@@ -662,10 +667,11 @@ def test_effect_model_predicts_the_post_push_occupancy_better_than_no_change(sim
     from msmem_analytic.observation import AnalyticObservationModel
 
     views = generate_viewpoints(ViewpointConfig(), SHELF)
-    observe, skill, model = AnalyticObservationModel(), PushSkill(), AnalyticPushEffect()
+    observe, model = AnalyticObservationModel(), AnalyticPushEffect()
     inside = interior_mask(SHELF, GRID)
     results = []
     for seed in range(4):
+        skill = PushSkill()  # one per scene: it remembers the pushes it executed (max_pushes_per_object)
         rng = np.random.default_rng(seed)
         objs = (
             ObjectSpec(id=0, class_name="cracker_box", position_m=(float(rng.uniform(-0.15, 0.15)), 0.06, 0.0)),
