@@ -15,6 +15,7 @@ from msmem_objectives.ig import IGTerm, IGTermConfig
 from msmem_push.effect import AnalyticPushEffect
 from msmem_push.geometry import (
     footprint_sweep_hits,
+    gripper_pose,
     leading_half_depth,
     swept_extent,
     swept_voxels,
@@ -22,6 +23,7 @@ from msmem_push.geometry import (
     tool_boxes,
 )
 from msmem_push.skill import START_FRONT_MARGIN_M, PushAction, PushConfig, PushSkill
+from numpy.typing import NDArray
 from pydantic import ValidationError
 
 from msmem_core.errors import PluginError
@@ -172,13 +174,13 @@ def test_push_samples_never_start_in_believed_occupancy_nor_sweep_through_a_wall
 
 @settings(max_examples=300, deadline=None)
 @given(st.floats(-0.45, 0.45), st.floats(-0.1, 0.45), st.floats(0.0, 2 * np.pi), st.floats(-0.05, 0.3),
-       st.floats(0.0, 0.3), st.booleans(), st.booleans())
+       st.floats(0.0, 0.3), st.booleans(), st.sampled_from(["along", "across", "forward"]))
 def test_swept_voxels_kernel_equals_the_numpy_rasterisation(x: float, y: float, angle: float, tip_z: float,
-                                                            length: float, on_grid: bool, palm: bool) -> None:
+                                                            length: float, on_grid: bool, palm: str) -> None:
     if on_grid:  # voxel-aligned starts, axis-aligned directions, whole-cm heights: the boundary cases
         x, y, tip_z, angle = round(x, 2) + 0.005, round(y, 2), round(tip_z, 2), round(angle / (np.pi / 4)) * np.pi / 4
     u = np.array([np.cos(angle), np.sin(angle)])
-    boxes = tool_boxes(GripperSpec(), "across" if palm else "along")
+    boxes = tool_boxes(GripperSpec(), palm, (0.204, 0.063, 0.066) if palm == "forward" else None)
     want = swept_voxels_reference(GRID, (x, y), u, tip_z, boxes, length * u)
     np.testing.assert_array_equal(swept_voxels(GRID, (x, y), u, tip_z, boxes, length * u), want)
     np.testing.assert_array_equal(swept_voxels(GRID, (x, y), u, tip_z, boxes[:1]), swept_voxels_reference(
@@ -777,3 +779,102 @@ def test_the_compiled_footprint_sweep_equals_the_array_reference(seed: int, angl
     ref_wall, ref_first = _sweep_hits_reference(cells, u, steps, 0.01, labels, wall)
     assert at_wall == ref_wall
     assert first.tolist() == ref_first.tolist()
+
+
+# ------------------------------------------------------------------------------- forward pushes (an arm's)
+def _forward_oracle(grid: GridSpec, tip: tuple[float, float, float], length: float,
+                    hand: tuple[float, float, float], gripper: GripperSpec) -> NDArray[np.int64]:
+    """The voxels of the forward tool swept straight in, from the gripper's solids placed by its pose:
+    fingers x in [-t, t], y in [-w/2, w/2], z in [-l, 0] and the hand behind them, in the gripper frame,
+    moved into the world by ``gripper_pose(..., "forward")``; a voxel is in when its centre lies less than
+    half a voxel from the swept box on every axis (the module's rasterisation rule)."""
+    pose = gripper_pose(tip[:2], tip[2], (0.0, 1.0), "forward")
+    fl, ft, fw = gripper.finger_length_m, gripper.finger_thickness_m, gripper.finger_width_m
+    width, thick, depth = hand
+    solids = [((-ft, -fw / 2, -fl), (ft, fw / 2, 0.0)),
+              ((-width / 2, -thick / 2, -fl - depth), (width / 2, thick / 2, -fl))]
+    c = grid.centers()
+    s = grid.voxel_m
+    inside = np.zeros(grid.shape, dtype=bool)
+    for lo, hi in solids:
+        corners = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        world = (pose @ corners.T).T[:, :3]
+        wlo, whi = world.min(axis=0), world.max(axis=0)
+        whi = whi + np.array([0.0, length, 0.0])  # swept straight in
+        inside |= np.all((c > wlo - s / 2 + 1e-9 * s) & (c < whi + s / 2 - 1e-9 * s), axis=-1)
+    return np.flatnonzero(inside.ravel())
+
+
+@pytest.mark.parametrize("hand", [None, (0.204, 0.063, 0.066)])
+def test_the_forward_tool_sweeps_the_fingers_and_the_hand_behind_them(hand: tuple[float, float, float] | None) -> None:
+    """Pointing into the shelf, the tool is the fingers ahead and the hand behind them, around the tip's
+    height: its swept voxels are those of the gripper's solids placed by the forward gripper pose."""
+    g = GripperSpec()
+    dims = hand or (g.palm_length_m, g.palm_width_m, g.palm_depth_m)
+    a = PushAction(start_m=(0.035, 0.06), direction=(0.0, 1.0), length_m=0.12, height_m=0.085, palm="forward",
+                   hand_m=hand)
+    got = a.swept_indices(WORKSPACE)
+    np.testing.assert_array_equal(got, _forward_oracle(GRID, (0.035, 0.06, 0.085), 0.12, dims, g))
+    assert ("hand_m" in a.model_dump()) == (hand is not None), "the hand is recorded only when given"
+    # the leading face is the fingertips: a start 1 cm before a contour puts the tips 1 cm from it
+    assert leading_half_depth(a.tool(g), 0.085, 0.2) == pytest.approx(0.0)
+
+
+def test_forward_pushes_go_straight_in_and_keep_the_wide_hand_off_the_walls() -> None:
+    """With ``palm: forward`` every candidate points into the shelf and records the hand; a 20 cm hand is
+    not proposed where it would sweep through a side wall (a box 3 cm from the right wall), a 2 cm one is."""
+    x_hi = WORKSPACE.shelf.interior_box[3]
+    b = _row_belief({3: ((-0.08, 0.04), (0.08, 0.06)), 5: ((x_hi - 0.07, 0.04), (x_hi - 0.03, 0.06))})
+    c = GRID.centers()
+    behind = (c[..., 0] > x_hi - 0.07) & (c[..., 1] > 0.06) & (c[..., 2] > 0)  # box 5 hides what is behind it
+    b.alpha[behind], b.beta[behind], b.eta[:, behind] = 1.0, 1.0, 1.0
+    cfg = {"palm": "forward", "tool_height_m": 0.085, "min_tool_height_m": 0.04}
+
+    def pushes(hand: tuple[float, float, float]) -> list[PushAction]:
+        skill = PushSkill(PushConfig(**cfg, hand_m=hand))  # type: ignore[arg-type]
+        return [a for seed in range(6) for a in skill.propose(_ctx(b, seed=seed))]  # type: ignore[misc]
+
+    wide, narrow = pushes((0.204, 0.063, 0.066)), pushes((0.02, 0.02, 0.03))
+    assert wide
+    assert narrow
+    for a in wide + narrow:
+        assert a.direction == (0.0, 1.0)
+        assert a.palm == "forward"
+        assert a.hand_m is not None
+        lo, hi = swept_extent(a.start, a.u, a.height_m, a.tool(WORKSPACE.gripper), a.length_m * a.u)
+        assert lo[2] >= 0.0, "the hand drags on the shelf floor"
+    assert 5 in {a.target_class for a in narrow}
+    assert 5 not in {a.target_class for a in wide}, "the 20 cm hand would sweep through the right wall"
+    for a in wide:
+        lo, hi = swept_extent(a.start, a.u, a.height_m, a.tool(WORKSPACE.gripper), a.length_m * a.u)
+        assert WORKSPACE.shelf.interior_box[0] <= lo[0]
+        assert hi[0] <= x_hi
+
+
+def test_a_forward_push_moves_the_box_in_as_the_effect_model_predicts(sim) -> None:  # type: ignore[no-untyped-def]
+    """The floating gripper pointing into the shelf pushes a box 12 cm deeper in PyBullet, and the analytic
+    effect model moves its believed voxels by as much (within 1.5 cm)."""
+    from msmem_analytic.observation import AnalyticObservationModel
+
+    views = generate_viewpoints(ViewpointConfig(), SHELF)
+    obj = ObjectSpec(id=0, class_name="cracker_box", position_m=(0.0, 0.08, 0.0),
+                     quat_xyzw=tuple(float(q) for q in yaw_quat(np.pi / 2)))
+    sim.reset(SceneSpec(objects=(obj,)))
+    belief = EvidentialMap.empty(GRID)
+    for v in (150, 155, 160):
+        belief = AnalyticObservationModel().update(belief, sim.observe(views[v]))
+    skill = PushSkill(PushConfig(palm="forward", tool_height_m=0.06, min_tool_height_m=0.04))
+    before = np.asarray(sim.object_poses()[0][:3, 3])
+    gt, _ = voxelize([obj], GRID)
+    front_y = float(GRID.centers()[gt][:, 1].min() - GRID.voxel_m / 2)
+    a = PushAction(start_m=(0.0, front_y - 0.01), direction=(0.0, 1.0), length_m=0.13, height_m=0.06,
+                   palm="forward", target_class=1, contact_m=(0.0, front_y, 0.06))
+    skill.execute(sim, a, SimpleNamespace(shelf=SHELF))
+    moved = np.asarray(sim.object_poses()[0][:3, 3]) - before
+    assert 0.10 < moved[1] < 0.14
+    assert abs(moved[0]) < 0.02
+    assert abs(moved[2]) < 0.01
+    predicted = AnalyticPushEffect().predict(belief, [a], WORKSPACE).beliefs[0]
+    inside = interior_mask(SHELF, GRID)
+    ys = [float(GRID.centers()[(m.expected_occupancy() > 0.5) & inside][:, 1].mean()) for m in (belief, predicted)]
+    assert abs((ys[1] - ys[0]) - moved[1]) < 0.015

@@ -51,7 +51,7 @@ from scipy import ndimage
 
 from msmem_core.interfaces import Action, EffectModel, Prediction, Workspace
 from msmem_core.map.belief import BeliefDelta, EvidentialMap
-from msmem_push.geometry import Box, across, swept_voxels
+from msmem_push.geometry import Box, across, box6, swept_voxels
 from msmem_push.skill import PushAction
 
 
@@ -161,12 +161,16 @@ class AnalyticPushEffect(EffectModel):
         tool_vox = swept_voxels(grid, start, u, a.height_m, tool, length * u)
         free = np.ones(grid.size, dtype=bool)
         at_start = swept_voxels(grid, start, u, a.height_m, tool)
+        entered = 0.0
+        while len(at_start) == 0 and entered < length:  # a tool starting in front of the grid: where it enters
+            entered += s
+            at_start = swept_voxels(grid, start + entered * u, u, a.height_m, tool)
         contacts = self._ahead(grid, scene, at_start, length, u, free, beside=True)
         # the gap to the tool from its exact leading face (the part at the contact's height)
         ext = 0.5 * grid.voxel_m * (abs(u[0]) + abs(u[1]))
         for lab, (_, v) in list(contacts.items()):
             z = scene.centers[v, 2] - a.height_m
-            half = max((b[0] for b in tool if b[2] - ext < z < b[3] + ext), default=0.0)
+            half = max((b[4] + b[0] for b in map(box6, tool) if b[2] - ext < z < b[3] + ext), default=0.0)
             contacts[lab] = (max(0.0, float((scene.centers[v, :2] - start) @ u) - half - ext), v)
         vox_of: list[NDArray[np.int64]] = []
         dist: list[float] = []
@@ -230,6 +234,8 @@ class AnalyticPushEffect(EffectModel):
         voxels not ahead of the body's overall leading voxel are ignored (an object the body only
         grazes sideways, e.g. its neighbour in a row pushed at an angle, slides along it)."""
         s = grid.voxel_m
+        if len(body) == 0:  # e.g. a tool starting wholly in front of the shelf: nothing to run into yet
+            return {}
         ext = 0.5 * s * (abs(u[0]) + abs(u[1]))
         w = across(u)
         ca = scene.centers[body]

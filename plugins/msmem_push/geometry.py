@@ -11,7 +11,13 @@ first; the sampler and the effect model use the leading face of the tool part at
 
 Geometry is expressed in the *push frame*: ``along`` the unit push direction u, ``across`` it
 (w = u rotated by +90 deg about z) and z up from the tool tip. Each tool part is an axis-aligned
-box there: ``(half_along, half_across, z_lo, z_hi)``.
+box there: ``(half_along, half_across, z_lo, z_hi)``, centred on the tool's position, or
+``(half_along, half_across, z_lo, z_hi, centre_along, centre_across)`` for a part centred away from it.
+
+``palm="forward"`` is the other tool: the closed gripper pointing *into* the shelf (+y), its closing
+axis along x and the hand's back (where a wrist camera rides) up, as an arm reaches into a shelf. It
+pushes straight in; the fingers lead and the hand follows behind them, its width (``hand_m``, the
+run's gripper's palm by default) across the push and its thickness around the tip height.
 
 Rasterisation rule (shared by the sampler, ``PushAction.swept_volume`` and the effect model): a
 voxel belongs to a swept prism when its centre lies within half a voxel of the prism (the prism's
@@ -32,14 +38,26 @@ from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
 
 _SIGNS = np.array([[-1.0, -1.0], [-1.0, 1.0], [1.0, -1.0], [1.0, 1.0]])
-Box = tuple[float, float, float, float]
-"""(half_along, half_across, z_lo, z_hi) of one tool part in the push frame, z from the tool tip."""
+Box = tuple[float, ...]
+"""(half_along, half_across, z_lo, z_hi[, centre_along, centre_across]) of one tool part in the push
+frame, z from the tool tip; without the centre the part is centred on the tool's position."""
+HandDims = tuple[float, float, float]
+"""(width along the closing axis, thickness, depth along the approach) of a hand behind the fingers."""
 
 
-def tool_boxes(gripper: GripperSpec, palm: str = "along") -> tuple[Box, ...]:
+def tool_boxes(gripper: GripperSpec, palm: str = "along", hand_m: HandDims | None = None) -> tuple[Box, ...]:
     """Fingers (closed) and palm of the gripper pointing down; closing axis along the push
-    (``palm="along"``) or across it (``"across"``: a 10 cm wide palm flush with the fingers)."""
+    (``palm="along"``) or across it (``"across"``: a 10 cm wide palm flush with the fingers). For
+    ``"forward"`` (pointing into the shelf, pushing straight in): the fingers reach back ``finger_length``
+    from the tip, ``2 * finger_thickness`` wide and ``finger_width`` high; behind them the hand
+    (``hand_m``; default the gripper's palm: ``palm_length`` wide, ``palm_width`` thick,
+    ``palm_depth`` deep), centred on the tip's height."""
     fl, pd = gripper.finger_length_m, gripper.palm_depth_m
+    if palm == "forward":
+        width, thick, depth = hand_m or (gripper.palm_length_m, gripper.palm_width_m, pd)
+        fw = gripper.finger_width_m
+        return ((fl / 2, gripper.finger_thickness_m, -fw / 2, fw / 2, -fl / 2, 0.0),
+                (depth / 2, width / 2, -thick / 2, thick / 2, -fl - depth / 2, 0.0))
     if palm == "across":
         return (gripper.finger_width_m / 2, gripper.finger_thickness_m, 0.0, fl), (
             gripper.palm_width_m / 2, gripper.palm_length_m / 2, fl, fl + pd)
@@ -48,11 +66,24 @@ def tool_boxes(gripper: GripperSpec, palm: str = "along") -> tuple[Box, ...]:
     return fingers, palm_box
 
 
+def box6(box: Box) -> tuple[float, float, float, float, float, float]:
+    """A part with its centre offsets (0 where it gives none)."""
+    b = tuple(float(v) for v in box)
+    return (*b, 0.0, 0.0) if len(b) == 4 else b  # type: ignore[return-value]
+
+
+def boxes_array(boxes: Sequence[Box]) -> NDArray[np.float64]:
+    """The parts as an array [P, 6] (centre offsets filled in)."""
+    return np.array([box6(b) for b in boxes], dtype=np.float64).reshape(-1, 6)
+
+
 def leading_half_depth(boxes: Sequence[Box], tip_z: float, top_z: float) -> float:
-    """How far ahead of the tool centre its leading face is, for an object reaching up to ``top_z``:
-    the largest ``half_along`` of the parts whose height range overlaps [0, top_z]."""
-    reach = [b[0] for b in boxes if tip_z + b[2] < top_z]
-    return max(reach) if reach else min(b[0] for b in boxes)
+    """How far ahead of the tool's position its leading face is, for an object reaching up to ``top_z``:
+    the largest ``centre_along + half_along`` of the parts whose height range overlaps it (below
+    ``top_z``)."""
+    parts = [box6(b) for b in boxes]
+    reach = [b[4] + b[0] for b in parts if tip_z + b[2] < top_z]
+    return max(reach) if reach else min(b[4] + b[0] for b in parts)
 
 
 def across(u: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -62,10 +93,17 @@ def across(u: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def gripper_pose(xy: ArrayLike, tip_z: float, u: ArrayLike, palm: str = "along") -> NDArray[np.float64]:
     """``GripperSpec`` pose of the pushing tool: origin at the fingertips, approach axis down,
-    closing axis along the push direction u."""
+    closing axis along the push direction u (``"across"``: across it); ``"forward"``: approach into
+    the shelf (+y), closing axis along x, gripper y up."""
     ua, xa = np.asarray(u, dtype=np.float64), np.asarray(xy, dtype=np.float64)
     ux, uy = float(ua[0]), float(ua[1])
     t = np.eye(4)
+    if palm == "forward":  # approach into the shelf (+y), closing axis along x, the hand's back up
+        t[:3, 0] = (-1.0, 0.0, 0.0)
+        t[:3, 1] = (0.0, 0.0, 1.0)
+        t[:3, 2] = (0.0, 1.0, 0.0)
+        t[:3, 3] = (float(xa[0]), float(xa[1]), float(tip_z))
+        return t
     if palm == "across":
         t[:3, 0] = (-uy, ux, 0.0)
         t[:3, 1] = (ux, uy, 0.0)
@@ -80,7 +118,9 @@ def gripper_pose(xy: ArrayLike, tip_z: float, u: ArrayLike, palm: str = "along")
 def box_corners(start: NDArray[np.float64], u: NDArray[np.float64], box: Box) -> NDArray[np.float64]:
     """World xy corners [4, 2] of one tool part's footprint with the tool at ``start``."""
     w = np.array([-u[1], u[0]])
-    return start + _SIGNS[:, :1] * (box[0] * u) + _SIGNS[:, 1:] * (box[1] * w)
+    b = box6(box)
+    centre = start + b[4] * u + b[5] * w
+    return centre + _SIGNS[:, :1] * (b[0] * u) + _SIGNS[:, 1:] * (b[1] * w)
 
 
 def sweep_halfplanes(
@@ -146,7 +186,7 @@ def swept_voxels(
     st = np.asarray(start, dtype=np.float64)
     ua = np.asarray(u, dtype=np.float64)
     v = np.asarray(travel, dtype=np.float64)
-    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    b = boxes_array(boxes)
     return _swept(grid.origin.astype(np.float64), float(grid.voxel_m), np.asarray(grid.shape, dtype=np.int64),
                   st[0], st[1], ua[0], ua[1], v[0], v[1], float(tip_z), b)
 
@@ -195,8 +235,10 @@ def _swept(o, s, shape, sx, sy, ux, uy, vx, vy, tip_z, boxes):  # type: ignore[n
         for c in range(4):
             a = -1.0 if c < 2 else 1.0  # _SIGNS' order
             w = -1.0 if c % 2 == 0 else 1.0
-            cx[c] = sx + a * (boxes[p, 0] * ux) + w * (boxes[p, 1] * wx)
-            cy[c] = sy + a * (boxes[p, 0] * uy) + w * (boxes[p, 1] * wy)
+            along = boxes[p, 4] + a * boxes[p, 0]
+            side = boxes[p, 5] + w * boxes[p, 1]
+            cx[c] = sx + along * ux + side * wx
+            cy[c] = sy + along * uy + side * wy
         for q in range(nn):
             best = -np.inf
             for c in range(4):

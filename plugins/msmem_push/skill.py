@@ -52,7 +52,16 @@ from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializationInfo,
+    SerializerFunctionWrapHandler,
+    ValidationInfo,
+    field_validator,
+    model_serializer,
+)
 from scipy import ndimage
 
 from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill, Workspace
@@ -91,12 +100,23 @@ class PushAction(Action):
     length_m: float = Field(gt=0.0, le=1.0)
     height_m: float = Field(gt=0.0, le=1.0)
     """Tool tip height above the shelf floor."""
-    palm: Literal["along", "across"] = "along"
-    """Gripper yaw: closing axis (and palm) along the push or across it."""
+    palm: Literal["along", "across", "forward"] = "along"
+    """Gripper yaw: closing axis (and palm) along the push or across it, pointing down; or
+    ``"forward"``: pointing into the shelf, pushing straight in (``msmem_push.geometry``)."""
+    hand_m: tuple[float, float, float] | None = None
+    """With ``palm="forward"``: the hand behind the fingers (width, thickness, depth); None: the
+    gripper's palm. Left out of the action's record when None."""
     target_class: int | None = None
     """Believed class of the object the push aims at."""
     contact_m: tuple[float, float, float] | None = None
     """Believed point of the object the trace from the shelf front met first."""
+
+    @model_serializer(mode="wrap")
+    def _drop_unset_hand(self, handler: SerializerFunctionWrapHandler, info: SerializationInfo) -> dict[str, Any]:
+        out: dict[str, Any] = handler(self)
+        if self.hand_m is None:
+            out.pop("hand_m", None)
+        return out
 
     @field_validator("direction")
     @classmethod
@@ -130,8 +150,9 @@ class PushAction(Action):
         return self.start + self.length_m * self.u
 
     def tool(self, gripper: GripperSpec) -> tuple[Box, ...]:
-        """The tool's parts (half_along, half_across, z_lo, z_hi) in the push frame for this ``palm``."""
-        return tool_boxes(gripper, self.palm)
+        """The tool's parts (half_along, half_across, z_lo, z_hi[, centres]) in the push frame for this
+        ``palm``."""
+        return tool_boxes(gripper, self.palm, self.hand_m)
 
     def swept_indices(self, workspace: Workspace) -> NDArray[np.int64]:
         """Flat indices of the voxels the tool sweeps during the push (start to end)."""
@@ -152,8 +173,15 @@ class PushConfig(BaseModel):
 
     gripper: GripperSpec = GripperSpec()
     """The run's gripper (filled in by the runner); the tool's shape comes from it."""
-    palm: Literal["along", "across"] = "along"
-    """Closing axis (and the 10 cm palm) along the push (a 2 cm wide tool) or across it."""
+    palm: Literal["along", "across", "forward"] = "along"
+    """Closing axis (and the 10 cm palm) along the push (a 2 cm wide tool) or across it, the gripper
+    pointing down; or ``"forward"``: the gripper pointing into the shelf, closing axis along x, the
+    hand's back up, pushing straight in (directions +y only; ``into_fraction`` and ``max_angle_deg``
+    do not apply). An arm reaches into a shelf this way (docs/robots.md); raise ``tool_height_m`` and
+    ``min_tool_height_m`` above half the hand's thickness."""
+    hand_m: tuple[float, float, float] | None = None
+    """With ``palm: forward``: the hand behind the fingers, (width along the closing axis, thickness,
+    depth) in metres, e.g. the Panda's (0.204, 0.063, 0.066). None: the gripper's palm."""
     min_length_m: float = Field(0.05, gt=0.0, le=1.0)
     max_length_m: float = Field(0.25, gt=0.0, le=1.0)
     """Push lengths are uniform in [min_length_m, max_length_m] (MEM: 5-25 cm)."""
@@ -306,7 +334,7 @@ class PushSkill(Skill):
 
     def __init__(self, config: PushConfig | None = None) -> None:
         self.config = config or PushConfig()
-        self.tool = tool_boxes(self.config.gripper, self.config.palm)
+        self.tool = tool_boxes(self.config.gripper, self.config.palm, self.config.hand_m)
         self._grid_cache: dict[Any, Any] = {}
         self._pushed: list[tuple[int, NDArray[np.float64]]] = []
         """The pushes executed in this episode: target class and contact points [2, 2] (start, end) in xy."""
@@ -574,7 +602,10 @@ class PushSkill(Skill):
         o = grid.origin
         centre = o[:2] + (t.cells.mean(axis=0) + 0.5) * s
         max_a = math.radians(cfg.max_angle_deg)
-        if rng.random() < cfg.into_fraction:
+        if cfg.palm == "forward":  # straight in: the hand points into the shelf
+            ang = math.pi / 2
+            q = np.array([centre[0] + rng.uniform(-s, s), centre[1]])
+        elif rng.random() < cfg.into_fraction:
             ang = math.pi / 2 + rng.uniform(-max_a, max_a)
             q = np.array([centre[0] + rng.uniform(-s, s), centre[1]])
         else:
@@ -582,7 +613,7 @@ class PushSkill(Skill):
             side = away if rng.random() < 0.75 else -away
             ang = (0.0 if side > 0 else math.pi) + rng.uniform(-max_a / 2, max_a / 2)
             q = np.array([centre[0], centre[1] + rng.uniform(-s, s)])
-        u = np.array([math.cos(ang), math.sin(ang)])
+        u = np.array([0.0, 1.0]) if cfg.palm == "forward" else np.array([math.cos(ang), math.sin(ang)])
         # follow the line through the object's centre back (against u) to where it enters the footprint
         ts = np.arange(0.0, 0.6, s / 8)
         pts = q[None, :] - ts[:, None] * u[None, :]
@@ -623,6 +654,7 @@ class PushSkill(Skill):
             length_m=float(rng.uniform(cfg.min_length_m, hi_len)),
             height_m=float(height),
             palm=cfg.palm,
+            hand_m=cfg.hand_m if cfg.palm == "forward" else None,
             target_class=t.cls,
             contact_m=tuple(float(v) for v in t.contact),
         )
@@ -630,10 +662,10 @@ class PushSkill(Skill):
     def _valid(self, a: PushAction, grid: Any, walls: NDArray[np.bool_], occupied: NDArray[np.bool_],
                interior_m: Interior) -> bool:
         """Inside the shelf, no wall voxel swept, no believed-occupied voxel at the start or on the approach."""
-        x_lo, _, _, x_hi, y_hi, z_hi = interior_m
+        x_lo, _, z_lo, x_hi, y_hi, z_hi = interior_m
         tool = self.tool
         lo, hi = swept_extent(a.start, a.u, a.height_m, tool, a.length_m * a.u)
-        if lo[0] < x_lo or hi[0] > x_hi or hi[1] > y_hi or hi[2] > z_hi:  # sides, back, top (front is open)
+        if lo[0] < x_lo or hi[0] > x_hi or hi[1] > y_hi or lo[2] < z_lo or hi[2] > z_hi:  # front is open
             return False
         if occupied[swept_voxels(grid, a.start, a.u, a.height_m, tool)].any():  # the most common rejection
             return False
