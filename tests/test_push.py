@@ -782,9 +782,9 @@ def test_the_compiled_footprint_sweep_equals_the_array_reference(seed: int, angl
 
 
 # ------------------------------------------------------------------------------- forward pushes (an arm's)
-def _forward_oracle(grid: GridSpec, tip: tuple[float, float, float], length: float,
+def _forward_oracle(grid: GridSpec, tip: tuple[float, float, float], travel: tuple[float, float],
                     hand: tuple[float, float, float], gripper: GripperSpec) -> NDArray[np.int64]:
-    """The voxels of the forward tool swept straight in, from the gripper's solids placed by its pose:
+    """The voxels of the forward tool swept by ``travel``, from the gripper's solids placed by its pose:
     fingers x in [-t, t], y in [-w/2, w/2], z in [-l, 0] and the hand behind them, in the gripper frame,
     moved into the world by ``gripper_pose(..., "forward")``; a voxel is in when its centre lies less than
     half a voxel from the swept box on every axis (the module's rasterisation rule)."""
@@ -800,28 +800,36 @@ def _forward_oracle(grid: GridSpec, tip: tuple[float, float, float], length: flo
         corners = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         world = (pose @ corners.T).T[:, :3]
         wlo, whi = world.min(axis=0), world.max(axis=0)
-        whi = whi + np.array([0.0, length, 0.0])  # swept straight in
+        move = np.array([*travel, 0.0])  # along an axis: the swept solid is a box too
+        wlo, whi = wlo + np.minimum(move, 0.0), whi + np.maximum(move, 0.0)
         inside |= np.all((c > wlo - s / 2 + 1e-9 * s) & (c < whi + s / 2 - 1e-9 * s), axis=-1)
     return np.flatnonzero(inside.ravel())
 
 
 @pytest.mark.parametrize("hand", [None, (0.204, 0.063, 0.066)])
-def test_the_forward_tool_sweeps_the_fingers_and_the_hand_behind_them(hand: tuple[float, float, float] | None) -> None:
+@pytest.mark.parametrize("direction", [(0.0, 1.0), (1.0, 0.0), (-1.0, 0.0)])
+def test_the_forward_tool_sweeps_the_fingers_and_the_hand_behind_them(
+        hand: tuple[float, float, float] | None, direction: tuple[float, float]) -> None:
     """Pointing into the shelf, the tool is the fingers ahead and the hand behind them, around the tip's
-    height: its swept voxels are those of the gripper's solids placed by the forward gripper pose."""
+    height: its swept voxels, straight in or sideways, are those of the gripper's solids placed by the
+    forward gripper pose and moved along the push."""
     g = GripperSpec()
     dims = hand or (g.palm_length_m, g.palm_width_m, g.palm_depth_m)
-    a = PushAction(start_m=(0.035, 0.06), direction=(0.0, 1.0), length_m=0.12, height_m=0.085, palm="forward",
+    a = PushAction(start_m=(0.035, 0.16), direction=direction, length_m=0.12, height_m=0.085, palm="forward",
                    hand_m=hand)
     got = a.swept_indices(WORKSPACE)
-    np.testing.assert_array_equal(got, _forward_oracle(GRID, (0.035, 0.06, 0.085), 0.12, dims, g))
+    travel = (0.12 * direction[0], 0.12 * direction[1])
+    np.testing.assert_array_equal(got, _forward_oracle(GRID, (0.035, 0.16, 0.085), travel, dims, g))
     assert ("hand_m" in a.model_dump()) == (hand is not None), "the hand is recorded only when given"
-    # the leading face is the fingertips: a start 1 cm before a contour puts the tips 1 cm from it
-    assert leading_half_depth(a.tool(g), 0.085, 0.2) == pytest.approx(0.0)
+    # the leading face on the tool's line is the fingertips' (straight in) or the fingers' side (sideways)
+    lead = 0.0 if direction[1] else g.finger_thickness_m
+    assert leading_half_depth(a.tool(g), 0.085, 0.2) == pytest.approx(lead)
+    with pytest.raises(ValidationError, match="forward"):
+        PushAction(start_m=(0.0, 0.1), direction=(0.6, 0.8), length_m=0.1, height_m=0.085, palm="forward")
 
 
 def test_forward_pushes_go_straight_in_and_keep_the_wide_hand_off_the_walls() -> None:
-    """With ``palm: forward`` every candidate points into the shelf and records the hand; a 20 cm hand is
+    """With ``palm: forward`` every candidate goes in or sideways and records the hand; a 20 cm hand is
     not proposed where it would sweep through a side wall (a box 3 cm from the right wall), a 2 cm one is."""
     x_hi = WORKSPACE.shelf.interior_box[3]
     b = _row_belief({3: ((-0.08, 0.04), (0.08, 0.06)), 5: ((x_hi - 0.07, 0.04), (x_hi - 0.03, 0.06))})
@@ -838,7 +846,7 @@ def test_forward_pushes_go_straight_in_and_keep_the_wide_hand_off_the_walls() ->
     assert wide
     assert narrow
     for a in wide + narrow:
-        assert a.direction == (0.0, 1.0)
+        assert a.direction in {(0.0, 1.0), (1.0, 0.0), (-1.0, 0.0)}
         assert a.palm == "forward"
         assert a.hand_m is not None
         lo, hi = swept_extent(a.start, a.u, a.height_m, a.tool(WORKSPACE.gripper), a.length_m * a.u)

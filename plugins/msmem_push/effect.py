@@ -170,7 +170,9 @@ class AnalyticPushEffect(EffectModel):
         ext = 0.5 * grid.voxel_m * (abs(u[0]) + abs(u[1]))
         for lab, (_, v) in list(contacts.items()):
             z = scene.centers[v, 2] - a.height_m
-            half = max((b[4] + b[0] for b in map(box6, tool) if b[2] - ext < z < b[3] + ext), default=0.0)
+            side = float((scene.centers[v, :2] - start) @ across(u))  # a part beside the contact's lane is not it
+            half = max((b[4] + b[0] for b in map(box6, tool)
+                        if b[2] - ext < z < b[3] + ext and abs(side - b[5]) < b[1] + s), default=0.0)
             contacts[lab] = (max(0.0, float((scene.centers[v, :2] - start) @ u) - half - ext), v)
         vox_of: list[NDArray[np.int64]] = []
         dist: list[float] = []

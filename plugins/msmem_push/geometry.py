@@ -16,8 +16,9 @@ box there: ``(half_along, half_across, z_lo, z_hi)``, centred on the tool's posi
 
 ``palm="forward"`` is the other tool: the closed gripper pointing *into* the shelf (+y), its closing
 axis along x and the hand's back (where a wrist camera rides) up, as an arm reaches into a shelf. It
-pushes straight in; the fingers lead and the hand follows behind them, its width (``hand_m``, the
-run's gripper's palm by default) across the push and its thickness around the tip height.
+pushes straight in (+y), the fingers leading and the hand following behind them, or sideways (+-x),
+the fingers reaching in beside the object and the hand trailing behind them; the hand's width
+(``hand_m``, the run's gripper's palm by default) lies along x, its thickness around the tip height.
 
 Rasterisation rule (shared by the sampler, ``PushAction.swept_volume`` and the effect model): a
 voxel belongs to a swept prism when its centre lies within half a voxel of the prism (the prism's
@@ -45,19 +46,25 @@ HandDims = tuple[float, float, float]
 """(width along the closing axis, thickness, depth along the approach) of a hand behind the fingers."""
 
 
-def tool_boxes(gripper: GripperSpec, palm: str = "along", hand_m: HandDims | None = None) -> tuple[Box, ...]:
+def tool_boxes(gripper: GripperSpec, palm: str = "along", hand_m: HandDims | None = None,
+               u: ArrayLike = (0.0, 1.0)) -> tuple[Box, ...]:
     """Fingers (closed) and palm of the gripper pointing down; closing axis along the push
     (``palm="along"``) or across it (``"across"``: a 10 cm wide palm flush with the fingers). For
-    ``"forward"`` (pointing into the shelf, pushing straight in): the fingers reach back ``finger_length``
-    from the tip, ``2 * finger_thickness`` wide and ``finger_width`` high; behind them the hand
-    (``hand_m``; default the gripper's palm: ``palm_length`` wide, ``palm_width`` thick,
-    ``palm_depth`` deep), centred on the tip's height."""
+    ``"forward"`` (pointing into the shelf, +y): the fingers reach back ``finger_length`` from the tip,
+    ``2 * finger_thickness`` wide along x and ``finger_width`` high; behind them the hand (``hand_m``;
+    default the gripper's palm: ``palm_length`` wide, ``palm_width`` thick, ``palm_depth`` deep),
+    centred on the tip's height; in the push frame of ``u``, one of +y, +x, -x."""
     fl, pd = gripper.finger_length_m, gripper.palm_depth_m
     if palm == "forward":
         width, thick, depth = hand_m or (gripper.palm_length_m, gripper.palm_width_m, pd)
         fw = gripper.finger_width_m
-        return ((fl / 2, gripper.finger_thickness_m, -fw / 2, fw / 2, -fl / 2, 0.0),
-                (depth / 2, width / 2, -thick / 2, thick / 2, -fl - depth / 2, 0.0))
+        ux, uy = (float(v) for v in np.asarray(u, dtype=np.float64))
+        wy, wx = ux, -uy  # w = u turned +90 deg
+        parts = []  # (centre along y, half along y, half along x, z_lo, z_hi) in the hand's frame
+        for cy, hy, hx, zl, zh in ((-fl / 2, fl / 2, gripper.finger_thickness_m, -fw / 2, fw / 2),
+                                   (-fl - depth / 2, depth / 2, width / 2, -thick / 2, thick / 2)):
+            parts.append((abs(uy) * hy + abs(ux) * hx, abs(wy) * hy + abs(wx) * hx, zl, zh, cy * uy, cy * wy))
+        return tuple(parts)
     if palm == "across":
         return (gripper.finger_width_m / 2, gripper.finger_thickness_m, 0.0, fl), (
             gripper.palm_width_m / 2, gripper.palm_length_m / 2, fl, fl + pd)
@@ -78,10 +85,10 @@ def boxes_array(boxes: Sequence[Box]) -> NDArray[np.float64]:
 
 
 def leading_half_depth(boxes: Sequence[Box], tip_z: float, top_z: float) -> float:
-    """How far ahead of the tool's position its leading face is, for an object reaching up to ``top_z``:
-    the largest ``centre_along + half_along`` of the parts whose height range overlaps it (below
-    ``top_z``)."""
-    parts = [box6(b) for b in boxes]
+    """How far ahead of the tool's position its leading face is, for an object reaching up to ``top_z``
+    on the tool's line: the largest ``centre_along + half_along`` of the parts on that line (their
+    across range holds 0) whose height range overlaps it (below ``top_z``)."""
+    parts = [b for b in map(box6, boxes) if abs(b[5]) <= b[1] + 1e-12]
     reach = [b[4] + b[0] for b in parts if tip_z + b[2] < top_z]
     return max(reach) if reach else min(b[4] + b[0] for b in parts)
 

@@ -61,6 +61,7 @@ from pydantic import (
     ValidationInfo,
     field_validator,
     model_serializer,
+    model_validator,
 )
 from scipy import ndimage
 
@@ -126,6 +127,13 @@ class PushAction(Action):
             raise ValueError(f"direction must be a unit vector, has length {n:.6g}")
         return v
 
+    @model_validator(mode="after")
+    def _forward_axes(self) -> PushAction:
+        if self.palm == "forward" and min(math.hypot(self.direction[0] - x, self.direction[1] - y)
+                                          for x, y in ((0.0, 1.0), (1.0, 0.0), (-1.0, 0.0))) > 1e-9:
+            raise ValueError(f"a 'forward' push goes along +y, +x or -x, not direction {self.direction}")
+        return self
+
     def check_start(self, interior: Interior) -> None:
         """Raise ``ValueError`` unless the start lies inside the shelf interior (x_lo, y_lo, z_lo, x_hi,
         y_hi, z_hi), or at most ``START_FRONT_MARGIN_M`` in front of its open side."""
@@ -152,7 +160,7 @@ class PushAction(Action):
     def tool(self, gripper: GripperSpec) -> tuple[Box, ...]:
         """The tool's parts (half_along, half_across, z_lo, z_hi[, centres]) in the push frame for this
         ``palm``."""
-        return tool_boxes(gripper, self.palm, self.hand_m)
+        return tool_boxes(gripper, self.palm, self.hand_m, self.u)
 
     def swept_indices(self, workspace: Workspace) -> NDArray[np.int64]:
         """Flat indices of the voxels the tool sweeps during the push (start to end)."""
@@ -335,10 +343,17 @@ class PushSkill(Skill):
     def __init__(self, config: PushConfig | None = None) -> None:
         self.config = config or PushConfig()
         self.tool = tool_boxes(self.config.gripper, self.config.palm, self.config.hand_m)
+        """The tool's parts (for ``palm: forward``, those of a push straight in; ``_tool`` gives any direction's)."""
         self._grid_cache: dict[Any, Any] = {}
         self._pushed: list[tuple[int, NDArray[np.float64]]] = []
         """The pushes executed in this episode: target class and contact points [2, 2] (start, end) in xy."""
         self._last_step = -1
+
+    def _tool(self, u: NDArray[np.float64]) -> tuple[Box, ...]:
+        """The tool's parts in the push frame of ``u`` (they depend on it only for ``palm: forward``)."""
+        if self.config.palm != "forward":
+            return self.tool
+        return tool_boxes(self.config.gripper, "forward", self.config.hand_m, u)
 
     def track(self, ctx: Any) -> None:
         """A new episode (step 0, or a step before the last one seen) forgets the pushes of the last one
@@ -602,7 +617,11 @@ class PushSkill(Skill):
         o = grid.origin
         centre = o[:2] + (t.cells.mean(axis=0) + 0.5) * s
         max_a = math.radians(cfg.max_angle_deg)
-        if cfg.palm == "forward":  # straight in: the hand points into the shelf
+        if cfg.palm == "forward" and rng.random() >= cfg.into_fraction:  # sideways, along the shelf's x
+            away = -1.0 if t.seed[0] > centre[0] else 1.0
+            ang = 0.0 if (away if rng.random() < 0.75 else -away) > 0 else math.pi
+            q = np.array([centre[0], centre[1] + rng.uniform(-s, s)])
+        elif cfg.palm == "forward":  # straight in
             ang = math.pi / 2
             q = np.array([centre[0] + rng.uniform(-s, s), centre[1]])
         elif rng.random() < cfg.into_fraction:
@@ -613,7 +632,9 @@ class PushSkill(Skill):
             side = away if rng.random() < 0.75 else -away
             ang = (0.0 if side > 0 else math.pi) + rng.uniform(-max_a / 2, max_a / 2)
             q = np.array([centre[0], centre[1] + rng.uniform(-s, s)])
-        u = np.array([0.0, 1.0]) if cfg.palm == "forward" else np.array([math.cos(ang), math.sin(ang)])
+        u = np.array([math.cos(ang), math.sin(ang)])
+        if cfg.palm == "forward":  # exactly along the shelf's axes: the hand's parts stay boxes of the push frame
+            u = np.round(u)
         # follow the line through the object's centre back (against u) to where it enters the footprint
         ts = np.arange(0.0, 0.6, s / 8)
         pts = q[None, :] - ts[:, None] * u[None, :]
@@ -625,13 +646,14 @@ class PushSkill(Skill):
             return None
         t_entry = ts[np.flatnonzero(inside).max()] + s / 8
         height = max(cfg.min_tool_height_m, min(cfg.tool_height_m, cfg.low_object_fraction * t.top_z))
-        half_depth = leading_half_depth(self.tool, height, t.top_z)
+        tool = self._tool(u)
+        half_depth = leading_half_depth(tool, height, t.top_z)
         start = q - (t_entry + cfg.standoff_m + half_depth) * u
         x_lo, y_lo, _, x_hi, y_hi, _ = interior_m
         if not (x_lo <= start[0] <= x_hi and y_lo - START_FRONT_MARGIN_M <= start[1] <= y_hi):
             return None
         # longest push whose tool stays inside the shelf (the wall test in _valid is then rarely hit)
-        corners = np.concatenate([sweep_halfplanes(start, u, b, np.zeros(2))[2][:4] for b in self.tool])
+        corners = np.concatenate([sweep_halfplanes(start, u, b, np.zeros(2))[2][:4] for b in tool])
         room = np.inf
         for axis, lo_b, hi_b in ((0, x_lo, x_hi), (1, None, y_hi)):  # in front of the shelf is open
             if u[axis] > 1e-9:
@@ -663,7 +685,7 @@ class PushSkill(Skill):
                interior_m: Interior) -> bool:
         """Inside the shelf, no wall voxel swept, no believed-occupied voxel at the start or on the approach."""
         x_lo, _, z_lo, x_hi, y_hi, z_hi = interior_m
-        tool = self.tool
+        tool = self._tool(a.u)
         lo, hi = swept_extent(a.start, a.u, a.height_m, tool, a.length_m * a.u)
         if lo[0] < x_lo or hi[0] > x_hi or hi[1] > y_hi or lo[2] < z_lo or hi[2] > z_hi:  # front is open
             return False
