@@ -15,6 +15,7 @@ from msmem_core.errors import UserError
 from msmem_core.testing import FakeSimulator
 from msmem_core.testing.conformance import single_object_scene
 from tests.support.arm_checks import (
+    check_forward_pushes_of_the_push_skill,
     check_grasp_and_carry_out,
     check_push_and_exact_restore,
     check_unreachable_start_is_not_made,
@@ -70,6 +71,10 @@ def test_the_arm_grasps_a_can_and_carries_it_out_of_the_shelf(arm_sim, panda):
 
 def test_the_arm_pushes_what_is_in_its_way_and_restores_exactly(arm_sim, backend):
     check_push_and_exact_restore(arm_sim, restore_atol=1e-9 if backend == "pybullet" else 1e-6)
+
+
+def test_the_arm_makes_the_push_skills_forward_pushes_as_predicted(arm_sim, panda):
+    check_forward_pushes_of_the_push_skill(arm_sim, panda)
 
 
 def test_a_move_the_arm_cannot_start_is_not_made_and_says_why(arm_sim):
