@@ -147,7 +147,10 @@ def check_forward_pushes_of_the_push_skill(sim: Simulator, robot: Robot) -> None
         belief.eta[(cls[idx], *idx)] = 21.0
         a = PushAction(start_m=start, direction=direction, length_m=length, height_m=0.085, palm="forward",
                        hand_m=cfg.hand_m)
-        assert robot.reach_path(skill.waypoints(a), shelf).reachable
+        path = skill.waypoints(a)
+        assert robot.reach_path(path, shelf).reachable
+        camera = path[1] @ np.linalg.inv(robot.tool_mount()) @ robot.camera_mount()
+        assert camera[2, 3] > path[1][2, 3] + 0.03  # the wrist camera rides above the hand, clear of the floor
         before = sim.object_poses()[obj.id]
         out = skill.execute(sim, a, SimpleNamespace(shelf=shelf))
         assert out.success, out.info
