@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -98,17 +98,32 @@ class Objective:
                 total += weight * parts[name]
         return total, parts
 
-    def best(self, ctx: DecisionContext, batch: CandidateBatch) -> tuple[int, float, dict[str, float], int]:
+    @overload
+    def best(self, ctx: DecisionContext, batch: CandidateBatch, admissible: None = None,
+             stop_at: float | None = None) -> tuple[int, float, dict[str, float], int]: ...
+
+    @overload
+    def best(self, ctx: DecisionContext, batch: CandidateBatch, admissible: Callable[[int], bool] | None,
+             stop_at: float | None = None) -> tuple[int, float, dict[str, float], int] | None: ...
+
+    def best(self, ctx: DecisionContext, batch: CandidateBatch,
+             admissible: Callable[[int], bool] | None = None,
+             stop_at: float | None = None) -> tuple[int, float, dict[str, float], int] | None:
         """Argmax of the objective over a batch with the winner scored exactly.
 
         Terms may approximate (screen) in ``score``; the current argmax is refined through
         ``Term.refine`` (span ``refine``, info ``term``, ``batch`` and ``indices``) until it is a
         candidate every term scored exactly, so the value compared across skills is always exact.
+        With ``admissible``, an exactly scored argmax it refuses is left out and the next one taken
+        (None when it refuses them all); with ``stop_at`` too, an argmax whose exact value is at most
+        ``stop_at`` (it cannot win) is returned without asking ``admissible``.
         Returns (index, value, term values, refinements made).
         """
         total, parts = self.score(ctx, batch)
         refined = 0
         while True:
+            if admissible is not None and not np.isfinite(total).any():
+                return None
             i = int(np.argmax(total))
             changed = False
             for name, weight, term in self.terms:
@@ -123,7 +138,10 @@ class Objective:
                     parts[name][i] = float(exact[0])
                     changed = True
             if not changed:
-                return i, float(total[i]), {k: float(v[i]) for k, v in parts.items()}, refined
+                if admissible is None or (stop_at is not None and total[i] <= stop_at) or admissible(i):
+                    return i, float(total[i]), {k: float(v[i]) for k, v in parts.items()}, refined
+                total[i] = -np.inf
+                continue
             refined += 1
 
 
@@ -141,24 +159,33 @@ class Decision:
     batch: CandidateBatch
     index: int
     unreachable: dict[str, int] = field(default_factory=dict)
-    """Candidates of each skill dropped because the run's robot cannot follow their tool path
-    (``Skill.tool_path``, ``Robot.reach_path``); only skills that were checked."""
+    """Per skill whose candidates were checked against the run's robot (a manipulation skill, with an
+    arm): how many of those checked the robot cannot follow (``Skill.tool_path``, ``Robot.reach_path``)."""
+    reach_checked: dict[str, int] = field(default_factory=dict)
+    """Per such skill, how many candidates were checked: only those that could win are (``decide``)."""
 
 
 def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
            tracer: Tracer | None = None) -> Decision:
     """Best action over all skills by the objective (ties go to the skill listed first).
 
+    With a robot that has an arm, a manipulation candidate must have a tool path the robot can follow
+    (``Robot.reach_path``). Only the candidates that could win are checked, best first: the skill's
+    exactly scored argmax, if it beats the best value so far, is checked; one the robot cannot follow
+    is left out and the next taken (``Objective.best``'s ``admissible``). A skill's best value that
+    cannot win is reported unchecked.
+
     Spans (reported to ``tracer``, or to the active one): ``decide`` (info ``ctx``; result: the
     ``Decision``) and inside it, per skill, ``track``, ``propose`` (result: the actions), ``predict``
-    (``BoundSkill.batch``) and ``score`` (info ``batch``; result: ``Objective.best``'s tuple) with
-    its ``term`` and ``refine`` spans.
+    (``BoundSkill.batch``), ``score`` (info ``batch``; result: ``Objective.best``'s tuple) with
+    its ``term``, ``refine`` and ``reach`` spans.
     """
     with tracing(tracer), span("decide", ctx=ctx) as top:
         best: Decision | None = None
         counts: dict[str, int] = {}
         values: dict[str, float] = {}
         unreachable: dict[str, int] = {}
+        checked: dict[str, int] = {}
         for bound in skills:
             with span("track", bound.name, ctx=ctx):
                 bound.skill.track(ctx)  # every step, also when the skill may not act (e.g. FE-UMGF's buffer)
@@ -168,27 +195,38 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
                 actions = bound.skill.propose(ctx)
                 if s:
                     s.result = actions
-            robot = ctx.workspace.robot
-            if robot is not None and robot.arm and bound.skill.category == "manipulation" and actions:
-                with span("reach", bound.name, ctx=ctx):
-                    kept = reachable_actions(bound.skill, actions, ctx.workspace)
-                unreachable[bound.name] = len(actions) - len(kept)
-                actions = kept
             counts[bound.name] = len(actions)
             if not actions:
                 continue
+            admissible: Callable[[int], bool] | None = None
+            robot = ctx.workspace.robot
+            if robot is not None and robot.arm and bound.skill.category == "manipulation":
+                name, skill, acts = bound.name, bound.skill, actions
+                checked[name] = unreachable[name] = 0
+
+                def follows(i: int, name: str = name, skill: Skill = skill, acts: list[Action] = acts) -> bool:
+                    with span("reach", name, ctx=ctx):
+                        ok = bool(reachable_actions(skill, [acts[i]], ctx.workspace))
+                    checked[name] += 1
+                    unreachable[name] += not ok
+                    return ok
+
+                admissible = follows
+
             batch = bound.batch(ctx, actions)
             with span("score", bound.name, ctx=ctx, batch=batch) as s:
-                scored = objective.best(ctx, batch)
+                scored = objective.best(ctx, batch, admissible, None if best is None else best.value)
                 if s:
                     s.result = scored
+            if scored is None:  # the robot can follow none of them
+                continue
             i, value, terms, _ = scored
             values[bound.name] = value
             if best is None or value > best.value:
                 best = Decision(bound, actions[i], value, terms, counts, values, batch, i)
         if best is None:
             raise RuntimeError("no skill proposed an action")
-        best.candidates, best.best, best.unreachable = counts, values, unreachable
+        best.candidates, best.best, best.unreachable, best.reach_checked = counts, values, unreachable, checked
         if top:
             top.result = best
         return best

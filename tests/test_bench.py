@@ -99,13 +99,14 @@ def _paper_result(method: str, scene: int, counts: dict) -> dict:
     return r
 
 
-def test_candidate_counts_add_the_dropped_to_the_kept_per_skill():
+def test_candidate_counts_sum_the_proposed_the_checked_and_the_unreachable_per_skill():
     steps = [{"candidates": {"view": 3}},  # before the manipulation window: no push or grasp proposed
-             {"candidates": {"view": 2, "push": 0, "grasp": 1}, "unreachable": {"push": 80, "grasp": 2}},
-             {"candidates": {"view": 1, "push": 4, "grasp": 0}}]
-    assert candidate_counts(steps) == {"view": {"proposed": 6, "unreachable": 0},
-                                       "push": {"proposed": 84, "unreachable": 80},
-                                       "grasp": {"proposed": 3, "unreachable": 2}}
+             {"candidates": {"view": 2, "push": 80, "grasp": 3}, "reach_checked": {"push": 5, "grasp": 3},
+              "unreachable": {"push": 4, "grasp": 2}},
+             {"candidates": {"view": 1, "push": 4, "grasp": 0}}]  # no arm: nothing checked
+    assert candidate_counts(steps) == {"view": {"proposed": 6, "checked": 0, "unreachable": 0},
+                                       "push": {"proposed": 84, "checked": 5, "unreachable": 4},
+                                       "grasp": {"proposed": 3, "checked": 3, "unreachable": 2}}
     assert candidate_counts([]) == {}
 
 

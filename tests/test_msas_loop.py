@@ -10,6 +10,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 import pytest
 from msmem_view.skill import ViewSkill
+from numpy.typing import NDArray
 
 from msmem_core.config import MSASConfig
 from msmem_core.errors import PluginError
@@ -273,3 +274,41 @@ def test_an_episode_counts_its_falls_and_the_bench_table_reads_them(tmp_path):
     viewing = [{**r, "skill": "view", "fell_or_left": []} for r in ep.records]
     assert np.isnan(episode_metrics({**final, "falls": 0}, viewing)["fell"])  # never manipulated
     assert episode_metrics({**final, "falls": 0}, ep.records)["fell"] == 0.0
+
+
+class _Fixed(Term):
+    """Scores a batch's candidates with fixed values."""
+
+    applies_to: ClassVar[frozenset[Category]] = frozenset({"manipulation"})
+
+    def __init__(self, values: list[float]) -> None:
+        self.values = np.asarray(values, dtype=np.float64)
+
+    def score(self, ctx: DecisionContext, batch: CandidateBatch) -> NDArray[np.float64]:
+        return self.values.copy()
+
+
+def test_best_skips_refused_argmaxes_and_does_not_ask_about_one_that_cannot_win() -> None:
+    """``Objective.best`` with ``admissible``: a refused argmax is left out and the next one taken; with
+    ``stop_at``, an argmax at most that value is returned without asking; all refused gives None."""
+    objective = Objective([("fixed", 1.0, _Fixed([3.0, 5.0, 1.0, 4.0]))])
+    batch = CandidateBatch("push", "manipulation", [None] * 4)  # type: ignore[list-item]
+    asked: list[int] = []
+
+    def not_1(i: int) -> bool:
+        asked.append(i)
+        return i != 1
+
+    def best(**kw: Any) -> Any:
+        asked.clear()
+        return objective.best(None, batch, **kw)  # type: ignore[arg-type]
+
+    assert best(admissible=not_1)[:2] == (3, 4.0)
+    assert asked == [1, 3]
+    assert best(admissible=not_1, stop_at=4.5)[:2] == (3, 4.0)
+    assert asked == [1], "an argmax at most stop_at cannot win: it is not asked about"
+    assert best(admissible=not_1, stop_at=6.0)[:2] == (1, 5.0)
+    assert asked == []
+    assert best(admissible=lambda i: asked.append(i) or False) is None
+    assert sorted(asked) == [0, 1, 2, 3]
+    assert best()[:2] == (1, 5.0)

@@ -374,15 +374,33 @@ def test_panda_follows_a_path_in_front_of_it_and_refuses_a_top_down_push_inside_
 
 
 class _LeftOnly(FloatingRobot):
-    """An arm that follows only tool paths whose second point lies at x < 0."""
+    """An arm that follows only tool paths whose second point lies at x < 0 (counting its checks)."""
 
     arm = True
+    side = -1.0
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.asked = 0
 
     def reach_path(self, tool_poses, shelf, step_m=0.02) -> Reach:
-        return Reach(bool(tool_poses[1][0, 3] < 0), ())
+        self.asked += 1
+        return Reach(bool(self.side * tool_poses[1][0, 3] > 0), ())
 
 
-def test_decide_drops_the_manipulations_the_robot_cannot_follow_and_counts_them():
+class _RightOnly(_LeftOnly):
+    side = 1.0
+
+
+class _Nowhere(_LeftOnly):
+    side = 0.0
+
+
+def test_decide_chooses_as_if_the_manipulations_the_robot_cannot_follow_were_never_proposed():
+    """Checking only the candidates that could win gives the decision of filtering them all first: the
+    same skill, action and value as the floating gripper choosing among the reachable pushes alone, for
+    robots that follow the left, the right or no pushes, with and without views competing; the step
+    counts what it checked and what failed, and asks the robot no more than that."""
     from msmem_push.effect import AnalyticPushEffect
     from msmem_push.skill import PushAction, PushConfig, PushSkill
 
@@ -392,19 +410,38 @@ def test_decide_drops_the_manipulations_the_robot_cannot_follow_and_counts_them(
               for x in (-0.2, -0.1, 0.1, 0.2, 0.3)]
 
     class Fixed(PushSkill):
+        def __init__(self, only: list[PushAction]) -> None:
+            super().__init__(PushConfig())
+            self.only = only
+
         def propose(self, ctx):
-            return list(pushes)
+            return list(self.only)
 
     ws = default_workspace()
+    floating = Workspace(ws.grid, ws.shelf, ws.gripper, ws.num_classes, FloatingRobot())
     belief = belief_with_boxes(ws.grid, [((-0.25, 0.1, 0.0), (0.25, 0.2, 0.1), 3)], free="none")
-    skills = [("view", ViewSkill()), ("push", Fixed(PushConfig()), AnalyticPushEffect())]
-    for robot, kept, dropped in ((_LeftOnly(), 2, 3), (FloatingRobot(), 5, None)):
+    chosen = set()
+    for robot in (_LeftOnly(), _RightOnly(), _Nowhere()):
+        follows = [p for p in pushes if robot.side * p.start_m[0] > 0]
         bound = Workspace(ws.grid, ws.shelf, ws.gripper, ws.num_classes, robot)
-        d = one_decision(skills, belief, workspace=bound)
-        assert d.candidates["push"] == kept
-        assert d.unreachable.get("push") == dropped
-        if d.skill.name == "push":
-            assert d.action.start_m[0] < 0 or dropped is None
+        for views in ([("view", ViewSkill())], []):
+            robot.asked = 0
+            if not follows and not views:
+                with pytest.raises(RuntimeError, match="no skill proposed"):
+                    one_decision([("push", Fixed(pushes), AnalyticPushEffect())], belief, workspace=bound)
+                continue
+            d = one_decision([*views, ("push", Fixed(pushes), AnalyticPushEffect())], belief, workspace=bound)
+            ref = one_decision([*views, ("push", Fixed(follows), AnalyticPushEffect())], belief, workspace=floating)
+            assert d.skill.name == ref.skill.name
+            assert d.action == ref.action
+            assert d.value == pytest.approx(ref.value)
+            assert d.candidates["push"] == len(pushes)
+            assert d.unreachable["push"] <= d.reach_checked["push"] == robot.asked <= len(pushes)
+            assert ref.reach_checked == {}  # the floating gripper checks nothing
+            chosen.add((d.skill.name, d.action.start_m[0] if d.skill.name == "push" else None))
+            if not views:  # the pushes compete only with each other: the best is always checked
+                assert d.reach_checked["push"] >= 1
+    assert len({c for c in chosen if c[0] == "push"}) >= 2, chosen  # the robots' pushes differ
 
 
 def test_each_step_records_the_arm_configuration_that_reaches_its_view_and_the_report_draws_it(

@@ -234,14 +234,15 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
 
 
 def candidate_counts(records: list[dict[str, Any]]) -> dict[str, dict[str, int]]:
-    """Per skill, candidates proposed over an episode's steps and those dropped because the robot cannot
-    follow their tool path (step records' ``candidates`` count the kept ones, ``unreachable`` the dropped)."""
+    """Per skill, candidates proposed over an episode's steps, those checked against the robot (only
+    candidates that could win are: ``msmem_core.msas.decide``) and those of them it cannot follow."""
     out: dict[str, dict[str, int]] = {}
     for r in records:
-        dropped = r.get("unreachable", {})
+        checked, dropped = r.get("reach_checked", {}), r.get("unreachable", {})
         for skill in {*r.get("candidates", {}), *dropped}:
-            c = out.setdefault(skill, {"proposed": 0, "unreachable": 0})
-            c["proposed"] += int(r.get("candidates", {}).get(skill, 0)) + int(dropped.get(skill, 0))
+            c = out.setdefault(skill, {"proposed": 0, "checked": 0, "unreachable": 0})
+            c["proposed"] += int(r.get("candidates", {}).get(skill, 0))
+            c["checked"] += int(checked.get(skill, 0))
             c["unreachable"] += int(dropped.get(skill, 0))
     return out
 
