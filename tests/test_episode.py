@@ -118,3 +118,43 @@ def test_ig_views_beat_random_views_at_step_10(tmp_path, monkeypatch):
     print(f"\noccupancy IoU at step 10, IG: {np.round(ig_iou, 3)} mean {np.mean(ig_iou):.3f}; "
           f"random: {np.round(rnd_iou, 3)} mean {np.mean(rnd_iou):.3f}")
     assert np.mean(ig_iou) > np.mean(rnd_iou)
+
+
+def test_position_change_sums_objects_still_in_the_shelf_and_a_knocked_out_one_counts_as_removed():
+    """A push (the closed floating gripper, in real PyBullet) drives a soup can out of the open front and
+    nudges a box inside: Position Change is the box's displacement alone, and the can counts as removed
+    (docs/concepts.md), not as the metres it travelled out of the shelf."""
+    from msmem_core.map.belief import EvidentialMap
+    from msmem_core.run.metrics import position_change_m
+    from msmem_core.run.runner import MetricTracker
+
+    scene = SceneSpec(objects=(ObjectSpec(id=0, class_name="tomato_soup_can", position_m=(0.0, 0.05, 0.0)),
+                               ObjectSpec(id=1, class_name="foam_brick", position_m=(0.2, 0.12, 0.0))))
+    cfg = load_config("view-only", None, {"steps": 1, "scene": {"file": None}, "report_steps": []})
+    ep = build_episode(cfg, get_plugin_manager(), scene=scene)
+    try:
+        ep.sim.reset(scene)
+        track = MetricTracker(ep)
+        down = np.diag([1.0, -1.0, -1.0, 1.0])  # gripper pointing down, closing along x
+
+        def at(x: float, y: float, z: float) -> np.ndarray:
+            t = down.copy()
+            t[:3, 3] = (x, y, z)
+            return t
+
+        ep.sim.move_gripper([at(0.0, 0.12, 0.2), at(0.0, 0.12, 0.03)], opening_m=0.0, speed_mps=0.25)
+        ep.sim.move_gripper([at(0.0, -0.25, 0.03)], speed_mps=0.1)  # drags the can out of the front
+        ep.sim.move_gripper([at(0.2, -0.05, 0.03)], speed_mps=0.25)
+        ep.sim.move_gripper([at(0.2, 0.14, 0.03)], speed_mps=0.1)  # nudges the brick 2 cm in
+        ep.sim.park_gripper()
+        ep.sim.step(1.0)
+        poses = ep.sim.object_poses()
+        m = track(EvidentialMap.empty(ep.ig.grid))
+        brick = float(np.linalg.norm(poses[1][:3, 3] - track.initial[1][:3, 3]))
+        assert 0 in poses and poses[0][1, 3] < -0.02, "the can left the shelf"
+        assert brick > 0.005, "the brick was nudged"
+        assert m["removed"] == 1
+        assert m["position_change_m"] == pytest.approx(brick, abs=1e-6)
+        assert position_change_m(track.initial, poses) > brick + 0.05  # what summing every body would say
+    finally:
+        ep.sim.close()
