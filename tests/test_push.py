@@ -783,16 +783,19 @@ def test_the_compiled_footprint_sweep_equals_the_array_reference(seed: int, angl
 
 # ------------------------------------------------------------------------------- forward pushes (an arm's)
 def _forward_oracle(grid: GridSpec, tip: tuple[float, float, float], travel: tuple[float, float],
-                    hand: tuple[float, float, float], gripper: GripperSpec) -> NDArray[np.int64]:
+                    hand: tuple[float, ...], gripper: GripperSpec) -> NDArray[np.int64]:
     """The voxels of the forward tool swept by ``travel``, from the gripper's solids placed by its pose:
     fingers x in [-t, t], y in [-w/2, w/2], z in [-l, 0] and the hand behind them, in the gripper frame,
     moved into the world by ``gripper_pose(..., "forward")``; a voxel is in when its centre lies less than
     half a voxel from the swept box on every axis (the module's rasterisation rule)."""
     pose = gripper_pose(tip[:2], tip[2], (0.0, 1.0), "forward")
     fl, ft, fw = gripper.finger_length_m, gripper.finger_thickness_m, gripper.finger_width_m
-    width, thick, depth = hand
+    width, thick, depth, *wrist = hand
     solids = [((-ft, -fw / 2, -fl), (ft, fw / 2, 0.0)),
               ((-width / 2, -thick / 2, -fl - depth), (width / 2, thick / 2, -fl))]
+    if wrist:  # behind the hand, on the approach axis
+        ww, wl = wrist
+        solids.append(((-ww / 2, -ww / 2, -fl - depth - wl), (ww / 2, ww / 2, -fl - depth)))
     c = grid.centers()
     s = grid.voxel_m
     inside = np.zeros(grid.shape, dtype=bool)
@@ -806,10 +809,10 @@ def _forward_oracle(grid: GridSpec, tip: tuple[float, float, float], travel: tup
     return np.flatnonzero(inside.ravel())
 
 
-@pytest.mark.parametrize("hand", [None, (0.204, 0.063, 0.066)])
+@pytest.mark.parametrize("hand", [None, (0.204, 0.063, 0.066), (0.204, 0.063, 0.066, 0.09, 0.1)])
 @pytest.mark.parametrize("direction", [(0.0, 1.0), (1.0, 0.0), (-1.0, 0.0)])
 def test_the_forward_tool_sweeps_the_fingers_and_the_hand_behind_them(
-        hand: tuple[float, float, float] | None, direction: tuple[float, float]) -> None:
+        hand: tuple[float, ...] | None, direction: tuple[float, float]) -> None:
     """Pointing into the shelf, the tool is the fingers ahead and the hand behind them, around the tip's
     height: its swept voxels, straight in or sideways, are those of the gripper's solids placed by the
     forward gripper pose and moved along the push."""

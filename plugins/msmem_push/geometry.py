@@ -42,8 +42,9 @@ _SIGNS = np.array([[-1.0, -1.0], [-1.0, 1.0], [1.0, -1.0], [1.0, 1.0]])
 Box = tuple[float, ...]
 """(half_along, half_across, z_lo, z_hi[, centre_along, centre_across]) of one tool part in the push
 frame, z from the tool tip; without the centre the part is centred on the tool's position."""
-HandDims = tuple[float, float, float]
-"""(width along the closing axis, thickness, depth along the approach) of a hand behind the fingers."""
+HandDims = tuple[float, float, float] | tuple[float, float, float, float, float]
+"""(width along the closing axis, thickness, depth along the approach) of a hand behind the fingers,
+optionally followed by (width, length) of the arm's wrist behind the hand, on the approach axis."""
 
 
 def tool_boxes(gripper: GripperSpec, palm: str = "along", hand_m: HandDims | None = None,
@@ -53,16 +54,21 @@ def tool_boxes(gripper: GripperSpec, palm: str = "along", hand_m: HandDims | Non
     ``"forward"`` (pointing into the shelf, +y): the fingers reach back ``finger_length`` from the tip,
     ``2 * finger_thickness`` wide along x and ``finger_width`` high; behind them the hand (``hand_m``;
     default the gripper's palm: ``palm_length`` wide, ``palm_width`` thick, ``palm_depth`` deep),
-    centred on the tip's height; in the push frame of ``u``, one of +y, +x, -x."""
+    centred on the tip's height, and behind the hand the wrist if ``hand_m`` gives one (a square
+    section of its width); in the push frame of ``u``, one of +y, +x, -x."""
     fl, pd = gripper.finger_length_m, gripper.palm_depth_m
     if palm == "forward":
-        width, thick, depth = hand_m or (gripper.palm_length_m, gripper.palm_width_m, pd)
+        width, thick, depth, *wrist = hand_m or (gripper.palm_length_m, gripper.palm_width_m, pd)
         fw = gripper.finger_width_m
         ux, uy = (float(v) for v in np.asarray(u, dtype=np.float64))
         wy, wx = ux, -uy  # w = u turned +90 deg
+        solids = [(-fl / 2, fl / 2, gripper.finger_thickness_m, -fw / 2, fw / 2),
+                  (-fl - depth / 2, depth / 2, width / 2, -thick / 2, thick / 2)]
+        if wrist:
+            ww, wl = wrist
+            solids.append((-fl - depth - wl / 2, wl / 2, ww / 2, -ww / 2, ww / 2))
         parts = []  # (centre along y, half along y, half along x, z_lo, z_hi) in the hand's frame
-        for cy, hy, hx, zl, zh in ((-fl / 2, fl / 2, gripper.finger_thickness_m, -fw / 2, fw / 2),
-                                   (-fl - depth / 2, depth / 2, width / 2, -thick / 2, thick / 2)):
+        for cy, hy, hx, zl, zh in solids:
             parts.append((abs(uy) * hy + abs(ux) * hx, abs(wy) * hy + abs(wx) * hx, zl, zh, cy * uy, cy * wy))
         return tuple(parts)
     if palm == "across":

@@ -104,9 +104,9 @@ class PushAction(Action):
     palm: Literal["along", "across", "forward"] = "along"
     """Gripper yaw: closing axis (and palm) along the push or across it, pointing down; or
     ``"forward"``: pointing into the shelf, pushing straight in (``msmem_push.geometry``)."""
-    hand_m: tuple[float, float, float] | None = None
-    """With ``palm="forward"``: the hand behind the fingers (width, thickness, depth); None: the
-    gripper's palm. Left out of the action's record when None."""
+    hand_m: tuple[float, float, float] | tuple[float, float, float, float, float] | None = None
+    """With ``palm="forward"``: the hand behind the fingers (width, thickness, depth[, wrist width,
+    wrist length]); None: the gripper's palm. Left out of the action's record when None."""
     target_class: int | None = None
     """Believed class of the object the push aims at."""
     contact_m: tuple[float, float, float] | None = None
@@ -187,9 +187,10 @@ class PushConfig(BaseModel):
     hand's back up, pushing straight in (directions +y only; ``into_fraction`` and ``max_angle_deg``
     do not apply). An arm reaches into a shelf this way (docs/robots.md); raise ``tool_height_m`` and
     ``min_tool_height_m`` above half the hand's thickness."""
-    hand_m: tuple[float, float, float] | None = None
+    hand_m: tuple[float, float, float] | tuple[float, float, float, float, float] | None = None
     """With ``palm: forward``: the hand behind the fingers, (width along the closing axis, thickness,
-    depth) in metres, e.g. the Panda's (0.204, 0.063, 0.066). None: the gripper's palm."""
+    depth) in metres, e.g. the Panda's (0.204, 0.063, 0.066), optionally followed by the width and length
+    of the arm's wrist behind it (the Panda's last link, about 0.09 and 0.1). None: the gripper's palm."""
     min_length_m: float = Field(0.05, gt=0.0, le=1.0)
     max_length_m: float = Field(0.25, gt=0.0, le=1.0)
     """Push lengths are uniform in [min_length_m, max_length_m] (MEM: 5-25 cm)."""
