@@ -103,7 +103,7 @@ class PushAction(Action):
     """Tool tip height above the shelf floor."""
     palm: Literal["along", "across", "forward"] = "along"
     """Gripper yaw: closing axis (and palm) along the push or across it, pointing down; or
-    ``"forward"``: pointing into the shelf, pushing straight in (``msmem_push.geometry``)."""
+    ``"forward"``: pointing into the shelf, pushing straight in or sideways (``msmem_push.geometry``)."""
     hand_m: tuple[float, float, float] | tuple[float, float, float, float, float] | None = None
     """With ``palm="forward"``: the hand behind the fingers (width, thickness, depth[, wrist width,
     wrist length]); None: the gripper's palm. Left out of the action's record when None."""
@@ -184,8 +184,8 @@ class PushConfig(BaseModel):
     palm: Literal["along", "across", "forward"] = "along"
     """Closing axis (and the 10 cm palm) along the push (a 2 cm wide tool) or across it, the gripper
     pointing down; or ``"forward"``: the gripper pointing into the shelf, closing axis along x, the
-    hand's back up, pushing straight in (directions +y only; ``into_fraction`` and ``max_angle_deg``
-    do not apply). An arm reaches into a shelf this way (docs/robots.md); raise ``tool_height_m`` and
+    hand's back up, pushing straight in (+y, a share ``into_fraction``) or sideways (+-x); directions stay
+    along the shelf's axes (``max_angle_deg`` does not apply). An arm reaches into a shelf this way (docs/robots.md); raise ``tool_height_m`` and
     ``min_tool_height_m`` above half the hand's thickness."""
     hand_m: tuple[float, float, float] | tuple[float, float, float, float, float] | None = None
     """With ``palm: forward``: the hand behind the fingers, (width along the closing axis, thickness,
