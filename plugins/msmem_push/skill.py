@@ -184,9 +184,9 @@ class PushConfig(BaseModel):
     palm: Literal["along", "across", "forward"] = "along"
     """Closing axis (and the 10 cm palm) along the push (a 2 cm wide tool) or across it, the gripper
     pointing down; or ``"forward"``: the gripper pointing into the shelf, closing axis along x, the
-    hand's back up, pushing straight in (+y, a share ``into_fraction``) or sideways (+-x); directions stay
-    along the shelf's axes (``max_angle_deg`` does not apply). An arm reaches into a shelf this way (docs/robots.md); raise ``tool_height_m`` and
-    ``min_tool_height_m`` above half the hand's thickness."""
+    hand's back up, pushing straight in (+y, a share ``into_fraction``) or sideways (+-x); directions
+    stay along the shelf's axes (``max_angle_deg`` does not apply). An arm reaches into a shelf this way
+    (docs/robots.md); raise ``tool_height_m`` and ``min_tool_height_m`` above half the hand's thickness."""
     hand_m: tuple[float, float, float] | tuple[float, float, float, float, float] | None = None
     """With ``palm: forward``: the hand behind the fingers, (width along the closing axis, thickness,
     depth) in metres, e.g. the Panda's (0.204, 0.063, 0.066), optionally followed by the width and length
