@@ -831,6 +831,16 @@ def test_the_forward_tool_sweeps_the_fingers_and_the_hand_behind_them(
         PushAction(start_m=(0.0, 0.1), direction=(0.6, 0.8), length_m=0.1, height_m=0.085, palm="forward")
 
 
+def test_a_forward_tool_whose_hand_would_reach_the_floor_is_refused_naming_the_fields() -> None:
+    with pytest.raises(ValidationError, match=r"min_tool_height_m\n.*0.01 puts the hand .* at least 0.0315"):
+        PushConfig(palm="forward", hand_m=(0.204, 0.063, 0.066))
+    with pytest.raises(ValidationError, match=r"at least 0.045"):
+        PushConfig(palm="forward", hand_m=(0.204, 0.063, 0.066, 0.09, 0.1), min_tool_height_m=0.04)
+    PushConfig(palm="forward", hand_m=(0.204, 0.063, 0.066), min_tool_height_m=0.0315)
+    PushConfig(palm="forward")  # the floating gripper's 2 cm palm clears the floor at the 1 cm minimum
+    PushConfig(min_tool_height_m=0.01, hand_m=(0.204, 0.063, 0.066))  # pointing down, the hand is above the tip
+
+
 def test_forward_pushes_go_straight_in_and_keep_the_wide_hand_off_the_walls() -> None:
     """With ``palm: forward`` every candidate goes in or sideways and records the hand; a 20 cm hand is
     not proposed where it would sweep through a side wall (a box 3 cm from the right wall), a 2 cm one is."""

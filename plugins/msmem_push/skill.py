@@ -200,7 +200,7 @@ class PushConfig(BaseModel):
     40 surveyed pushes toppled the object, at 2 cm none (docs/push.md)."""
     low_object_fraction: float = Field(0.6, gt=0.0, le=1.0)
     """For objects lower than tool_height_m / this, the tip goes to this fraction of their top."""
-    min_tool_height_m: float = Field(0.01, gt=0.0, le=0.2)
+    min_tool_height_m: float = Field(0.01, gt=0.0, le=0.2, validate_default=True)
     """The tip never goes lower than this (it would drag on the shelf floor)."""
     max_samples: int = Field(80, ge=1, le=10000)
     seeds: int = Field(24, ge=1, le=10000)
@@ -276,6 +276,20 @@ class PushConfig(BaseModel):
     approach_y_m: float = Field(-0.08, lt=0.0, ge=-1.0)
     """The approach starts (and the retreat ends) at this y in front of the shelf opening."""
     settle_s: float = Field(0.5, ge=0.0, le=10.0)
+
+    @field_validator("min_tool_height_m")
+    @classmethod
+    def _forward_clears_the_floor(cls, v: float, info: ValidationInfo) -> float:
+        """With ``palm: forward`` the hand (and wrist) straddle the tip's height: a tip lower than half their
+        height would put them into the shelf floor, and the skill would propose nothing there."""
+        if info.data.get("palm") == "forward" and "gripper" in info.data:
+            hand = info.data.get("hand_m")
+            _, thick, _, *wrist = hand or (0.0, info.data["gripper"].palm_width_m, 0.0)
+            half = max(thick, *wrist[:1], info.data["gripper"].finger_width_m) / 2
+            if v < half:
+                raise ValueError(f"{v:g} puts the hand below the shelf floor: with palm 'forward' and hand_m {hand} "
+                                 f"it must be at least {half:g} (half the height of the hand and wrist)")
+        return v
 
     @field_validator("max_length_m")
     @classmethod
