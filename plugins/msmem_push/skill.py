@@ -631,24 +631,19 @@ class PushSkill(Skill):
         s = grid.voxel_m
         o = grid.origin
         centre = o[:2] + (t.cells.mean(axis=0) + 0.5) * s
+        # the forward tool pushes exactly along the shelf's axes (its parts stay boxes of the push frame)
+        forward = cfg.palm == "forward"
         max_a = math.radians(cfg.max_angle_deg)
-        if cfg.palm == "forward" and rng.random() >= cfg.into_fraction:  # sideways, along the shelf's x
-            away = -1.0 if t.seed[0] > centre[0] else 1.0
-            ang = 0.0 if (away if rng.random() < 0.75 else -away) > 0 else math.pi
-            q = np.array([centre[0], centre[1] + rng.uniform(-s, s)])
-        elif cfg.palm == "forward":  # straight in
-            ang = math.pi / 2
-            q = np.array([centre[0] + rng.uniform(-s, s), centre[1]])
-        elif rng.random() < cfg.into_fraction:
-            ang = math.pi / 2 + rng.uniform(-max_a, max_a)
+        if rng.random() < cfg.into_fraction:
+            ang = math.pi / 2 + (0.0 if forward else rng.uniform(-max_a, max_a))
             q = np.array([centre[0] + rng.uniform(-s, s), centre[1]])
         else:
             away = -1.0 if t.seed[0] > centre[0] else 1.0
             side = away if rng.random() < 0.75 else -away
-            ang = (0.0 if side > 0 else math.pi) + rng.uniform(-max_a / 2, max_a / 2)
+            ang = (0.0 if side > 0 else math.pi) + (0.0 if forward else rng.uniform(-max_a / 2, max_a / 2))
             q = np.array([centre[0], centre[1] + rng.uniform(-s, s)])
         u = np.array([math.cos(ang), math.sin(ang)])
-        if cfg.palm == "forward":  # exactly along the shelf's axes: the hand's parts stay boxes of the push frame
+        if forward:
             u = np.round(u)
         # follow the line through the object's centre back (against u) to where it enters the footprint
         ts = np.arange(0.0, 0.6, s / 8)

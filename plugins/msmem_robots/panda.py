@@ -72,6 +72,7 @@ def _library_identity() -> dict[str, str]:
 PATH_IK_ITERATIONS = 20
 """IK iterations per call for a path's next point (``PandaRobot.reach_path``)."""
 
+
 class PandaRobot(Robot):
     """Franka Panda with a wrist camera; base in front of the shelf (``PandaConfig``)."""
 
