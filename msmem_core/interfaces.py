@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, model_serializer
 
 from msmem_core.errors import UserError
 from msmem_core.map.belief import BeliefDelta, DeltaBeliefs, EvidentialMap
@@ -74,6 +74,17 @@ class Action(BaseModel):
     category: Category
     target_object: int | None = None
     """Object the action manipulates, as believed by the skill (never read from ground truth)."""
+    omit_if_none: ClassVar[tuple[str, ...]] = ()
+    """Fields left out of the action's record while they are None: fields added after records were
+    written (records, golden episodes and bench fingerprints stay as they were)."""
+
+    @model_serializer(mode="wrap")
+    def _omit_unset(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        out: dict[str, Any] = handler(self)
+        for name in self.omit_if_none:
+            if getattr(self, name) is None:
+                out.pop(name, None)
+        return out
 
     def swept_volume(self, workspace: Workspace) -> NDArray[np.bool_]:
         """Voxels of ``workspace.grid`` the gripper passes through; empty for perception actions."""

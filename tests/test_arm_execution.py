@@ -18,6 +18,7 @@ from tests.support.arm_checks import (
     check_forward_pushes_of_the_push_skill,
     check_grasp_and_carry_out,
     check_push_and_exact_restore,
+    check_the_grasp_skill_plans_a_grasp_the_arm_makes,
     check_unreachable_start_is_not_made,
     check_view_moves_the_wrist_camera,
 )
@@ -67,6 +68,14 @@ def arm_sim(panda, backend):
 
 def test_the_arm_grasps_a_can_and_carries_it_out_of_the_shelf(arm_sim, panda):
     check_grasp_and_carry_out(arm_sim, panda)
+
+
+def test_the_grasp_skill_plans_front_grasps_the_arm_makes(arm_sim, panda):
+    observe = PyBulletSimulator()
+    try:
+        check_the_grasp_skill_plans_a_grasp_the_arm_makes(arm_sim, panda, observe)
+    finally:
+        observe.close()
 
 
 def test_the_arm_pushes_what_is_in_its_way_and_restores_exactly(arm_sim, backend):

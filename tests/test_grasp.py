@@ -16,6 +16,7 @@ from msmem_grasp.planning import (
     Objects,
     blocked_mask,
     fill_down,
+    gripper_boxes,
     gripper_points,
     gripper_points_batch,
     path_offsets,
@@ -49,6 +50,10 @@ GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)
 INTERIOR = SHELF.interior_box
 WORKSPACE = Workspace(GRID, SHELF, GripperSpec())
 SUGAR, MEAT, FOAM, CRACKER = 2, 9, 13, 1  # class ids
+PANDA_HAND = (0.204, 0.063, 0.066, 0.09, 0.1)
+"""The Panda hand (width along the closing axis, thickness, depth) and its wrist (width, length)."""
+PANDA_GRASPS = {"hand_m": PANDA_HAND, "max_approach_deg": 30.0, "min_height_m": 0.045, "roll": "both",
+                "predictor": "geometric", "geometric": {"approach": "front-first"}}
 
 
 # ------------------------------------------------------------------------------------------ helpers
@@ -111,6 +116,9 @@ def test_grasp_skill_and_its_effect_model_are_registered_and_bound() -> None:
 def test_grasp_actions_are_json_and_reject_a_non_rigid_pose() -> None:
     a = top_grasp(0.0, 0.2, 0.14, 0.04)
     assert GraspAction.model_validate_json(a.model_dump_json()) == a
+    assert "hand_m" not in a.model_dump()  # records without a hand are as before
+    handed = a.model_copy(update={"hand_m": PANDA_HAND})
+    assert GraspAction.model_validate_json(handed.model_dump_json()) == handed
     assert (a.kind, a.category) == ("grasp", "manipulation")
     bad = [list(r) for r in a.pose]
     bad[0][0] = 2.0
@@ -182,7 +190,7 @@ class _ReferenceGraspSkill(GraspSkill):
                                  opening: float) -> np.ndarray | None:
         cfg = self.config
         s = grid.voxel_m
-        pts = gripper_points(cfg.gripper, opening, s / 2, cfg.tolerance_m)
+        pts = gripper_points(cfg.gripper, opening, s / 2, cfg.tolerance_m, cfg.hand_m)
         r = pose[:3, :3]
         grasp = pose[:3, 3]
         if _hits_reference(grid, blocked, region, r, pts, path_offsets(grasp[None], s)):
@@ -234,15 +242,19 @@ def _seeded_belief(seed: int) -> EvidentialMap:
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_batched_collision_tests_equal_the_per_grasp_loop(seed: int) -> None:
     belief = _seeded_belief(seed)
-    for params in ({}, {"top_k": 300, "max_per_object": 300}):
+    found = []
+    every = {"top_k": 300, "max_per_object": 300}
+    for params in ({}, every, {**every, "hand_m": PANDA_HAND}):
         cfg = GraspConfig(predictor="geometric", seed=seed, **params)  # type: ignore[arg-type]
         skill, reference = GraspSkill(cfg), _ReferenceGraspSkill(cfg)
         skill.track(ctx(belief))
         reference.buffer = skill.buffer
         got, want = skill.executable(belief, SHELF), reference.executable(belief, SHELF)
         assert [g.model_dump() for g in got] == [g.model_dump() for g in want]  # same grasps, order, poses, paths
+        found.append(len(got))
         if params:
             assert len(got) > 4
+    assert found[2] < found[1]  # the 20 cm hand fits fewer places than the palm
 
     # every candidate's test at the grasp and on its way in, one at a time against the kernel
     cfg = GraspConfig(predictor="geometric")
@@ -432,6 +444,83 @@ def test_a_grasp_whose_object_cannot_leave_past_a_neighbour_is_skipped_unless_as
     assert on_target(box_belief([target, blocker])) == []  # the default (skip) does not
     low = ((-0.05, 0.10), (0.05, 0.16), 0.03, MEAT)  # one it can be lifted over: still proposed
     assert on_target(box_belief([target, low]))
+
+
+# ---------------------------------------------------------------------------- an arm's hand (Panda)
+def test_the_hand_and_wrist_replace_the_palm_in_the_gripper_points() -> None:
+    grip = GripperSpec()
+    palm = gripper_points(grip, 0.06, 0.005)
+    hand = gripper_points(grip, 0.06, 0.005, hand_m=PANDA_HAND)
+    fingers = hand[hand[:, 2] > -grip.finger_length_m + 1e-9]  # (the palm's and the hand's faces are at -length)
+    np.testing.assert_array_equal(fingers, palm[palm[:, 2] > -grip.finger_length_m + 1e-9])  # the same fingers
+    fl = grip.finger_length_m
+    (_, h_half), (w_centre, w_half) = gripper_boxes(grip, 0.06, PANDA_HAND)[2:]
+    np.testing.assert_allclose(2 * h_half, (0.204, 0.063, 0.066))  # width, thickness, depth
+    np.testing.assert_allclose(w_centre, (0.0, 0.0, -fl - 0.066 - 0.05))  # the wrist right behind the hand
+    np.testing.assert_allclose(2 * w_half, (0.09, 0.09, 0.1))
+    np.testing.assert_allclose(hand.min(axis=0), (-0.102, -0.045, -fl - 0.166))  # the points fill them
+    np.testing.assert_allclose(hand.max(axis=0), (0.102, 0.045, 0.0))
+    openings = np.array([0.02, 0.05, 0.08])
+    batch = gripper_points_batch(grip, openings, 0.005, 0.003, PANDA_HAND)
+    for i, o in enumerate(openings):
+        np.testing.assert_array_equal(batch[i], gripper_points(grip, float(o), 0.005, 0.003, PANDA_HAND))
+
+
+FRONT_TARGET = ((-0.02, 0.14), (0.02, 0.20), 0.12, SUGAR)
+"""A 4 cm wide, 12 cm tall box 14 cm deep in the shelf."""
+NEIGHBOURS = [((-0.16, 0.04), (-0.07, 0.10), 0.12, MEAT), ((0.07, 0.04), (0.16, 0.10), 0.12, CRACKER)]
+"""Two boxes in front of it, 5 cm to either side of it: room for the fingers and a palm, not a 20 cm hand."""
+
+
+def test_grasps_from_the_front_keep_to_the_cone_the_height_and_turn_both_ways() -> None:
+    grasps = GraspSkill(GraspConfig(**PANDA_GRASPS)).propose(ctx(box_belief([FRONT_TARGET])))  # type: ignore[arg-type]
+    assert len(grasps) >= 2
+    assert {g.target_class for g in grasps} == {SUGAR}
+    for g in grasps:
+        m = g.matrix
+        assert m[1, 2] >= math.cos(math.radians(30)) - 1e-9  # approach within 30 deg of +y
+        assert m[2, 3] >= 0.045
+        assert g.hand_m == PANDA_HAND
+    pairs = list(zip(grasps[::2], grasps[1::2], strict=True))  # each grasp, then the same one turned
+    for g, t in pairs:
+        np.testing.assert_allclose(t.matrix[:3, 2:], g.matrix[:3, 2:])  # same approach and centre
+        np.testing.assert_allclose(t.matrix[:3, :2], -g.matrix[:3, :2])  # closing axis and y reversed
+    up = GraspSkill(GraspConfig(**{**PANDA_GRASPS, "roll": "back-up"})).propose(ctx(box_belief([FRONT_TARGET])))  # type: ignore[arg-type]
+    assert up
+    assert all(g.matrix[2, 1] >= 0.0 for g in up)
+    assert {round(g.pose[2][3], 6) for g in grasps} <= {round(g.pose[2][3], 6) for g in up}  # the same grasps
+    # a 16 cm deep box: front-first still grasps its back part from above (with a palm: the hand and wrist
+    # pointing down do not fit under the shelf top), unless the cone forbids it
+    deep = box_belief([((-0.02, 0.10), (0.02, 0.26), 0.12, SUGAR)])
+    palm = {**PANDA_GRASPS, "hand_m": None, "top_k": 300, "max_per_object": 300}
+    wide = GraspSkill(GraspConfig(**{**palm, "max_approach_deg": 180.0})).propose(ctx(deep))  # type: ignore[arg-type]
+    assert any(g.matrix[2, 2] < -0.9 for g in wide)
+    assert not any(g.matrix[2, 2] < -0.9 for g in GraspSkill(GraspConfig(**{**PANDA_GRASPS, "max_approach_deg": 180.0})
+                                                              ).propose(ctx(deep)))  # type: ignore[arg-type]
+    coned = GraspSkill(GraspConfig(**palm)).propose(ctx(deep))  # type: ignore[arg-type]
+    assert coned
+    assert all(g.matrix[1, 2] >= math.cos(math.radians(30)) - 1e-9 for g in coned)
+    # without the cone, the default predictor grasps this box from above
+    top = GraspSkill(GraspConfig(predictor="geometric")).propose(ctx(box_belief([FRONT_TARGET])))
+    assert any(g.matrix[2, 2] < -0.9 for g in top)
+
+
+def test_the_hand_keeps_the_grasp_away_from_neighbours_the_palm_passes() -> None:
+    belief = box_belief([FRONT_TARGET, *NEIGHBOURS])
+
+    def on_target(**kw: object) -> list[GraspAction]:
+        cfg = GraspConfig(**{**PANDA_GRASPS, **kw})  # type: ignore[arg-type]
+        return [g for g in GraspSkill(cfg).propose(ctx(belief)) if g.target_class == SUGAR]
+
+    assert on_target(hand_m=None)  # fingers and palm pass between the neighbours
+    assert on_target() == []  # the 20 cm hand does not
+    assert on_target(hand_m=None, min_height_m=0.2) == []  # nothing on a 12 cm box is 20 cm up
+    g = on_target(hand_m=None)[0]
+    ws = Workspace(GRID, SHELF, GripperSpec())
+    swept = g.model_copy(update={"hand_m": PANDA_HAND}).swept_volume(ws)
+    neighbours = box_belief(NEIGHBOURS).expected_occupancy() > 0.5
+    assert not (g.swept_volume(ws) & neighbours).any()
+    assert (swept & neighbours).any()  # CDC and the effect model see the hand sweep through them
 
 
 # ------------------------------------------------------------------------------------- effect model

@@ -129,7 +129,7 @@ class AnalyticGraspEffect(EffectModel):
         body_path, body_step = way_out(grid, fill_down(grid, p, lab3, region, label, cfg.free_threshold), lift)
         grasp = a.matrix[:3, 3]
         path = path_offsets(np.array([grasp, *a.retreat_m]), s / 2) if a.retreat_m else grasp[None]
-        pts = gripper_points(gripper, a.width_m, s / 2, cfg.tolerance_m)
+        pts = gripper_points(gripper, a.width_m, s / 2, cfg.tolerance_m, a.hand_m)
         grip = swept_indices(grid, a.matrix[:3, :3], pts, path)
         grip_y = grasp[1] - np.unravel_index(grip, grid.shape)[1] * s  # how far the gripper has come when there
         grip_step = np.maximum(0, np.round(grip_y / s)).astype(np.int64) + lift

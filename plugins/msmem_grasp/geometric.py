@@ -14,11 +14,14 @@ side face of an upright object; points on tops and undersides get no affordance)
   above the shelf see; if neither finds free space within the opening, no width, no affordance.
 - *Antipodal*: the normal at c and the far contact's normal (negative occupancy gradient there)
   both lie within the friction cone (half-angle atan(``friction``)) of b.
-- *Approach*: top-down (a_hat = -z) if the object's top above c (marching up from just inside c to
-  free space) is ``min_depth_m``..``finger_length - clearance_m`` above c, so the fingers overlap
-  the object without the palm touching its top, and the gripper with the lift fits under the shelf
-  top; else from the front (a_hat = +y made orthogonal to b) if b is mostly across the shelf
-  (|b_y| < 0.5) and c is within the same depth range behind the object's front face.
+- *Approach* (``approach: top-first``, the default): top-down (a_hat = -z) if the object's top
+  above c (marching up from just inside c to free space) is ``min_depth_m``..``finger_length -
+  clearance_m`` above c, so the fingers overlap the object without the palm touching its top, and
+  the gripper with the lift fits under the shelf top; else from the front (a_hat = +y made
+  orthogonal to b) if b is mostly across the shelf (|b_y| < 0.5) and c is within the same depth
+  range behind the object's front face. With ``approach: front-first`` the front approach is taken
+  wherever it is valid, top-down elsewhere (for an arm whose hand cannot come from above in the
+  shelf).
 - *Affordance*: quality 1 for a valid, antipodal width and approach (tapering to 0 as the width reaches the
   gripper's opening minus ``opening_margin_m``), else 0; evidence ``evidence * confidence`` with
   the confidence of the contact voxel (p from 0.5 to 0.9 -> 0 to 1): alpha = 1 + E q,
@@ -26,6 +29,8 @@ side face of an upright object; points on tops and undersides get no affordance)
 """
 
 from __future__ import annotations
+
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -68,6 +73,8 @@ class GeometricConfig(BaseModel):
     """vMF concentration of b at a fully confident side-face contact (plus 1)."""
     kappa_a_hat: float = Field(8.0, gt=0.0)
     """vMF concentration of a_hat at a fully confident contact."""
+    approach: Literal["top-first", "front-first"] = "top-first"
+    """Which approach a contact valid for both gets: top-down or from the front."""
 
 
 def _sample(p: NDArray[np.floating], grid: object, pts: F64) -> F64:
@@ -156,7 +163,10 @@ def predict_geometric(
     front_ok &= (c[:, 2] >= half_w + cfg.clearance_m / 2) & (c[:, 2] + half_w + cfg.lift_m < shelf.height_m)
 
     down = np.broadcast_to(np.array([0.0, 0.0, -1.0]), c.shape)
-    a_hat = np.where(top_ok[:, None] | ~front_ok[:, None], down, a_front)
+    if cfg.approach == "front-first":
+        a_hat = np.where(front_ok[:, None], a_front, down)
+    else:
+        a_hat = np.where(top_ok[:, None] | ~front_ok[:, None], down, a_front)
     taper = np.clip((max_w - width) / max(s, 1e-9), 0.0, 1.0)
     quality = np.where(width_ok & (top_ok | front_ok), taper, 0.0)
     conf = np.clip((cloud.occupancy.astype(np.float64) - 0.5) / 0.4, 0.0, 1.0)

@@ -43,13 +43,38 @@ def box_lattice(centre: F64, half: F64, spacing: float, shrink: float = 0.0) -> 
     return g + np.asarray(centre, dtype=np.float64)
 
 
-def gripper_points(gripper: GripperSpec, opening_m: float, spacing: float, shrink: float = 0.0) -> F64:
-    """Sample points [P, 3] of the two fingers (at ``opening_m``) and the palm, in the gripper frame
-    (read-only; the last few hundred are cached: candidates share openings)."""
-    key = (tuple(gripper.model_dump().values()), float(opening_m), float(spacing), float(shrink))
+HandDims = tuple[float, float, float] | tuple[float, float, float, float, float]
+"""(width along the closing axis, thickness, depth along the approach) of a hand behind the fingers,
+optionally followed by (width, length) of the arm's wrist behind the hand, on the approach axis."""
+
+
+def gripper_boxes(gripper: GripperSpec, opening_m: float, hand_m: HandDims | None = None) -> list[tuple[F64, F64]]:
+    """(centre, half-extents) of the fingers at ``opening_m`` and the palm in the gripper frame
+    (``GripperSpec.boxes``); with ``hand_m`` the palm is the hand: ``width`` along the closing axis,
+    ``thickness`` along the gripper's y, ``depth`` along the approach behind the fingers, centred on
+    the approach axis, then the wrist if given (a square section of its width, ``length`` long)."""
+    boxes = gripper.boxes(float(np.clip(opening_m, 0.0, gripper.max_opening_m)))
+    if hand_m is None:
+        return boxes
+    width, thick, depth, *wrist = (float(v) for v in hand_m)
+    fl = gripper.finger_length_m
+    out = [*boxes[:2], (np.array([0.0, 0.0, -fl - depth / 2]), np.array([width / 2, thick / 2, depth / 2]))]
+    if wrist:
+        ww, wl = wrist
+        out.append((np.array([0.0, 0.0, -fl - depth - wl / 2]), np.array([ww / 2, ww / 2, wl / 2])))
+    return out
+
+
+def gripper_points(gripper: GripperSpec, opening_m: float, spacing: float, shrink: float = 0.0,
+                   hand_m: HandDims | None = None) -> F64:
+    """Sample points [P, 3] of the two fingers (at ``opening_m``) and the palm (or ``hand_m``'s hand
+    and wrist, :func:`gripper_boxes`), in the gripper frame (read-only; the last few hundred are
+    cached: candidates share openings)."""
+    key = (tuple(gripper.model_dump().values()), float(opening_m), float(spacing), float(shrink),
+           None if hand_m is None else tuple(map(float, hand_m)))
     pts = _POINTS.get(key)
     if pts is None:
-        boxes = gripper.boxes(float(np.clip(opening_m, 0.0, gripper.max_opening_m)))
+        boxes = gripper_boxes(gripper, float(opening_m), hand_m)
         pts = np.concatenate([box_lattice(c, h, spacing, shrink) for c, h in boxes])
         pts.flags.writeable = False
         if len(_POINTS) >= 512:
@@ -61,13 +86,14 @@ def gripper_points(gripper: GripperSpec, opening_m: float, spacing: float, shrin
 _POINTS: dict[tuple[object, ...], F64] = {}
 
 
-def gripper_points_batch(gripper: GripperSpec, openings_m: F64, spacing: float, shrink: float = 0.0) -> F64:
+def gripper_points_batch(gripper: GripperSpec, openings_m: F64, spacing: float, shrink: float = 0.0,
+                         hand_m: HandDims | None = None) -> F64:
     """:func:`gripper_points` for each opening [N] at once: [N, P, 3], equal to it to the bit (the same
     lattice offsets plus each opening's box centres)."""
     openings = np.clip(np.asarray(openings_m, dtype=np.float64), 0.0, gripper.max_opening_m)
-    (_, finger_half), _, (palm_c, palm_half) = gripper.boxes(0.0)
+    (_, finger_half), _, *rest = gripper_boxes(gripper, 0.0, hand_m)
     finger = box_lattice(np.zeros(3), finger_half, spacing, shrink)  # offsets from a finger's centre
-    palm = box_lattice(palm_c, palm_half, spacing, shrink)
+    palm = np.concatenate([box_lattice(c, h, spacing, shrink) for c, h in rest])
     fx = openings / 2 + gripper.finger_thickness_m / 2  # as GripperSpec.boxes
     fz = -gripper.finger_length_m / 2
     n = len(openings)

@@ -81,6 +81,7 @@ from msmem_grasp.fpp import FPPConfig, frontier_points, virtual_front_views
 from msmem_grasp.fusion import FusionConfig, GraspBuffer, GraspHypotheses
 from msmem_grasp.geometric import GeometricConfig, predict_geometric
 from msmem_grasp.planning import (
+    HandDims,
     Objects,
     blocked_mask,
     fill_down,
@@ -126,6 +127,10 @@ class GraspAction(Action):
     """Fused 2/S."""
     predictor: str = ""
     """What predicted the grasp evidence: ``fe-vmf:<weights>`` or ``geometric``."""
+    hand_m: HandDims | None = None
+    """The hand (and wrist) behind the fingers in place of the gripper's palm (``GraspConfig.hand_m``);
+    left out of the action's record when None."""
+    omit_if_none: ClassVar[tuple[str, ...]] = ("hand_m",)
 
     @field_validator("pose")
     @classmethod
@@ -164,8 +169,8 @@ class GraspAction(Action):
         app = path_offsets(np.array([*self.approach_m, grasp]), s / 2)
         ret = path_offsets(np.array([grasp, *self.retreat_m]), s / 2)
         mask = np.zeros(grid.size, dtype=bool)
-        mark_swept(mask, grid, r, gripper_points(gripper, self.opening_m, s / 2), app)
-        mark_swept(mask, grid, r, gripper_points(gripper, self.width_m, s / 2), ret)
+        mark_swept(mask, grid, r, gripper_points(gripper, self.opening_m, s / 2, hand_m=self.hand_m), app)
+        mark_swept(mask, grid, r, gripper_points(gripper, self.width_m, s / 2, hand_m=self.hand_m), ret)
         return mask
 
 
@@ -249,6 +254,22 @@ class GraspConfig(BaseModel):
     max_object_radius_m: float = Field(0.10, gt=0.0, le=1.0)
     """The target's region reaches at most this far across the closing axis (same-class neighbours
     touching it stay out)."""
+    hand_m: HandDims | None = None
+    """An arm's hand behind the fingers, in place of the gripper's palm in every collision test and
+    swept volume: (width along the closing axis, thickness, depth along the approach[, wrist width,
+    wrist length]); the Panda's is (0.204, 0.063, 0.066). None: the gripper's palm."""
+    min_height_m: float = Field(0.0, ge=0.0, le=0.5)
+    """Grasps centred lower than this above the shelf floor are not proposed: a hand pointing into the
+    shelf needs half its thickness and the arm's collision margin (the Panda: 0.045)."""
+    max_approach_deg: float = Field(180.0, gt=0.0, le=180.0)
+    """Largest angle between a grasp's approach and straight into the shelf (+y); 180: any approach the
+    open front allows (step 3). An arm whose hand cannot come from above in the shelf needs a small
+    one (docs/robots.md)."""
+    roll: Literal["as-predicted", "back-up", "both"] = "as-predicted"
+    """``back-up``: a grasp whose gripper y axis (approach x closing axis) points down is turned 180 deg
+    about its approach (the same grasp: the fingers swap), so the hand's back, where an arm's wrist
+    camera rides, faces up. ``both``: every grasp is proposed as predicted and turned (the turned one
+    right after it), and the robot's reach check keeps the one its arm can follow."""
 
 
 @dataclass
@@ -381,6 +402,10 @@ class GraspSkill(Skill):
         a, _ = g.approach()
         b = g.mu_b
         keep = (a[:, 1] >= -_SIN15) & (a[:, 2] <= _SIN15) & (g.width >= cfg.min_width_m)
+        if cfg.max_approach_deg < 180.0:
+            keep &= a[:, 1] >= math.cos(math.radians(cfg.max_approach_deg)) - 1e-12
+        if cfg.min_height_m > 0.0:  # the grasp's centre: the contact moved half the width along b
+            keep &= g.contact[:, 2] + 0.5 * np.minimum(g.width, grip.max_opening_m) * b[:, 2] >= cfg.min_height_m
         g, a, b = g.subset(keep), a[keep], b[keep]
         if not len(g):
             return None
@@ -389,9 +414,17 @@ class GraspSkill(Skill):
         from msmem_grasp.fevmf import executable_grasp  # torch: imported on use
 
         objects = Objects.of(belief, shelf.interior_box, cfg.occupied_threshold)
+        poses = np.asarray(executable_grasp(g.contact, a, b, width))
+        if cfg.roll == "back-up":  # the same grasp turned about its approach: x and y change sign
+            down = poses[:, 2, 1] < -1e-9
+            poses[down, :3, :2] *= -1.0
+        elif cfg.roll == "both":
+            twice = np.repeat(np.arange(len(g)), 2)
+            g, b, width, poses = g.subset(twice), b[twice], width[twice], poses[twice]
+            poses[1::2, :3, :2] *= -1.0
         return Candidates(
             grasps=g, width=width, opening=np.minimum(width + cfg.opening_margin_m, grip.max_opening_m),
-            poses=executable_grasp(g.contact, a, b, width),  # type: ignore[arg-type]
+            poses=poses,
             objects=objects, label=objects.label_at(grid, g.contact + 0.5 * grid.voxel_m * b),
             blocked=blocked_mask(belief, shelf, cfg.occupied_threshold, cfg.unknown_vacuity, cfg.unknown_band).ravel(),
             p=belief.expected_occupancy(), top=float(shelf.interior_upper[2] - cfg.clearance_m),
@@ -411,7 +444,7 @@ class GraspSkill(Skill):
             target_class=int(c.objects.classes[lab]),
             approach_m=tuple(tuple(float(v) for v in p) for p in approach),  # type: ignore[misc]
             retreat_m=retreat, affordance=float(np.clip(c.grasps.affordance[i], 0, 1)),
-            uncertainty=float(np.clip(c.grasps.uncertainty[i], 0, 1)), predictor=self.predictor,
+            uncertainty=float(np.clip(c.grasps.uncertainty[i], 0, 1)), predictor=self.predictor, hand_m=cfg.hand_m,
         )
 
     def executable(self, belief: EvidentialMap, shelf: ShelfSpec) -> list[GraspAction]:
@@ -424,7 +457,7 @@ class GraspSkill(Skill):
         s = grid.voxel_m
         n = len(c.grasps)
         # the open gripper's points of every candidate, rotated as the grasp holds them
-        pts = gripper_points_batch(cfg.gripper, c.opening, s / 2, cfg.tolerance_m)
+        pts = gripper_points_batch(cfg.gripper, c.opening, s / 2, cfg.tolerance_m, cfg.hand_m)
         local = np.stack([pts[i] @ c.poses[i, :3, :3].T for i in range(n)])
         # first test of step 4 for all candidates at once: the open gripper at the grasp
         at_grasp = sweep_hits(grid, c.blocked, c.objects.labels, local, c.poses[:, :3, 3], np.arange(n + 1),
@@ -489,7 +522,7 @@ class GraspSkill(Skill):
         brings the object's or the gripper's top closer than ``clearance_m`` to the shelf top."""
         cfg = self.config
         s = grid.voxel_m
-        pts = gripper_points(cfg.gripper, width, s / 2, cfg.tolerance_m)
+        pts = gripper_points(cfg.gripper, width, s / 2, cfg.tolerance_m, cfg.hand_m)
         r = pose[:3, :3]
         grip_top = float((pts @ r.T)[:, 2].max()) + pose[2, 3]
         obj_top = float(voxel_centres(grid, region)[:, 2].max()) + s / 2 if len(region) else pose[2, 3]

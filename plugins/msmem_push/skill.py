@@ -56,11 +56,8 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
-    SerializationInfo,
-    SerializerFunctionWrapHandler,
     ValidationInfo,
     field_validator,
-    model_serializer,
     model_validator,
 )
 from scipy import ndimage
@@ -107,17 +104,11 @@ class PushAction(Action):
     hand_m: tuple[float, float, float] | tuple[float, float, float, float, float] | None = None
     """With ``palm="forward"``: the hand behind the fingers (width, thickness, depth[, wrist width,
     wrist length]); None: the gripper's palm. Left out of the action's record when None."""
+    omit_if_none: ClassVar[tuple[str, ...]] = ("hand_m",)
     target_class: int | None = None
     """Believed class of the object the push aims at."""
     contact_m: tuple[float, float, float] | None = None
     """Believed point of the object the trace from the shelf front met first."""
-
-    @model_serializer(mode="wrap")
-    def _drop_unset_hand(self, handler: SerializerFunctionWrapHandler, info: SerializationInfo) -> dict[str, Any]:
-        out: dict[str, Any] = handler(self)
-        if self.hand_m is None:
-            out.pop("hand_m", None)
-        return out
 
     @field_validator("direction")
     @classmethod

@@ -4,6 +4,7 @@ over PyBullet and SAPIEN): the same robot, the same moves, the same outcomes."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -47,6 +48,56 @@ def check_grasp_and_carry_out(sim: Simulator, robot: Robot) -> None:
     # the gripper frame is the robot's own forward kinematics of the simulated joints, times its tool mount
     np.testing.assert_allclose(sim.gripper_pose(), robot.flange_pose(joints(sim)) @ robot.tool_mount(),  # type: ignore[attr-defined]
                                atol=1e-5)
+
+
+def check_the_grasp_skill_plans_a_grasp_the_arm_makes(sim: Simulator, robot: Robot, observe: Simulator) -> None:
+    """The grasp skill with the Panda's grasp settings (``examples/robots/panda-grasp.yaml``) plans on a
+    belief from real depth images (``observe``: a floating-camera backend with the same scene) grasps from
+    the front, at least one of which the arm follows; the arm makes it, and the can leaves the shelf in
+    the hand. The planner sees the hand: its grasps' swept volumes hold the 20 cm hand."""
+    import yaml
+    from msmem_analytic.observation import AnalyticObservationModel
+    from msmem_grasp.skill import GraspConfig, GraspSkill
+
+    from msmem_core.interfaces import DecisionContext, Workspace
+    from msmem_core.map.belief import EvidentialMap
+    from msmem_core.msas import execute_measured
+    from msmem_core.world.grid import GridSpec
+    from msmem_core.world.gripper import GripperSpec
+
+    scene = SceneSpec(objects=(ObjectSpec(id=7, class_name="tomato_soup_can", position_m=(-0.2, 0.07, 0.0)),
+                               ObjectSpec(id=8, class_name="cracker_box", position_m=(0.0, 0.25, 0.0))))
+    shelf = scene.shelf
+    grid = GridSpec.around_box(shelf.interior_lower, shelf.interior_upper, 0.01)
+    observe.reset(scene)
+    vps = generate_viewpoints(ViewpointConfig())
+    belief, model = EvidentialMap.empty(grid), AnalyticObservationModel()
+    for v in (150, 5, 94, 105, 194, 205, 255, 45):
+        belief = model.update(belief, observe.observe(vps[v]))
+    config = Path(__file__).parents[2] / "examples" / "robots" / "panda-grasp.yaml"
+    params = yaml.safe_load(config.read_text())["skill_params"]["grasp"]
+    skill = GraspSkill(GraspConfig(**params))
+    ws = Workspace(grid, shelf, GripperSpec(), robot=robot)
+    ctx = DecisionContext(5, belief, None, np.zeros((0, 4, 4)), set(), ws,  # type: ignore[arg-type]
+                          np.random.default_rng(0), True, 0.5)
+    grasps = skill.propose(ctx)
+    assert grasps, "no grasp proposed for a lone soup can at the front"
+    for g in grasps:
+        assert g.matrix[1, 2] >= np.cos(np.radians(30)) - 1e-9  # approach within 30 deg of straight in
+        assert g.hand_m == tuple(params["hand_m"])
+        assert g.pose[2][3] >= params["min_height_m"]
+    reach = [robot.reach_path(skill.tool_path(g, ws), shelf) for g in grasps]
+    reached = [g for g, r in zip(grasps, reach, strict=True) if r.reachable]
+    assert reached, "the arm follows none of the proposed grasps"
+    g = reached[0]
+    palm_only = g.model_copy(update={"hand_m": None})
+    assert g.swept_volume(ws).sum() > palm_only.swept_volume(ws).sum() + 100  # the hand sweeps more than a palm
+    sim.reset(scene)
+    out = execute_measured(skill, sim, g, ctx)
+    assert out.success
+    assert out.removed == [7]
+    assert sim.robot_notes() == []
+    assert out.displacement_m.get(8, 0.0) < 0.005  # the box behind stays
 
 
 def check_push_and_exact_restore(sim: Simulator, restore_atol: float) -> None:
