@@ -245,8 +245,16 @@ class RobotModel:
     flange_link: str | None = None
     """The link whose pose ``Robot.ik`` reaches; the camera mount is relative to it."""
     finger_joints: tuple[str, ...] = ()
-    """The hand's finger joints (prismatic, metres): a simulator that drives the arm opens and closes
-    them, the opening being their sum."""
+    """The hand's finger joints: a simulator that drives the arm opens and closes them. Prismatic (metres,
+    the opening being their sum), unless ``finger_gearing`` makes them a linkage."""
+    finger_gearing: tuple[float, ...] = ()
+    """For a linkage hand (a Robotiq 2F-85): each finger joint's position per unit of the first one's, which
+    drives it; the opening is then ``finger_opening``'s function of the first joint. Empty: prismatic fingers."""
+    finger_opening: tuple[tuple[float, float], ...] = ()
+    """With ``finger_gearing``: (position of the first finger joint, opening in metres) pairs, the positions
+    increasing; the opening between them is interpolated."""
+    finger_pads: tuple[str, ...] = ()
+    """The two links that hold an object between them (empty: the finger joints' child links)."""
     home: tuple[float, ...] = ()
     """A configuration (``joint_names`` order) out of the shelf, where a simulator parks the arm."""
 

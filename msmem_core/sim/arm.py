@@ -26,6 +26,11 @@ def check_drivable(model: RobotModel, simulator: str) -> None:
     if not model.finger_joints:
         raise UserError(f"robot {model.name!r} names no finger joints (RobotModel.finger_joints): {simulator} "
                         "cannot open or close its hand")
+    if model.finger_gearing and (len(model.finger_gearing) != len(model.finger_joints)
+                                 or len(model.finger_opening) < 2 or len(model.finger_pads) != 2):
+        raise UserError(f"robot {model.name!r}: a linkage hand needs a gearing per finger joint "
+                        f"({len(model.finger_gearing)} for {len(model.finger_joints)}), an opening table of at least "
+                        f"two rows ({len(model.finger_opening)}) and two pads ({len(model.finger_pads)})")
     if len(model.home) != len(model.joint_names):
         raise UserError(f"robot {model.name!r} gives no home configuration (RobotModel.home) of its "
                         f"{len(model.joint_names)} joints: {simulator} needs one to park the arm")
@@ -42,6 +47,29 @@ class ArmDriver(ABC):
         self.tool_inv = np.linalg.inv(self.tool)
         self.notes: list[str] = []
         self._target = np.asarray(model.home, dtype=np.float64)
+        self.gearing = np.asarray(model.finger_gearing, dtype=np.float64)
+        """A linkage hand's gearing (empty: prismatic fingers)."""
+        table = np.asarray(model.finger_opening, dtype=np.float64).reshape(-1, 2)
+        self._drive_q, self._drive_w = table[:, 0], table[:, 1]
+        self._pad_offset = 0.0
+
+    def linkage_targets(self, opening_m: float) -> list[float]:
+        """A linkage hand's joint positions for ``opening_m``: the driving joint's from the opening table,
+        the others geared to it."""
+        q = float(np.interp(opening_m, self._drive_w[::-1], self._drive_q[::-1]))
+        return [float(g * q) for g in self.gearing]
+
+    def linkage_gap(self, left: NDArray[np.float64], right: NDArray[np.float64]) -> float:
+        """A linkage hand's opening from its pads' frame origins: their distance along the closing axis less
+        what it is beyond the opening table's at the widest (``calibrate_pads``). The linkage's loop is not
+        closed in a URDF, so with an object between the pads the driving joint's angle does not tell."""
+        x = self.tool_pose()[:3, 0]
+        return abs(float(np.dot(np.asarray(right) - np.asarray(left), x))) - self._pad_offset
+
+    def calibrate_pads(self, left: NDArray[np.float64], right: NDArray[np.float64]) -> None:
+        """With the hand at its widest: the pads' origins are this much farther apart than the opening."""
+        self._pad_offset = 0.0
+        self._pad_offset = self.linkage_gap(left, right) - float(self._drive_w[0])
 
     @abstractmethod
     def set_joints(self, q: NDArray[np.float64]) -> None:

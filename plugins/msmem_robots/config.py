@@ -16,8 +16,8 @@ class FloatingConfig(BaseModel):
     model_config = FROZEN_MODEL_CONFIG
 
 
-class PandaConfig(BaseModel):
-    """The Franka Panda of ``pybullet_data`` (``franka_panda/panda.urdf``) with a wrist camera."""
+class ArmConfig(BaseModel):
+    """An arm in pybullet with a wrist camera (``msmem_robots.arm.PybulletArm``); the defaults are the Panda's."""
 
     model_config = FROZEN_MODEL_CONFIG
 
@@ -62,3 +62,22 @@ class PandaConfig(BaseModel):
     (at most 2 cm apart); a larger one means the arm would have to jump to another configuration."""
     disk_cache: Bool = True
     """Keep reachable-view answers in ``$MSMEM_CACHE_DIR/reach`` (default ``~/.cache/msmem/reach``)."""
+
+
+class PandaConfig(ArmConfig):
+    """The Franka Panda of ``pybullet_data`` (``franka_panda/panda.urdf``) with a wrist camera."""
+
+
+class UR5eConfig(ArmConfig):
+    """A UR5e with a Robotiq 2F-85 (``airo-models``' URDFs, MIT) and a wrist camera (docs/robots.md, "The UR5e")."""
+
+    base_position_m: Vec3 = (0.0, -0.65, -0.3)
+    """Base position in the shelf frame: centred, 65 cm in front of the shelf, 30 cm below its floor (the
+    sweep in docs/robots.md)."""
+    camera_offset_m: Vec3 = (0.0, 0.06, 0.03)
+    """Wrist camera position in the flange frame (``tool0``: z out of the flange, the 2F-85's fingers close
+    along x): 6 cm across the gripper's thickness, on the side that is up when the hand points into the
+    shelf with its back up, 3 cm out."""
+    camera_rpy_deg: Vec3 = (10.0, 0.0, 0.0)
+    """Wrist camera orientation in the flange frame: looking along its z, tilted 10 deg towards the fingers,
+    its x along the fingers' closing axis."""

@@ -6,7 +6,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from msmem_core.plugins import CommandSpec, RobotSpec, hookimpl
-from msmem_robots.config import FloatingConfig, PandaConfig
+from msmem_robots.config import FloatingConfig, PandaConfig, UR5eConfig
 from msmem_robots.floating import FloatingRobot
 
 
@@ -17,6 +17,13 @@ def make_panda(config: PandaConfig) -> Any:
     return PandaRobot(config)
 
 
+def make_ur5e(config: UR5eConfig) -> Any:
+    """Build a ``UR5eRobot`` (imports pybullet; the URDFs come from airo-models)."""
+    from msmem_robots.ur5e import UR5eRobot
+
+    return UR5eRobot(config)
+
+
 @hookimpl
 def msmem_robots() -> Iterable[RobotSpec]:
     yield RobotSpec(name="floating", factory=FloatingRobot, config_model=FloatingConfig,
@@ -24,6 +31,9 @@ def msmem_robots() -> Iterable[RobotSpec]:
     yield RobotSpec(name="panda", factory=make_panda, config_model=PandaConfig,
                     description="Franka Panda of pybullet_data with a wrist camera; pybullet IK checked by forward "
                                 "kinematics and against the shelf's boards")
+    yield RobotSpec(name="ur5e", factory=make_ur5e, config_model=UR5eConfig,
+                    description="UR5e with a Robotiq 2F-85 (airo-models' URDFs) and a wrist camera; the same IK and "
+                                "checks as the Panda")
 
 
 @hookimpl

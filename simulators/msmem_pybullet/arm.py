@@ -71,6 +71,10 @@ class ArmDrive(ArmDriver):
         self.fingers = [by_name[n] for n in m.finger_joints]
         self.flange = link_by_name[m.flange_link]
         self.finger_upper = [self.limits[j][1] for j in self.fingers]
+        pads = [n for n in m.finger_pads if n not in link_by_name]
+        if pads:
+            raise UserError(f"robot {m.name!r}: its URDF has no link named {', '.join(pads)}")
+        self.pads = [link_by_name[n] for n in m.finger_pads] or list(self.fingers)
         # what every physics step of a move needs, once: IK limits over the movable joints, where the arm's
         # joints sit in an IK answer, the arm motors' forces
         self._ik_lower = [self.limits[j][0] for j in self.movable]
@@ -78,11 +82,18 @@ class ArmDrive(ArmDriver):
         self._ik_ranges = [u - lw for u, lw in zip(self._ik_upper, self._ik_lower, strict=True)]
         self._ik_arm = [self.movable.index(j) for j in self.joints]
         self._forces = [self.max_force[j] for j in self.joints]
-        for j in self.fingers:
+        for j in self.pads:
             p.changeDynamics(self.uid, j, lateralFriction=self.finger_friction, physicsClientId=c)
         self.set_joints(np.asarray(m.home, dtype=np.float64))
-        self.set_fingers(sum(self.finger_upper), reset=True)
+        self.set_fingers(self.max_opening(), reset=True)
+        if len(self.gearing):
+            self.calibrate_pads(*self._pad_positions())
         return self.uid
+
+    def _pad_positions(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        left, right = (p.getLinkState(self.uid, j, computeForwardKinematics=True, physicsClientId=self.client)[4]
+                       for j in self.pads)
+        return np.asarray(left, dtype=np.float64), np.asarray(right, dtype=np.float64)
 
     # ------------------------------------------------------------------------------------ state
     def set_joints(self, q: NDArray[np.float64]) -> None:
@@ -121,17 +132,25 @@ class ArmDrive(ArmDriver):
         return pose_matrix(st[4], st[5]) @ self.tool
 
     def opening(self) -> float:
+        if len(self.gearing):
+            return self.linkage_gap(*self._pad_positions())
         return float(sum(s[0] for s in p.getJointStates(self.uid, self.fingers, physicsClientId=self.client)))
 
     def finger_speed(self) -> float:
         return float(sum(abs(s[1]) for s in p.getJointStates(self.uid, self.fingers, physicsClientId=self.client)))
 
     def max_opening(self) -> float:
+        if len(self.gearing):
+            return float(self._drive_w.max())
         return float(sum(self.finger_upper))
 
     def set_fingers(self, opening_m: float, reset: bool = False) -> None:
-        """Drive each finger to its share of ``opening_m`` with ``finger_force_n`` (``reset``: put it there)."""
-        share = [opening_m * u / self.max_opening() for u in self.finger_upper]
+        """Drive each finger to its share of ``opening_m`` with ``finger_force_n`` (``reset``: put it there); a
+        linkage's joints to their gearing times the driving joint's position for that opening."""
+        if len(self.gearing):
+            share = self.linkage_targets(opening_m)
+        else:
+            share = [opening_m * u / self.max_opening() for u in self.finger_upper]
         for j, q in zip(self.fingers, share, strict=True):
             if reset:
                 p.resetJointState(self.uid, j, q, 0.0, physicsClientId=self.client)
@@ -151,7 +170,7 @@ class ArmDrive(ArmDriver):
         self.drive(np.clip(np.asarray(sol)[self._ik_arm], self.model.joint_lower, self.model.joint_upper))
 
     def finger_links(self) -> list[int]:
-        return list(self.fingers)
+        return list(self.pads)
 
     def touching(self, uids: Sequence[int], margin: float) -> bool:
         """Whether any link comes within ``margin`` of one of the bodies ``uids``."""

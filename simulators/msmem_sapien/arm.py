@@ -56,6 +56,10 @@ class SapienArm(ArmDriver):
     def __init__(self, robot: Robot, finger_force_n: float) -> None:
         super().__init__(robot, "SAPIEN")
         model = self.model
+        if model.finger_gearing:
+            raise UserError(f"simulator 'sapien' does not drive linkage hands yet (robot {model.name!r}: "
+                            f"{model.finger_joints[0]} and {len(model.finger_joints) - 1} geared joints); use the "
+                            "pybullet simulator")
         self.finger_force_n = finger_force_n
         self.base_inv = np.linalg.inv(np.asarray(model.base_pose, dtype=np.float64))
         self.efforts = urdf_efforts(str(model.urdf), (*model.joint_names, *model.finger_joints))
