@@ -1,4 +1,5 @@
-"""Where should the Panda stand to push? A sweep of base poses (docs/robots.md, "Pushing with the arm").
+"""Where should the Panda (or the UR5e) stand to push? A sweep of base poses (docs/robots.md, "Pushing with
+the arm").
 
 For each base position (shelf frame: y in front of the shelf, z below its floor) it counts
 
@@ -14,6 +15,7 @@ previous one, collision-free against the shelf and the arm itself). Nothing is r
 
     .venv/bin/python examples/robots/push_reach_sweep.py            # the default sweep
     .venv/bin/python examples/robots/push_reach_sweep.py --bases=-0.55,-0.3   # one base
+    .venv/bin/python examples/robots/push_reach_sweep.py --robot ur5e --bases=-0.65,-0.3
 """
 
 from __future__ import annotations
@@ -23,8 +25,9 @@ import itertools
 import time
 
 import numpy as np
-from msmem_robots.config import PandaConfig
+from msmem_robots.config import PandaConfig, UR5eConfig
 from msmem_robots.panda import PandaRobot
+from msmem_robots.ur5e import UR5eRobot
 
 from msmem_core.world.scene import ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
@@ -62,6 +65,7 @@ def main() -> None:
                                                  for z in (-0.3, -0.1, 0.0, 0.1)),
                     help="base positions 'y,z;y,z;...' (m, shelf frame; x = 0)")
     ap.add_argument("--heights", default="0.04,0.085,0.14", help="push heights (m above the shelf floor)")
+    ap.add_argument("--robot", choices=("panda", "ur5e"), default="panda")
     args = ap.parse_args()
     shelf = ShelfSpec()
     views = generate_viewpoints(ViewpointConfig(), shelf)
@@ -74,7 +78,8 @@ def main() -> None:
     for base in args.bases.split(";"):
         y, z = (float(v) for v in base.split(","))
         t0 = time.perf_counter()
-        robot = PandaRobot(PandaConfig(base_position_m=(0.0, y, z), disk_cache=False))
+        robot = (UR5eRobot(UR5eConfig(base_position_m=(0.0, y, z), disk_cache=False)) if args.robot == "ur5e"
+                 else PandaRobot(PandaConfig(base_position_m=(0.0, y, z), disk_cache=False)))
         try:
             nviews = int(robot.reachable_views(views, shelf).sum())
             counts = [sum(robot.reach_path(p, shelf).reachable for p in pushes(rot, h))
