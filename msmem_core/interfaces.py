@@ -328,6 +328,14 @@ class Robot(ABC):
                              f"path point {k} of {len(poses)}: {reach.reason}")
         return reach
 
+    def use_obstacles(self, boxes: NDArray[np.float64] | None) -> None:
+        """Boxes [N, 2, 3] (lower and upper world corners) of believed-occupied space that the arm's links
+        behind its hand must not touch along ``reach_path``, until the next call (None: none). Before
+        checking a decision's manipulation candidates, MSAS gives the belief's (``GridSpec.column_boxes``
+        of expected occupancy > 0.5). The hand and what the skill's tool covers are the skill's to check
+        (``Skill.tool_path``'s swept volume). The base class ignores them."""
+        return None
+
     def reach_camera(self, camera_to_world: NDArray[np.float64], shelf: ShelfSpec) -> Reach:
         """``ik`` of the flange pose that puts the wrist camera at ``camera_to_world``."""
         return self.ik(np.asarray(camera_to_world, dtype=np.float64) @ np.linalg.inv(self.camera_mount()), shelf)

@@ -26,6 +26,7 @@ from msmem_core.interfaces import (
     ObservationModel,
     Outcome,
     PerceptionAction,
+    Robot,
     Simulator,
     Skill,
     Term,
@@ -186,6 +187,7 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
         values: dict[str, float] = {}
         unreachable: dict[str, int] = {}
         checked: dict[str, int] = {}
+        obstacles_set: list[bool] = []
         for bound in skills:
             with span("track", bound.name, ctx=ctx):
                 bound.skill.track(ctx)  # every step, also when the skill may not act (e.g. FE-UMGF's buffer)
@@ -204,7 +206,12 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
                 name, skill, acts = bound.name, bound.skill, actions
                 checked[name] = unreachable[name] = 0
 
-                def follows(i: int, name: str = name, skill: Skill = skill, acts: list[Action] = acts) -> bool:
+                def follows(i: int, name: str = name, skill: Skill = skill, acts: list[Action] = acts,
+                            bot: Robot = robot) -> bool:
+                    if not obstacles_set:  # the belief's occupied space, once per decision, when first needed
+                        belief = ctx.belief
+                        bot.use_obstacles(belief.grid.column_boxes(belief.expected_occupancy() > 0.5))
+                        obstacles_set.append(True)
                     with span("reach", name, ctx=ctx):
                         ok = bool(reachable_actions(skill, [acts[i]], ctx.workspace))
                     checked[name] += 1

@@ -20,8 +20,10 @@ from msmem_core.cli import build_app
 from msmem_core.config import RunConfig, load_config
 from msmem_core.errors import PluginError
 from msmem_core.interfaces import CandidateBatch, DecisionContext, Reach, Robot, RobotModel, Workspace
+from msmem_core.plugins.manager import ComponentRef
 from msmem_core.run.runner import check_components
 from msmem_core.testing.builders import decision_context, default_workspace
+from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 
@@ -442,6 +444,16 @@ def test_decide_chooses_as_if_the_manipulations_the_robot_cannot_follow_were_nev
             if not views:  # the pushes compete only with each other: the best is always checked
                 assert d.reach_checked["push"] >= 1
     assert len({c for c in chosen if c[0] == "push"}) >= 2, chosen  # the robots' pushes differ
+    # before its first check, the decision gives the robot the belief's occupied space, once
+    robot = _LeftOnly()
+    seen: list[np.ndarray] = []
+    robot.use_obstacles = seen.append  # type: ignore[method-assign]
+    one_decision([("push", Fixed(pushes), AnalyticPushEffect())], belief,
+                 workspace=Workspace(ws.grid, ws.shelf, ws.gripper, ws.num_classes, robot))
+    assert robot.asked >= 1
+    assert len(seen) == 1
+    np.testing.assert_array_equal(seen[0], ws.grid.column_boxes(belief.expected_occupancy() > 0.5))
+    assert len(seen[0]) > 0
 
 
 def test_each_step_records_the_arm_configuration_that_reaches_its_view_and_the_report_draws_it(
@@ -484,3 +496,47 @@ def test_each_step_records_the_arm_configuration_that_reaches_its_view_and_the_r
     plain = build_episode(load_config("view-only", None, small), plugin_manager, scene=conformance_scene())
     run_episode(plain)
     assert all("arm" not in rec for rec in plain.records)
+
+
+@pytest.mark.parametrize("name", ["panda", "ur5e"])
+def test_the_links_behind_the_hand_keep_out_of_believed_objects_along_a_path(name, plugin_manager):
+    """A forward push path the arm follows; a believed box where one of its links behind the hand ends up
+    refuses it (``link-object``), a box around the hand alone does not (the skill's tool checks the hand)."""
+    from msmem_push.geometry import gripper_pose
+
+    robot = plugin_manager.build("robot", ComponentRef(name=name), where="robot")
+    path = np.stack([gripper_pose((0.25, -0.12), 0.085, (0.0, 1.0), "forward"),
+                     gripper_pose((0.25, 0.15), 0.085, (0.0, 1.0), "forward")])
+    robot.use_obstacles(None)
+    free = robot.reach_path(path, SHELF)
+    assert free.reachable, free.reason
+    c = robot._client
+    robot._set(np.asarray(free.joints))
+    boxes = {n: np.array(c.getAABB(robot._body, j)) for j, n in robot._links.items()
+             if c.getCollisionShapeData(robot._body, j)}
+    exempt = {*robot.camera_carriers, *robot.hand_links}
+    nearest = max((n for n in boxes if n not in exempt), key=lambda n: boxes[n][1][1])  # the link nearest the hand
+    robot.use_obstacles(boxes[nearest][None])
+    blocked = robot.reach_path(path, SHELF)
+    assert not blocked.reachable
+    assert f"{nearest}-object" in blocked.reason
+    assert "believed-occupied space" in blocked.reason
+    palm = path[-1][:3, 3] - 0.07 * path[-1][:3, 2]  # 7 cm behind the fingertips: in the hand, the skill's to check
+    robot.use_obstacles(np.array([[palm - 0.01, palm + 0.01]]))
+    assert robot.reach_path(path, SHELF).reachable
+    robot.use_obstacles(None)
+    assert robot.reach_path(path, SHELF).reachable
+
+
+def test_column_boxes_cover_exactly_the_marked_voxels():
+    rng = np.random.default_rng(3)
+    grid = GridSpec(origin_m=(-0.1, 0.0, 0.0), voxel_m=0.02, shape=(6, 5, 7))
+    mask = rng.random(grid.shape) < 0.4
+    boxes = grid.column_boxes(mask)
+    centres = grid.centers().reshape(-1, 3)
+    inside = np.zeros(len(centres), dtype=int)
+    for lo, hi in boxes:
+        inside += np.all((centres > lo) & (centres < hi), axis=1)
+    np.testing.assert_array_equal(inside, mask.ravel().astype(int))  # each marked voxel in exactly one box
+    assert len(boxes) < mask.sum()  # runs along z are merged
+    assert len(grid.column_boxes(np.zeros(grid.shape, dtype=bool))) == 0

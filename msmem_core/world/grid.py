@@ -52,6 +52,19 @@ class GridSpec(BaseModel):
         axes = [self.origin[a] + (np.arange(n) + 0.5) * self.voxel_m for a, n in enumerate(self.shape)]
         return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
 
+    def column_boxes(self, mask: ArrayLike) -> NDArray[np.float64]:
+        """Boxes [N, 2, 3] (lower and upper world corners) covering exactly the voxels of ``mask`` (the
+        grid's shape): one per run of consecutive marked voxels along z in each (x, y) column."""
+        m = np.asarray(mask, dtype=bool).reshape(self.shape)
+        pad = np.zeros((*self.shape[:2], 1), dtype=bool)
+        edges = np.diff(np.concatenate([pad, m, pad], axis=2).astype(np.int8), axis=2)
+        i, j, k0 = np.nonzero(edges == 1)  # a run starts at voxel k0 ...
+        _, _, k1 = np.nonzero(edges == -1)  # ... and ends before k1 (both in (i, j, k) order)
+        s = self.voxel_m
+        lo = self.origin + s * np.stack([i, j, k0], axis=1)
+        hi = self.origin + s * np.stack([i + 1, j + 1, k1], axis=1)
+        return np.stack([lo, hi], axis=1).astype(np.float64)
+
     @classmethod
     def around_box(cls, lower_m: ArrayLike, upper_m: ArrayLike, voxel_m: float, margin_voxels: int = 1) -> GridSpec:
         """The grid that covers the box [lower, upper] with ``margin_voxels`` on every side."""

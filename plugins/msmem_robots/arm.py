@@ -99,6 +99,11 @@ class PybulletArm(Robot):
         """The arm's links a configuration checks the camera against (``self_collision``)."""
         self._camera_centre = np.eye(4)
         """The camera box's centre in the flange frame (behind the optical centre by half its depth)."""
+        self._obstacles: NDArray[np.float64] | None = None
+        """Believed-occupied boxes [N, 2, 3] that ``reach_path`` keeps the links behind the hand out of."""
+        self._obstacle_body: int | None = None
+        self._obstacles_built = True
+        """Whether ``_obstacle_body`` holds ``_obstacles``."""
 
     # ------------------------------------------------------------------------------ pybullet client
     def _connect(self) -> Any:
@@ -211,6 +216,7 @@ class PybulletArm(Robot):
             self._client.disconnect()
             self._client = None
             self._shelf, self._boards, self._camera_body = None, [], None
+            self._obstacle_body, self._obstacles_built = None, False
 
     # ------------------------------------------------------------------------------------ interface
     def model(self) -> RobotModel:
@@ -231,10 +237,38 @@ class PybulletArm(Robot):
         m[2, 3] = self.fingertip_m
         return m
 
+    def use_obstacles(self, boxes: NDArray[np.float64] | None) -> None:
+        """Keep the links behind the hand (all but ``camera_carriers`` and ``hand_links``) out of these boxes
+        along ``reach_path`` (one compound body in the robot's client, built when first needed)."""
+        self._obstacles = None if boxes is None or not len(boxes) else np.asarray(boxes, dtype=np.float64)
+        self._obstacles_built = False
+
+    def _obstacle_hits(self) -> list[str]:
+        """``link-object`` for each link behind the hand touching a believed-occupied box."""
+        c = self._client
+        if not self._obstacles_built:
+            if self._obstacle_body is not None:
+                c.removeBody(self._obstacle_body)
+                self._obstacle_body = None
+            if self._obstacles is not None:
+                half = (self._obstacles[:, 1] - self._obstacles[:, 0]) / 2
+                centre = self._obstacles.mean(axis=1)
+                shape = c.createCollisionShapeArray(
+                    shapeTypes=[pybullet.GEOM_BOX] * len(half), halfExtents=half.tolist(),
+                    collisionFramePositions=centre.tolist())
+                self._obstacle_body = c.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=shape)
+            self._obstacles_built = True
+        if self._obstacle_body is None:
+            return []
+        exempt = {*self.camera_carriers, *self.hand_links}
+        return [f"{n}-object" for j, n in self._links.items() if n not in exempt
+                and c.getClosestPoints(self._body, self._obstacle_body, 0.0, j, -1)]
+
     def reach_path(self, tool_poses: NDArray[np.float64], shelf: ShelfSpec, step_m: float = 0.02) -> Reach:
         """The first point by ``ik`` (every start configuration), each next one by IK from the previous
         answer (a joint-space path: no joint may change by more than ``path_joint_step_rad`` between
-        points at most ``step_m`` apart), every configuration checked against the shelf."""
+        points at most ``step_m`` apart), every configuration checked against the shelf and the links
+        behind the hand against believed-occupied space (``use_obstacles``)."""
         poses = densify(np.asarray(tool_poses, dtype=np.float64), step_m)
         inv = np.linalg.inv(self.tool_mount())
         n = len(poses)
@@ -243,6 +277,9 @@ class PybulletArm(Robot):
             return Reach(False, None, first.position_error_m, first.orientation_error_deg, first.collisions,
                          f"path point 0 of {n}: {first.reason}")
         q = np.asarray(first.joints)
+        if touched := self._obstacle_hits():
+            return Reach(False, None, first.position_error_m, first.orientation_error_deg, tuple(touched),
+                         f"path point 0 of {n}: the arm touches believed-occupied space ({', '.join(touched[:3])})")
         cfg = self.config
         perr, aerr = first.position_error_m, first.orientation_error_deg
         for k in range(1, n):
@@ -259,6 +296,9 @@ class PybulletArm(Robot):
                 what = ", ".join(hits[:3])
                 return Reach(False, None, perr, aerr, tuple(hits),
                              f"path point {k} of {n}: the arm collides with the shelf or itself ({what})")
+            elif touched := self._obstacle_hits():
+                return Reach(False, None, perr, aerr, tuple(touched), f"path point {k} of {n}: the arm touches "
+                             f"believed-occupied space ({', '.join(touched[:3])})")
             if why:
                 return Reach(False, None, perr, aerr, (), f"path point {k} of {n}: {why}")
             q = new
