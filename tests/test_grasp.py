@@ -244,7 +244,7 @@ def test_batched_collision_tests_equal_the_per_grasp_loop(seed: int) -> None:
     belief = _seeded_belief(seed)
     found = []
     every = {"top_k": 300, "max_per_object": 300}
-    for params in ({}, every, {**every, "hand_m": PANDA_HAND}):
+    for params in ({}, every, *([{**every, "hand_m": PANDA_HAND}] if seed == 0 else [])):  # the hand: one seed
         cfg = GraspConfig(predictor="geometric", seed=seed, **params)  # type: ignore[arg-type]
         skill, reference = GraspSkill(cfg), _ReferenceGraspSkill(cfg)
         skill.track(ctx(belief))
@@ -254,7 +254,8 @@ def test_batched_collision_tests_equal_the_per_grasp_loop(seed: int) -> None:
         found.append(len(got))
         if params:
             assert len(got) > 4
-    assert found[2] < found[1]  # the 20 cm hand fits fewer places than the palm
+    if seed == 0:
+        assert found[2] < found[1]  # the 20 cm hand fits fewer places than the palm
 
     # every candidate's test at the grasp and on its way in, one at a time against the kernel
     cfg = GraspConfig(predictor="geometric")
