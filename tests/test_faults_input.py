@@ -275,6 +275,7 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run([MSMEM, *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=300, check=False)
 
 
+@pytest.mark.slow  # about 10 s: kept out of `make test`'s five minutes, run by CI's `make test-slow`
 def test_cli_refuses_hostile_inputs_in_one_line(tmp_path):
     nan_scene = _scene_file(tmp_path, [_obj(0, float("nan"), 0.2)])
     floating = tmp_path / "floating.json"

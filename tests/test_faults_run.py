@@ -100,6 +100,7 @@ def _default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+@pytest.mark.slow  # about 10 s: kept out of `make test`'s five minutes, run by CI's `make test-slow`
 def test_ctrl_c_names_the_step_and_the_partial_run_and_exits_130(tmp_path, small_config):
     out = tmp_path / "run"
     env = {"PYTHONPATH": PYTHONPATH, "PATH": "/usr/bin:/bin"}

@@ -201,6 +201,7 @@ def test_the_shipped_mesh25_suite_is_what_its_generator_file_makes() -> None:
     assert made.model_copy(update={"name": shipped.name}) == shipped
 
 
+@pytest.mark.slow  # about 10 s: kept out of `make test`'s five minutes, run by CI's `make test-slow`
 def test_an_episode_on_a_mesh25_scene_maps_its_mesh_classes_only() -> None:
     from msmem_core.plugins import get_plugin_manager
     from msmem_core.run.runner import build_episode, run_episode
