@@ -8,6 +8,10 @@ from pydantic import BaseModel, Field
 
 from msmem_core.util.validation import FROZEN_MODEL_CONFIG
 
+HandDims = tuple[float, float, float] | tuple[float, float, float, float, float]
+"""(width along the closing axis, thickness, depth along the approach) of a hand behind the fingers,
+optionally followed by (width, length) of the arm's wrist behind the hand, on the approach axis."""
+
 
 class GripperSpec(BaseModel):
     """Floating parallel-jaw gripper.

@@ -28,7 +28,7 @@ from msmem_core.map.ig import shelf_wall_mask
 from msmem_core.map.raycast import grid_params
 from msmem_core.world.geometry import F64
 from msmem_core.world.grid import GridSpec
-from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.gripper import GripperSpec, HandDims
 from msmem_core.world.scene import ShelfSpec
 
 I64 = NDArray[np.int64]
@@ -41,11 +41,6 @@ def box_lattice(centre: F64, half: F64, spacing: float, shrink: float = 0.0) -> 
     axes = [np.linspace(-v, v, max(2, math.ceil(2 * v / spacing) + 1)) if v > 0 else np.zeros(1) for v in h]
     g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     return g + np.asarray(centre, dtype=np.float64)
-
-
-HandDims = tuple[float, float, float] | tuple[float, float, float, float, float]
-"""(width along the closing axis, thickness, depth along the approach) of a hand behind the fingers,
-optionally followed by (width, length) of the arm's wrist behind the hand, on the approach axis."""
 
 
 def gripper_boxes(gripper: GripperSpec, opening_m: float, hand_m: HandDims | None = None) -> list[tuple[F64, F64]]:

@@ -74,14 +74,13 @@ from msmem_core.util.trace import span
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import F64
 from msmem_core.world.grid import GridSpec
-from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.gripper import GripperSpec, HandDims
 from msmem_core.world.scene import ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig
 from msmem_grasp.fpp import FPPConfig, frontier_points, virtual_front_views
 from msmem_grasp.fusion import FusionConfig, GraspBuffer, GraspHypotheses
 from msmem_grasp.geometric import GeometricConfig, predict_geometric
 from msmem_grasp.planning import (
-    HandDims,
     Objects,
     blocked_mask,
     fill_down,

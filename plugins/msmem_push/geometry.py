@@ -36,15 +36,12 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from msmem_core.world.grid import GridSpec
-from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.gripper import GripperSpec, HandDims
 
 _SIGNS = np.array([[-1.0, -1.0], [-1.0, 1.0], [1.0, -1.0], [1.0, 1.0]])
 Box = tuple[float, ...]
 """(half_along, half_across, z_lo, z_hi[, centre_along, centre_across]) of one tool part in the push
 frame, z from the tool tip; without the centre the part is centred on the tool's position."""
-HandDims = tuple[float, float, float] | tuple[float, float, float, float, float]
-"""(width along the closing axis, thickness, depth along the approach) of a hand behind the fingers,
-optionally followed by (width, length) of the arm's wrist behind the hand, on the approach axis."""
 
 
 def tool_boxes(gripper: GripperSpec, palm: str = "along", hand_m: HandDims | None = None,

@@ -64,7 +64,7 @@ from scipy import ndimage
 
 from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill, Workspace
 from msmem_core.map.ig import shelf_wall_mask
-from msmem_core.world.gripper import GripperSpec
+from msmem_core.world.gripper import GripperSpec, HandDims
 from msmem_core.world.meshes import stance_ratio
 from msmem_core.world.scene import ObjectClass, ShelfSpec
 from msmem_push.geometry import (
@@ -101,7 +101,7 @@ class PushAction(Action):
     palm: Literal["along", "across", "forward"] = "along"
     """Gripper yaw: closing axis (and palm) along the push or across it, pointing down; or
     ``"forward"``: pointing into the shelf, pushing straight in or sideways (``msmem_push.geometry``)."""
-    hand_m: tuple[float, float, float] | tuple[float, float, float, float, float] | None = None
+    hand_m: HandDims | None = None
     """With ``palm="forward"``: the hand behind the fingers (width, thickness, depth[, wrist width,
     wrist length]); None: the gripper's palm. Left out of the action's record when None."""
     omit_if_none: ClassVar[tuple[str, ...]] = ("hand_m",)
@@ -178,7 +178,7 @@ class PushConfig(BaseModel):
     hand's back up, pushing straight in (+y, a share ``into_fraction``) or sideways (+-x); directions
     stay along the shelf's axes (``max_angle_deg`` does not apply). An arm reaches into a shelf this way
     (docs/robots.md); raise ``tool_height_m`` and ``min_tool_height_m`` above half the hand's thickness."""
-    hand_m: tuple[float, float, float] | tuple[float, float, float, float, float] | None = None
+    hand_m: HandDims | None = None
     """With ``palm: forward``: the hand behind the fingers, (width along the closing axis, thickness,
     depth) in metres, e.g. the Panda's (0.204, 0.063, 0.066), optionally followed by the width and length
     of the arm's wrist behind it (the Panda's last link, about 0.09 and 0.1). None: the gripper's palm."""

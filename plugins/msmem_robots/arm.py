@@ -261,8 +261,8 @@ class PybulletArm(Robot):
         if self._obstacle_body is None:
             return []
         exempt = {*self.camera_carriers, *self.hand_links}
-        return [f"{n}-object" for j, n in self._links.items() if n not in exempt
-                and c.getClosestPoints(self._body, self._obstacle_body, 0.0, j, -1)]
+        touching = {p[3] for p in c.getClosestPoints(self._body, self._obstacle_body, 0.0)}
+        return [f"{n}-object" for j, n in self._links.items() if j in touching and n not in exempt]
 
     def reach_path(self, tool_poses: NDArray[np.float64], shelf: ShelfSpec, step_m: float = 0.02) -> Reach:
         """The first point by ``ik`` (every start configuration), each next one by IK from the previous
