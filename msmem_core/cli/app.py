@@ -225,6 +225,38 @@ def bench(
         typer.echo(f"{len(summary['errors'])} episode(s) crashed; see {out / 'results.json'}", err=True)
 
 
+def eval_ceiling(
+    suite: Annotated[str, typer.Option("--suite", help="Scene suite shipped with msmem.")] = "hard25",
+    scenes: Annotated[str | None, typer.Option("--scenes", help="Scene indices, e.g. 0-4,7 (default: all).")] = "0-4",
+    views: Annotated[int, typer.Option("--views", help="Evenly spaced views integrated per scene.")] = 100,
+    observe: Annotated[list[str] | None, typer.Option(
+        "--observe", help="Observation model to compare (repeat; 'default': the config's).")] = None,
+    variants: Annotated[str, typer.Option(
+        "--variants", help="Comma-separated: scene, front-occluder, all-occluders.")] = "scene,front-occluder,all-occluders",
+    method: MethodOpt = None,
+    config: ConfigOpt = None,
+    out: Annotated[Path | None, typer.Option("--out", help="Also write the rows and summary as JSON here.")] = None,
+) -> None:
+    """What views alone can map, and what removing occluders is worth: the paper's map metrics of N evenly
+    spaced views on each scene and its oracle variants, per observation model (docs: map prediction)."""
+    import json
+
+    from msmem_core.config import load_config
+    from msmem_core.run.bench import parse_range, suite_scenes
+    from msmem_core.run.ceiling import ceiling, format_table, summary
+
+    cfg = load_config(method or "view-only", str(config) if config else None, {"threads": 1})
+    suite_list = suite_scenes(suite)
+    picked = [(i, suite_list[i]) for i in parse_range(scenes, len(suite_list))]
+    names = [v.strip() for v in variants.split(",") if v.strip()]
+    rows = ceiling(cfg, _pm(), picked, views, observe or ["default", "analytic-observation"], names)
+    typer.echo(format_table(rows))
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps({"suite": suite, "views": views, "rows": [r.as_dict() for r in rows],
+                                   "summary": summary(rows)}, indent=1) + "\n")
+
+
 def report_cmd(
     run_dir: Annotated[Path, typer.Argument(help="Run folder written by `msmem run`.")],
     png: Annotated[bool, typer.Option("--png/--no-png",
@@ -323,6 +355,7 @@ CORE_COMMANDS: dict[str | None, dict[str, Callable[..., Any]]] = {  # group (Non
     "perf": {"ig": perf_ig, "step": perf_step},
     "scene": {"generate": scene_generate},
     "docs": {"config": docs_config, "cli": docs_cli, "api": docs_api},
+    "eval": {"ceiling": eval_ceiling},
 }
 
 

@@ -315,3 +315,40 @@ def count_views_seeing(
         occluded = scene.test_occlusions(o3d.core.Tensor.from_numpy(rays), tnear=1e-6, tfar=1.0).numpy()
         counts += np.bincount(pi[~occluded], minlength=len(pts))
     return counts
+
+
+def occluders(
+    objects: Sequence[ObjectSpec],
+    target_ids: Sequence[int],
+    shelf: ShelfSpec,
+    viewpoints: NDArray[np.float64],
+    camera: CameraConfig,
+    stride: int = 4,
+    poses: Poses | None = None,
+) -> dict[int, dict[int, int]]:
+    """Per target object, the objects that hide it: ``{target: {occluder: pixels}}``.
+
+    A strided pixel counts for occluder ``o`` when the target alone (in the empty shelf) would be hit
+    by its ray and ``o`` is what the ray hits first in the full scene. Pixels the shelf boards take
+    are nobody's. Rays are cast only inside each target's projected bounding box.
+    """
+    meshes = [object_mesh(o, current_pose(o, poses)) for o in objects]
+    scene, _ = _raycasting_scene(meshes + shelf_meshes(shelf))
+    index = {o.id: n for n, o in enumerate(objects)}
+    max_t = camera.far_m - camera.near_m
+    out: dict[int, dict[int, int]] = {}
+    for t in target_ids:
+        n = index[t]
+        rays = _rays_at(_box_ray_indices(meshes[n].bounds, viewpoints, camera, stride), viewpoints, camera, stride)
+        out[int(t)] = {}
+        if len(rays) == 0:
+            continue
+        alone, _ = _raycasting_scene([meshes[n]])
+        _, g_alone = _cast(alone, rays, max_t)
+        rays = rays[g_alone >= 0]
+        if len(rays) == 0:
+            continue
+        _, gid = _cast(scene, rays, max_t)
+        counts = np.bincount(gid[(gid >= 0) & (gid < len(objects)) & (gid != n)], minlength=len(objects))
+        out[int(t)] = {objects[k].id: int(c) for k, c in enumerate(counts) if c > 0}
+    return out
