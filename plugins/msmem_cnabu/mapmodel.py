@@ -151,31 +151,5 @@ def unlabelled_objects(occupied: NDArray[np.bool_], eta: NDArray[np.floating], l
     return out
 
 
-def onto_slots(a: NDArray[Any], index: NDArray[np.int64], num_classes: int, fill: Any, axis: int = 0) -> NDArray[Any]:
-    """``a`` with its class axis ``axis`` spread onto ``num_classes`` slots: class ``c`` to slot ``index[c]``,
-    every other slot ``fill`` (a class map's scene classes onto the trained ones)."""
-    shape = list(a.shape)
-    shape[axis] = num_classes
-    out = np.full(shape, fill, dtype=a.dtype)
-    out[(slice(None),) * axis + (index,)] = a
-    return out
-
-
-def mapped_classes(class_map: dict[str, str], trained: tuple[str, ...] | None
-                   ) -> tuple[tuple[str, ...], NDArray[np.int64]]:
-    """The classes a ``class_map`` makes the model take (background, then the map's scene classes in order)
-    and, per one of them, the index of the trained class it maps to; refused in one line when the map
-    names a class the weights do not know, maps two classes to one, or maps background."""
-    if trained is None:
-        raise UserError("cnabu-map: class_map needs weights that record their classes")
-    unknown = sorted({m for m in class_map.values() if m not in trained[1:]})
-    if unknown:
-        raise UserError(f"cnabu-map: class_map maps to {', '.join(unknown)}, which the weights do not know; "
-                        f"they know {', '.join(trained[1:])}")
-    if "background" in class_map:
-        raise UserError("cnabu-map: class_map maps background, which is always itself")
-    targets = list(class_map.values())
-    if twice := sorted({m for m in targets if targets.count(m) > 1}):
-        raise UserError(f"cnabu-map: class_map maps two scene classes to {', '.join(twice)}; map each to its own")
-    index = np.array([0, *(trained.index(m) for m in targets)], dtype=np.int64)
-    return ("background", *class_map), index
+# the class map, shared by the learned models (cnabu-map, cnabu-push, cnabu-grasp)
+from msmem_cnabu.classmap import mapped_classes, onto_slots  # noqa: E402
