@@ -25,6 +25,9 @@ class CNABUObserveConfig(BaseModel):
     """Pixels without a return mark free space up to this z-depth."""
     threads: int | None = Field(None, ge=1)
     """torch threads while predicting (None: leave the process's setting)."""
+    class_map: dict[str, str] | None = None
+    """As ``cnabu-push``'s ``class_map``: each object class of the scene, in its order, to a distinct class
+    the weights know (the rays' class labels go to the mapped classes). None: the trained classes."""
 
 
 class CNABUEffectConfig(BaseModel):
@@ -47,6 +50,12 @@ class CNABUEffectConfig(BaseModel):
     faster per candidate and need more working memory: docs/cnabu.md)."""
     threads: int | None = Field(None, ge=1)
     """torch threads while predicting (None: leave the process's setting)."""
+    class_map: dict[str, str] | None = None
+    """For scenes whose classes the weights were not trained on: each object class of the scene, in the
+    scene's order, to a distinct class the weights know, as ``cnabu-map``'s ``class_map`` (a run
+    config's top-level ``class_map`` gives one map to every learned model). The network sees and
+    predicts the mapped classes; the evidence of trained classes no scene class maps to is dropped.
+    None: the scene's classes must be the trained ones (docs/cnabu.md)."""
 
 
 class CNABUMapConfig(BaseModel):
@@ -94,3 +103,19 @@ class CNABUMapConfig(BaseModel):
     scene's order, to a distinct class the weights know (e.g. ``{cereal: cracker_box, ...}``). The
     network then sees and predicts the mapped classes; the evidence of trained classes no scene class
     maps to is dropped. None: the scene's classes must be the trained ones (docs/map-prediction.md)."""
+    observed_voxels: Literal["rays", "network"] = "rays"
+    """What the returned belief says of a voxel a ray of the episode has reached. ``rays``: the ray
+    evidence is authoritative there (the analytic update's record of the episode, kept beside the
+    network): its class evidence wherever a ray labelled the voxel (background on voxels seen free),
+    and its occupancy evidence wherever that is confident (``ray_confidence``); the network predicts
+    only what no ray reached, and a voxel an effect model's prediction rewrote (a push or grasp moved
+    what was there) is the network's again until a ray reaches it. ``network``: the network's
+    prediction everywhere (docs/map-prediction.md)."""
+    ray_confidence: float = Field(0.5, ge=0.5, lt=1.0)
+    """With ``observed_voxels: rays``: the ray record's occupancy is used where its expected occupancy is
+    above this or below 1 minus this (0.5: wherever the rays lean either way; 0.9 would leave voxels
+    seen hit by some views and passed by others to the network, which calls too many of them free)."""
+    fill_under_surfaces: float | None = Field(2.0, gt=0.0, lt=10.0)
+    """With ``observed_voxels: rays``: voxels no ray reached below a column's highest believed-occupied
+    voxel that the network believes free are filled as ``column-fill`` fills them (occupied with this
+    evidence, p = (1 + f) / (2 + f), and the top voxel's class): objects stand on the board. None: off."""

@@ -49,6 +49,9 @@ class CNABUMapObservationModel(ObservationModel):
         network's own evidence behind it (alpha, beta, eta), the next input when that belief comes back."""
         self._labelled = np.zeros((0, 0, 0, 0), dtype=bool)
         """``unlabelled_objects: unknown``: [C, X, Y, Z] where a ray of the current episode labelled class c."""
+        self._rays: EvidentialMap | None = None
+        """``observed_voxels: rays``: the analytic update's record of the current episode's rays (in the
+        belief's class slots), cleared where an effect model's prediction rewrote the belief."""
 
     def valid(self, belief: EvidentialMap) -> torch.Tensor:
         g = belief.grid
@@ -130,10 +133,65 @@ class CNABUMapObservationModel(ObservationModel):
             unknown = unlabelled_objects(out_a / (out_a + out_b) > 0.5, out_eta, self._labelled, valid.numpy())
             out_a, out_b = out_a.copy(), out_b.copy()
             out_a[unknown] = out_b[unknown] = (out_a[unknown] + out_b[unknown]) / 2  # p = 0.5: a tie is free
+        if self.config.observed_voxels == "rays":
+            out_a, out_b, out_eta = fuse_rays(out_a, out_b, out_eta, self._ray_record(belief, free, occ, labels),
+                                              self.config.ray_confidence)
+            if self.config.fill_under_surfaces is not None:
+                fill_under_surfaces(out_a, out_b, out_eta, observed, valid.numpy(), self.config.fill_under_surfaces)
         out = EvidentialMap(belief.grid, out_a, out_b, out_eta, observed)
         if raw is not None:
             self._state = (out, tuple(x[0].numpy() for x in raw))  # the trained slots: the next input as is
         return out
+
+
+    def _ray_record(self, belief: EvidentialMap, free: NDArray[np.bool_], occ: NDArray[np.bool_],
+                    seen: NDArray[np.bool_]) -> EvidentialMap:
+        """The episode's ray record after this view (``seen`` in the belief's class slots). It starts
+        empty with an episode (a belief without an ``observed`` record); where the belief's record is
+        cleared (``BeliefDelta.apply``: an effect model's prediction wrote there), it is the prior again."""
+        r = self._rays
+        if (belief.observed is None or not belief.observed.any() or r is None or r.grid != belief.grid
+                or r.num_classes != belief.num_classes):
+            r = EvidentialMap.empty(belief.grid, belief.num_classes)
+        else:
+            stale = ~belief.observed
+            r.alpha[stale] = r.beta[stale] = 1.0
+            r.eta[:, stale] = 1.0
+        self._rays = self.rays.apply_masks(r, free, occ, seen)
+        return self._rays
+
+
+def fuse_rays(alpha: NDArray[np.float32], beta: NDArray[np.float32], eta: NDArray[np.float32], rays: EvidentialMap,
+              confidence: float) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
+    """The network's evidence with the ray record's where it is authoritative: the class evidence of
+    every voxel a ray labelled (any class evidence above the prior, background on voxels seen free), the
+    occupancy evidence where the record's expected occupancy is above ``confidence`` or below
+    ``1 - confidence``. New arrays; the inputs are unchanged."""
+    labelled = rays.eta.sum(axis=0) > rays.num_classes
+    p = rays.expected_occupancy()
+    sure = (p > confidence) | (p < 1.0 - confidence)
+    return (np.where(sure, rays.alpha, alpha).astype(np.float32), np.where(sure, rays.beta, beta).astype(np.float32),
+            np.where(labelled[None], rays.eta, eta).astype(np.float32))
+
+
+def fill_under_surfaces(alpha: NDArray[np.float32], beta: NDArray[np.float32], eta: NDArray[np.float32],
+                        observed: NDArray[np.bool_], inside: NDArray[np.bool_], evidence: float) -> None:
+    """In place: the voxels no ray reached (``~observed``) below the highest believed-occupied voxel of
+    their column (within ``inside``) that are believed free become occupied with ``evidence`` and the
+    top voxel's object class (as ``column-fill``)."""
+    occ = (alpha / (alpha + beta) > 0.5) & inside
+    z = occ.shape[2]
+    top = z - 1 - np.argmax(occ[:, :, ::-1], axis=2)
+    below = (np.arange(z)[None, None, :] < top[:, :, None]) & occ.any(axis=2)[:, :, None]
+    m = below & ~observed & inside & ~occ
+    if not m.any():
+        return
+    top_cls = np.take_along_axis(np.argmax(eta[1:], axis=0) + 1, top[:, :, None], axis=2)[:, :, 0]
+    xs, ys, zs = np.nonzero(m)
+    f = np.float32(1 + evidence)
+    alpha[m], beta[m] = f, 1.0
+    eta[:, xs, ys, zs] = 1.0
+    eta[top_cls[xs, ys], xs, ys, zs] = f
 
 
 def unlabelled_objects(occupied: NDArray[np.bool_], eta: NDArray[np.floating], labelled: NDArray[np.bool_],
