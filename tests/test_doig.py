@@ -116,7 +116,7 @@ def test_the_winner_of_a_screened_batch_is_scored_at_full_density() -> None:
     actions = PushSkill(PushConfig(max_samples=12)).propose(ctx)
     pred = AnalyticPushEffect().predict(belief, actions, WORKSPACE)
     batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
-    full = ig.view_ig([ig.prepare(b) for b in pred.beliefs]).max(axis=1)
+    full = ig.view_ig([ig.prepare(b, before=ctx.field) for b in pred.beliefs]).max(axis=1)
     # a term that favours the candidate the screening ranks last forces a refinement
     screened = IGTerm(IGTermConfig(screen_ray_step=2, finalists=2)).score(ctx, batch)
     last = int(np.argmin(screened))

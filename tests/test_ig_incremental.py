@@ -68,10 +68,11 @@ def test_incremental_ig_equals_a_full_rescore(seed: int, eps: float, k: int) -> 
     base = svc.prepare(belief)
     predicted = DeltaBeliefs(belief, deltas)
     for exact in (False, True):
-        full = svc.view_ig([svc.prepare(b) for b in predicted], exact=exact)
+        full = svc.view_ig([svc.prepare(b, before=base) for b in predicted], exact=exact)
         fast = svc.view_ig_delta(base, [svc.belief_delta(base, d) for d in deltas], exact=exact)
         np.testing.assert_allclose(fast, full, rtol=1e-9, atol=1e-9)
-        dense = svc.view_ig_delta(base, [svc.field_delta(base, svc.prepare(b)) for b in predicted], exact=exact)
+        fields = [svc.field_delta(base, svc.prepare(b, before=base)) for b in predicted]
+        dense = svc.view_ig_delta(base, fields, exact=exact)
         np.testing.assert_allclose(dense, full, rtol=1e-9, atol=1e-9)
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numba
 import numpy as np
@@ -42,6 +43,14 @@ class IGConfig(BaseModel):
     """Expected occupancy above this counts as certainly occupied (p = 1, H = 0), as MEM."""
     p_free_clamp: float = Field(0.05, ge=0.0, lt=0.5)
     """Expected occupancy below this counts as certainly free (p = 0, H = 0), as MEM."""
+    predicted_entropy: Literal["no-gain", "as-predicted"] = "no-gain"
+    """What a manipulation's predicted change may do to the entropy IG counts. ``no-gain``: a voxel an
+    effect model changed keeps at most the entropy it had before (``min(H_before, H_predicted)``): the
+    prediction moves occupancy, so the view after it sees past what moved, but the uncertainty the
+    prediction itself adds (a grasped object's voxels returned to the prior) is no information a
+    camera can gain. A manipulation earns IG only where it opens space whose entropy was there
+    before: never-observed voxels and the residual uncertainty of observed ones. ``as-predicted``: the
+    predicted belief's own entropy (MEM's rule)."""
 
 
 def _unique_deltas(deltas: Sequence[IGDelta]) -> tuple[list[IGDelta], NDArray[np.int64]]:
@@ -152,13 +161,19 @@ class IGService:
     def rays_per_view(self) -> int:
         return int(self.dirs.shape[1])
 
-    def prepare(self, belief: EvidentialMap) -> IGField:
-        """Clamped occupancy (MEM: > p_occ_clamp -> 1, < p_free_clamp -> 0, walls 1) and its entropy."""
+    def prepare(self, belief: EvidentialMap, before: IGField | None = None) -> IGField:
+        """Clamped occupancy (MEM: > p_occ_clamp -> 1, < p_free_clamp -> 0, walls 1) and its entropy.
+
+        ``before``: the field of the belief a manipulation's prediction ``belief`` was made from; with
+        ``predicted_entropy: no-gain`` no voxel's entropy rises above its entropy there."""
         if belief.grid != self.grid:
             raise ValueError("belief grid differs from the IG service's grid")
         with span("ig.prepare"):
             p = belief.expected_occupancy().ravel().astype(np.float32)
-            return IGField(*self._clamp(p, self.walls))
+            p, h = self._clamp(p, self.walls)
+            if before is not None and self.config.predicted_entropy == "no-gain":
+                h = np.minimum(h, before.H)
+            return IGField(p, h)
 
     def _clamp(
         self, p: NDArray[np.float32], walls: NDArray[np.bool_]
@@ -179,11 +194,14 @@ class IGService:
         """The field change of a sparse belief change (``delta`` applied to the belief ``base`` came from).
 
         Only the changed voxels are evaluated; voxels whose clamped ``p`` stays the same are dropped.
+        Equal to ``field_delta(base, prepare(delta.apply(belief), before=base))``.
         """
         idx = np.asarray(delta.idx, dtype=np.int64)
         a = np.asarray(delta.alpha, dtype=np.float32)
         p = (a / (a + np.asarray(delta.beta, dtype=np.float32))).astype(np.float32)
         p, h = self._clamp(p, self.walls[idx])
+        if self.config.predicted_entropy == "no-gain":
+            h = np.minimum(h, base.H[idx])
         keep = (p != base.p[idx]) | (h != base.H[idx])
         return IGDelta(idx[keep], p[keep], h[keep])
 

@@ -308,7 +308,7 @@ def _references(ep: Episode, state: EpisodeState, timed: Decision, probe: StageT
         if batch.prediction is None or not batch.actions:
             continue
         c = time.process_time()
-        full = ig.view_ig([ig.prepare(b) for b in batch.prediction.beliefs]).max(axis=1)
+        full = ig.view_ig([ig.prepare(b, before=field_) for b in batch.prediction.beliefs]).max(axis=1)
         ref_s = time.process_time() - c
         exact = ig.view_ig_delta(ctx.field, _deltas(ctx, batch)).max(axis=1)
         diff = np.abs(full - exact)

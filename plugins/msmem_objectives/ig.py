@@ -69,7 +69,7 @@ def _manipulation_state(ctx: Any, batch: CandidateBatch, cfg: IGTermConfig) -> d
     state: dict[str, Any] = {"deltas": None, "mask": reachable_mask(ctx)}
     mask = state["mask"]
     if not cfg.incremental:
-        fields = [ctx.ig.prepare(b) for b in batch.prediction.beliefs]
+        fields = [ctx.ig.prepare(b, before=ctx.field) for b in batch.prediction.beliefs]
         out = best_view(np.asarray(ctx.ig.view_ig(fields), dtype=np.float64), mask)
         exact = np.ones(len(out), dtype=bool)
     else:
