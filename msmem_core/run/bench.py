@@ -223,6 +223,7 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
         record.update({
             "scene": ep.scene.name, "status": "ok", "metrics": episode_metrics(final, ep.records),
             "paper_counts": final["paper_counts"], "curves": curves, "skills": kinds,
+            "terms": [r["terms"] for r in ep.records],  # the chosen action's objective terms, per step
             "candidates": candidate_counts(ep.records), "seconds": time.perf_counter() - t0,
         })
     except Exception as e:  # isolate the crash: the table reports it, the other episodes go on
