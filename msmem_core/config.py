@@ -21,7 +21,7 @@ from msmem_core.util.validation import MODEL_CONFIG, Int, error_lines, load_json
 from msmem_core.world.camera import CameraConfig
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_core.world.scene import relative_mesh_files
+from msmem_core.world.scene import ClassName, relative_mesh_files
 from msmem_core.world.scenegen import SceneGenConfig
 from msmem_core.world.viewpoints import ViewpointConfig
 
@@ -145,6 +145,12 @@ class RunConfig(_Strict):
     """Per skill name, parameters merged over that skill's ``params`` wherever the method uses it
     (e.g. ``{push: {clearance_m: 0.01}}``): like ``effect_models``, one file for every method without
     changing any method's skills. Names no registered skill has are refused."""
+    class_map: dict[ClassName, ClassName] | None = None
+    """For scenes whose classes the learned models were not trained on: each object class of the scene,
+    in the scene's order, to a distinct class they know (e.g. ``{cereal: cracker_box, ...}``). Given
+    as ``class_map`` to every component whose params take one and set none (the learned belief
+    models), so one map serves the observation and the effect models of every method. None: each
+    component's own (none by default: the scene's classes must be the trained ones)."""
     objective: list[TermRef] = Field(default_factory=lambda: [TermRef(name="ig")], min_length=1)
     ig: IGConfig = IGConfig()
     msas: MSASConfig = MSASConfig()

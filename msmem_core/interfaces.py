@@ -433,8 +433,12 @@ class BeliefModel(ABC):  # noqa: B024 - a plugin implements one or both roles, s
 
     roles: ClassVar[frozenset[str]] = frozenset()
     classes: tuple[str, ...] | None = None
-    """The class names a learned model was trained on (index = class id, ``background`` first);
-    None: any. The runner refuses a scene whose classes (``SceneSpec.class_names``) differ."""
+    """The class names a learned model takes (index = class id, ``background`` first): those it was
+    trained on, or the scene classes its class map maps onto them; None: any. The runner refuses a
+    scene whose classes (``SceneSpec.class_names``) differ."""
+    trained_classes: tuple[str, ...] | None = None
+    """For a model that maps a scene's classes onto the ones it was trained on (``classes`` being the
+    scene's): the trained ones, which the runner names when the map does not fit; None: no map."""
 
 
 class ObservationModel(BeliefModel):

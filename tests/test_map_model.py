@@ -759,20 +759,7 @@ def test_a_class_map_feeds_the_network_the_mapped_classes_and_maps_its_answer_ba
     np.testing.assert_array_equal(got.eta, want.eta[idx])
 
 
-@pytest.mark.parametrize(("class_map", "message"), [
-    ({"cereal": "chips_can"}, "maps to chips_can, which the weights do not know"),
-    ({"cereal": "cracker_box", "book": "cracker_box"}, "maps two scene classes to cracker_box"),
-    ({"background": "mug"}, "maps background"),
-])
-def test_a_bad_class_map_is_refused_in_one_line(class_map, message):
-    from msmem_cnabu.mapmodel import mapped_classes
-
-    from msmem_core.errors import UserError
-    from msmem_core.world.scene import CLASS_NAMES
-
-    with pytest.raises(UserError, match=message) as err:
-        mapped_classes(class_map, CLASS_NAMES)
-    assert "\n" not in str(err.value)
+# a bad class map's one-line refusals, for every learned model: tests/test_class_map.py
 
 
 def test_known_classes_from_rays_keeps_only_the_classes_this_episodes_rays_labelled(shard):

@@ -114,9 +114,10 @@ def sha256_text(text: str) -> str:
 def fingerprint(cfg: RunConfig, suite: str, scene: SceneSpec, plugins: dict[str, str]) -> dict[str, Any]:
     """What produced an episode: method, suite, scene (hash of its JSON), steps, the resolved config
     (hash; ``threads`` left out, results do not depend on it, and so is ``robot`` while it is the default
-    ``floating``, so results from before robots existed still match; with a poses file, its content too)
-    and the versions of the distributions providing the components it uses."""
-    left_out = {"threads"} | ({"robot"} if cfg.robot == type(cfg).model_fields["robot"].default else set())
+    ``floating`` and ``class_map`` while it is unset, so results from before they existed still match; with a
+    poses file, its content too) and the versions of the distributions providing the components it uses."""
+    left_out = ({"threads"} | ({"robot"} if cfg.robot == type(cfg).model_fields["robot"].default else set())
+                | ({"class_map"} if cfg.class_map is None else set()))
     config = json.dumps(cfg.model_dump(mode="json", exclude=left_out), sort_keys=True)
     if cfg.viewpoints.poses_file is not None:  # the file's content, not only its name
         config += read_poses_file(cfg.viewpoints.poses_file).sha256

@@ -136,6 +136,8 @@ def ceiling(cfg: RunConfig, pm: Any, scenes: Sequence[tuple[int, SceneSpec]], nu
             observe: Sequence[str] = ("default", "analytic-observation"), variants: Sequence[str] = VARIANTS,
             progress: bool = True) -> list[CeilingRow]:
     """Every (scene, variant, observation model) mapped with ``num_views`` evenly spaced views."""
+    if bad := [n for n in variants if n not in VARIANTS]:
+        raise UserError(f"unknown variant {', '.join(bad)}; variants: {', '.join(VARIANTS)}")
     refs = model_refs(cfg, observe)
     common = run_wide(cfg)
     rows: list[CeilingRow] = []

@@ -190,8 +190,25 @@ def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
 
 
 def run_wide(cfg: RunConfig) -> dict[str, Any]:
-    """Run-wide values a component receives for config fields of the same name the user left unset."""
-    return {"camera": cfg.camera, "gripper": cfg.gripper, "viewpoints": cfg.viewpoints, "seed": cfg.seed}
+    """Run-wide values a component receives for config fields of the same name the user left unset
+    (``class_map`` only when the config sets one)."""
+    out = {"camera": cfg.camera, "gripper": cfg.gripper, "viewpoints": cfg.viewpoints, "seed": cfg.seed}
+    return out | ({"class_map": cfg.class_map} if cfg.class_map is not None else {})
+
+
+def class_remedy(model: BeliefModel, mappable: bool) -> str:
+    """What to do about a learned model whose classes do not fit the scene's: fix its class map, set one
+    (``mappable``: its config takes a ``class_map``), or use other models."""
+    if model.trained_classes is not None:
+        return ("set class_map to map each of the scene's object classes, in the scene's order, to a distinct "
+                "class the weights know")
+    other = ("use the analytic models there (-c examples/scenes/analytic-effects.yaml: analytic-observation, "
+             "push-analytic, grasp-analytic)")
+    train = "train one on scenes with these classes"
+    if mappable:
+        return ("set class_map to map each of the scene's object classes, in the scene's order, to a distinct one "
+                f"of these (a top-level class_map gives it to every learned model), {other}, or {train}")
+    return f"{other} or {train}"
 
 
 def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | None = None) -> Episode:
@@ -224,11 +241,11 @@ def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | Non
         sim.attach_robot(robot)  # the arm replaces the floating gripper (a backend that cannot refuses)
     scene = scene or resolve_scene(cfg, pm.object_classes())  # after the plugins, so a bad name fails fast
     for where, name, model in models:
-        if model.classes is not None and (why := class_mismatch(model.classes, scene.class_names)):
-            raise PluginError(f"{where}: {name} was trained on {len(model.classes)} classes and scene "
-                              f"{scene.name!r} has {scene.num_classes}: {why}; use the analytic models there "
-                              "(-c examples/scenes/analytic-effects.yaml: analytic-observation, push-analytic, "
-                              "grasp-analytic) or train one on scenes with these classes")
+        if model.classes is not None and (why := class_mismatch(model.classes, scene.class_names,
+                                                                model.trained_classes)):
+            mappable = "class_map" in pm.spec("belief-model", name).config_model.model_fields
+            raise PluginError(f"{where}: {name} does not fit the classes of scene {scene.name!r}: {why}; "
+                              f"{class_remedy(model, mappable)}")
     viewpoints = generate_viewpoints(cfg.viewpoints, scene.shelf)
     start = cfg.msas.start_view if cfg.msas.start_view is not None else default_start_view(cfg.viewpoints)
     reach = robot.reach_camera(viewpoints[start], scene.shelf)

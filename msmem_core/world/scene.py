@@ -209,14 +209,29 @@ def model_classes(recorded: Sequence[str] | None, num_classes: int) -> tuple[str
     return CLASS_NAMES if num_classes == NUM_CLASSES else None
 
 
-def class_mismatch(trained: Sequence[str], scene: tuple[str, ...]) -> str:
-    """'' when a model trained on ``trained`` fits a scene with classes ``scene``, else what differs."""
-    if tuple(trained) == scene:
+def class_mismatch(classes: Sequence[str], scene: tuple[str, ...], trained: Sequence[str] | None = None) -> str:
+    """'' when a model that takes ``classes`` (background first) fits a scene with classes ``scene``, else
+    what differs, naming the classes at fault and those the model knows. ``trained``: the classes its
+    weights know when ``classes`` are those of its class map (the scene classes it maps onto them)."""
+    if tuple(classes) == scene:
         return ""
-    missing = [c for c in scene if c not in trained]
+    objects = scene[1:]
+    if trained is not None:
+        extra = [c for c in classes[1:] if c not in objects]
+        unmapped = [c for c in objects if c not in classes]
+        why = [f"its class_map maps {', '.join(extra)}, which the scene does not have"] if extra else []
+        why += [f"it leaves {', '.join(unmapped)} unmapped"] if unmapped else []
+        why = why or [f"its class_map lists the scene's classes in another order than the scene ({', '.join(objects)})"]
+        return "; ".join(why) + f"; the weights know {counted_classes(trained)}"
+    missing = [c for c in objects if c not in classes]
     if missing:
-        return f"it does not know {', '.join(missing)}"
-    return f"its classes are {', '.join(trained)}, the scene's {', '.join(scene)}"
+        return f"it does not know {', '.join(missing)}; it knows {counted_classes(classes)}"
+    return f"it knows {counted_classes(classes)}, in this order; the scene has {', '.join(objects)}"
+
+
+def counted_classes(classes: Sequence[str]) -> str:
+    """The object classes of ``classes`` (background first), counted and named."""
+    return f"{len(classes) - 1} object classes: {', '.join(classes[1:])}"
 
 
 ClassName = Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$", max_length=64)]

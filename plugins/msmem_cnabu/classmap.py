@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from msmem_core.errors import UserError
+from msmem_core.world.scene import counted_classes
 
 
 def onto_slots(a: NDArray[Any], index: NDArray[np.int64], num_classes: int, fill: Any, axis: int = 0) -> NDArray[Any]:
@@ -24,11 +25,6 @@ def onto_slots(a: NDArray[Any], index: NDArray[np.int64], num_classes: int, fill
     out = np.full(shape, fill, dtype=a.dtype)
     out[(slice(None),) * axis + (index,)] = a
     return out
-
-
-def known(trained: tuple[str, ...]) -> str:
-    """The object classes weights trained on ``trained`` (background first) know, counted and named."""
-    return f"the {len(trained) - 1} object classes {', '.join(trained[1:])}"
 
 
 def mapped_classes(class_map: dict[str, str], trained: tuple[str, ...] | None, component: str = "cnabu-map"
@@ -44,15 +40,15 @@ def mapped_classes(class_map: dict[str, str], trained: tuple[str, ...] | None, c
         raise UserError(f"{component}: class_map maps background, which is always itself; remove that key")
     if nothing := [k for k, m in class_map.items() if m == "background"]:
         raise UserError(f"{component}: class_map maps {', '.join(nothing)} to background, which is no object class; "
-                        f"map each scene class to one the weights know: {known(trained)}")
+                        f"map each scene class to one the weights know: {counted_classes(trained)}")
     wrong = [f"{k} to {m}" for k, m in class_map.items() if m not in trained[1:]]
     if wrong:
         raise UserError(f"{component}: class_map maps {', '.join(wrong)}, which the weights do not know; "
-                        f"they know {known(trained)}")
+                        f"they know {counted_classes(trained)}")
     targets = list(class_map.values())
     if twice := sorted({m for m in targets if targets.count(m) > 1}):
         keys = "; ".join(f"{' and '.join(k for k, v in class_map.items() if v == m)} to {m}" for m in twice)
         raise UserError(f"{component}: class_map maps {keys}; map each scene class to a class of its own "
-                        f"(the weights know {known(trained)})")
+                        f"(the weights know {counted_classes(trained)})")
     index = np.array([0, *(trained.index(m) for m in targets)], dtype=np.int64)
     return ("background", *class_map), index

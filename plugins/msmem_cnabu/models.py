@@ -17,10 +17,15 @@
 Weights: ``weights`` (default: the shipped ``msmem_cnabu/weights/cnabu_<kind>.pt``), loaded when the
 model is built, with ``torch.load(weights_only=True)`` and the sha256 of their sidecar; a missing file
 names the commands that make it.
+
+Scenes of other classes: ``class_map`` maps each of the scene's object classes onto a distinct trained
+class (``msmem_cnabu.classmap``); the network sees and predicts the mapped classes, and the evidence
+of trained classes no scene class maps to is dropped.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
@@ -29,6 +34,7 @@ import torch
 from numba import njit, prange
 from numpy.typing import NDArray
 
+from msmem_cnabu.classmap import mapped_classes, onto_slots
 from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
 from msmem_cnabu.features import (
     belief_features,
@@ -61,17 +67,36 @@ class _Threads:
             torch.set_num_threads(self.before)
 
 
-def _check_grid(kind: str, net: Any, belief: EvidentialMap) -> None:
+def _check_grid(kind: str, net: Any, belief: EvidentialMap, index: NDArray[np.int64] | None = None) -> None:
     want = tuple(net.config.grid_shape)
-    if tuple(belief.grid.shape) != want or belief.num_classes != net.config.num_classes:
-        raise WeightsError(f"cnabu-{kind}: the weights were trained on a {want} grid with {net.config.num_classes} "
-                           f"classes, the belief has {tuple(belief.grid.shape)} and {belief.num_classes}; train "
-                           "weights for this grid with `msmem datagen cnabu --voxel ...` and `msmem train cnabu`")
+    if tuple(belief.grid.shape) != want:
+        raise WeightsError(f"cnabu-{kind}: the weights were trained on a {want} grid, the belief has "
+                           f"{tuple(belief.grid.shape)}; train weights for this grid with `msmem datagen cnabu "
+                           "--voxel ...` and `msmem train cnabu`")
+    if index is not None and belief.num_classes != len(index):
+        raise WeightsError(f"cnabu-{kind}: its class_map takes {len(index)} classes (background and "
+                           f"{len(index) - 1} scene classes), the belief has {belief.num_classes}; map each of the "
+                           "scene's object classes (class_map)")
+    if index is None and belief.num_classes != net.config.num_classes:
+        raise WeightsError(f"cnabu-{kind}: the weights were trained on {net.config.num_classes} classes (background "
+                           f"and {net.config.num_classes - 1} object classes), the belief has {belief.num_classes}; "
+                           "set class_map to map the scene's object classes onto the trained ones")
 
 
-def _features(belief: EvidentialMap) -> torch.Tensor:
-    """The network's belief features (its prior evidence is not needed: ``_blend`` reads the belief)."""
-    return belief_features(to_tensor(belief.alpha)[None], to_tensor(belief.beta)[None], to_tensor(belief.eta)[None])
+def _features(belief: EvidentialMap, index: NDArray[np.int64] | None = None, num_classes: int = 0) -> torch.Tensor:
+    """The network's belief features (its prior evidence is not needed: ``_blend`` reads the belief); with
+    a class map (``index``, onto ``num_classes`` trained classes) the class evidence goes into the mapped
+    classes' slots, the others holding none (evidence 1)."""
+    eta = belief.eta if index is None else onto_slots(belief.eta, index, num_classes, fill=1)
+    return belief_features(to_tensor(belief.alpha)[None], to_tensor(belief.beta)[None], to_tensor(eta)[None])
+
+
+def _scene_classes(out: FlatPrediction, index: NDArray[np.int64] | None) -> FlatPrediction:
+    """With a class map (``index``): the prediction's class evidence of the mapped trained classes, in the
+    scene's class order (that of the trained classes no scene class maps to is dropped)."""
+    if index is None:
+        return out
+    return dataclasses.replace(out, residual=out.residual[torch.from_numpy(np.r_[0, 1, 2 + index])])
 
 
 def _deltas(belief: EvidentialMap, out: FlatPrediction, epsilon: float = 0.0) -> list[BeliefDelta]:
@@ -153,6 +178,11 @@ class CNABUObservationModel(ObservationModel):
         self.config = cfg = config or CNABUObserveConfig()
         self.net, self.meta = load_cnabu("observe", cfg.weights)
         self.classes = model_classes(self.meta.get("classes"), self.net.config.num_classes)
+        self._index: NDArray[np.int64] | None = None
+        """With a ``class_map``: per class the model takes (the scene's), the trained class it maps to."""
+        if cfg.class_map is not None:
+            self.trained_classes = self.classes
+            self.classes, self._index = mapped_classes(cfg.class_map, self.classes, "cnabu-observe")
         self.rays = AnalyticObservationModel(AnalyticObservationConfig(
             pixel_stride=cfg.pixel_stride, surface_offset_m=cfg.surface_offset_m, far_m=cfg.far_m))
         self._walls: dict[Any, NDArray[np.bool_]] = {}
@@ -168,12 +198,16 @@ class CNABUObservationModel(ObservationModel):
     def update_masks(self, belief: EvidentialMap, free: NDArray[np.bool_], occ: NDArray[np.bool_],
                      seen: NDArray[np.bool_]) -> EvidentialMap:
         """The update from a view's ray masks (free, occ [X, Y, Z], seen [C, X, Y, Z])."""
-        _check_grid("observe", self.net, belief)
+        _check_grid("observe", self.net, belief, self._index)
+        k = self.net.config.num_classes
+        if self._index is not None:  # the rays' labels in the mapped classes' slots
+            seen = onto_slots(seen, self._index, k, fill=False)
         with _Threads(self.config.threads):
-            feats = _features(belief)
+            feats = _features(belief, self._index, k)
             act = torch.from_numpy(observe_channels(free, occ, seen))[None]  # bool: the stem scatters its nonzeros
             region = torch.from_numpy((free | occ) & ~self.walls(belief))[None]
-            out = self.net.predict_flat(feats, None, act, torch.zeros(1, 0), 0.5, region=region)
+            out = _scene_classes(self.net.predict_flat(feats, None, act, torch.zeros(1, 0), 0.5, region=region),
+                                 self._index)
         return _deltas(belief, out)[0].apply(belief)
 
 
@@ -184,6 +218,11 @@ class _CNABUEffect(EffectModel):
         self.config = config or CNABUEffectConfig()
         self.net, self.meta = load_cnabu(self.kind, self.config.weights)
         self.classes = model_classes(self.meta.get("classes"), self.net.config.num_classes)
+        self._index: NDArray[np.int64] | None = None
+        """With a ``class_map``: per class the model takes (the scene's), the trained class it maps to."""
+        if self.config.class_map is not None:
+            self.trained_classes = self.classes
+            self.classes, self._index = mapped_classes(self.config.class_map, self.classes, f"cnabu-{self.kind}")
         self._inside_cache: dict[tuple[Any, tuple[float, ...]], torch.Tensor] = {}
 
     def _inside(self, grid: Any, interior: tuple[float, ...]) -> torch.Tensor:
@@ -196,13 +235,13 @@ class _CNABUEffect(EffectModel):
     def predict(self, belief: EvidentialMap, actions: Sequence[Action], workspace: Workspace) -> Prediction:
         cfg = self.config
         grid = belief.grid
-        _check_grid(self.kind, self.net, belief)
+        _check_grid(self.kind, self.net, belief, self._index)
         self._check_actions(actions)
         k_n = len(actions)
         if k_n == 0:
             return Prediction(belief, [], excluded=[] if self.kind == "grasp" else None)
         with _Threads(cfg.threads):
-            feats = _features(belief)
+            feats = _features(belief, self._index, self.net.config.num_classes)
             prep = self.net.prepare(feats, None, self._inside(grid, workspace.interior_box)[None])
             ind, scalars, regions = manipulation_indices(self.kind, belief, actions, workspace)
             parts = []
@@ -211,7 +250,8 @@ class _CNABUEffect(EffectModel):
                 vox, nz = sparse_channels(grid, ind[start:stop])
                 parts.append(self.net.predict_flat(prep, None, vox, torch.from_numpy(scalars[start:stop]),
                                                    cfg.change_threshold, region=None, nonzero=nz))
-        return Prediction(belief, _deltas(belief, FlatPrediction.cat(parts), cfg.change_epsilon), excluded=regions)
+        out = _scene_classes(FlatPrediction.cat(parts), self._index)
+        return Prediction(belief, _deltas(belief, out, cfg.change_epsilon), excluded=regions)
 
     def _check_actions(self, actions: Sequence[Action]) -> None:
         from msmem_grasp.skill import GraspAction

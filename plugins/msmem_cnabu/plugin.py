@@ -15,8 +15,12 @@ def _observe(config: Any) -> Any:
 
 def _map(config: Any) -> Any:
     from msmem_cnabu.mapmodel import CNABUMapObservationModel
+    from msmem_core.world.scene import model_classes
 
-    return CNABUMapObservationModel(config)
+    model = CNABUMapObservationModel(config)
+    if config.class_map is not None:  # the classes its weights know, which a map that does not fit is told
+        model.trained_classes = model_classes(model.meta.get("classes"), model.net.config.num_classes)
+    return model
 
 
 def _push(config: Any) -> Any:
