@@ -463,6 +463,32 @@ class EffectModel(BeliefModel):
 
 # -------------------------------------------------------------------------------------- decision context
 @dataclass
+class Funnel:
+    """How many of each skill's candidates are left after each stage of one step's proposals, in order:
+    ``counts[skill][stage]``, with ``skill`` the skill's name in config. A skill reports its own stages
+    from ``propose`` (``count``: e.g. collision-free, or what its effect-free filters keep); MSAS
+    (``msas.decide``) sets ``skill`` before asking each one and adds its own stages after the skill's:
+    ``proposed`` (the actions returned), with an arm ``reach_checked`` and ``reachable`` (only candidates
+    that could win are checked, best first), and ``chosen`` (1 if the step's action is this skill's).
+    A skill not asked at a step (a manipulation skill while manipulation is not allowed) has no entry."""
+
+    counts: dict[str, dict[str, int]] = field(default_factory=dict)
+    skill: str = ""
+    """The skill being asked; its ``count`` calls go to ``counts[skill]``."""
+
+    def count(self, stage: str, n: int) -> None:
+        """``n`` of the current skill's candidates are left after ``stage`` (reported in stage order; a
+        stage reported twice keeps the last count)."""
+        if n < 0:
+            raise ValueError(f"stage {stage!r} of skill {self.skill!r}: a candidate count cannot be negative ({n})")
+        self.counts.setdefault(self.skill, {})[stage] = int(n)
+
+    def stages(self, skill: str) -> dict[str, int]:
+        """The stage counts of ``skill`` (empty if it was not asked)."""
+        return dict(self.counts.get(skill, {}))
+
+
+@dataclass
 class DecisionContext:
     """What skills, effect models and objective terms see at one MSAS step. ``field`` (the IG view of
     the belief) is computed once, on first use."""
@@ -484,6 +510,8 @@ class DecisionContext:
     views taken since then, and the belief outside them may be an effect model's prediction."""
     cache: dict[Any, Any] = field(default_factory=dict)
     """Per-step scratch space terms share (e.g. the IG sweep of every view)."""
+    funnel: Funnel = field(default_factory=Funnel)
+    """Candidates left after each stage of every skill's proposal (``Funnel.count``); the step record's ``funnel``."""
 
     @property
     def grid(self) -> GridSpec:

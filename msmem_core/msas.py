@@ -164,6 +164,8 @@ class Decision:
     arm): how many of those checked the robot cannot follow (``Skill.tool_path``, ``Robot.reach_path``)."""
     reach_checked: dict[str, int] = field(default_factory=dict)
     """Per such skill, how many candidates were checked: only those that could win are (``decide``)."""
+    funnel: dict[str, dict[str, int]] = field(default_factory=dict)
+    """Per skill asked to propose, its candidates left after each stage (``interfaces.Funnel``)."""
 
 
 def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
@@ -175,6 +177,9 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
     exactly scored argmax, if it beats the best value so far, is checked; one the robot cannot follow
     is left out and the next taken (``Objective.best``'s ``admissible``). A skill's best value that
     cannot win is reported unchecked.
+
+    Every skill asked to propose has its candidate funnel in ``Decision.funnel`` (``ctx.funnel``: the
+    skill's own stages, then ``proposed``, with an arm ``reach_checked`` and ``reachable``, and ``chosen``).
 
     Spans (reported to ``tracer``, or to the active one): ``decide`` (info ``ctx``; result: the
     ``Decision``) and inside it, per skill, ``track``, ``propose`` (result: the actions), ``predict``
@@ -193,10 +198,12 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
                 bound.skill.track(ctx)  # every step, also when the skill may not act (e.g. FE-UMGF's buffer)
             if bound.skill.category == "manipulation" and not ctx.manipulation_allowed:
                 continue
+            ctx.funnel.skill = bound.name
             with span("propose", bound.name, ctx=ctx) as s:
                 actions = bound.skill.propose(ctx)
                 if s:
                     s.result = actions
+            ctx.funnel.count("proposed", len(actions))
             counts[bound.name] = len(actions)
             if not actions:
                 continue
@@ -225,6 +232,9 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
                 scored = objective.best(ctx, batch, admissible, None if best is None else best.value)
                 if s:
                     s.result = scored
+            if admissible is not None:
+                ctx.funnel.count("reach_checked", checked[bound.name])
+                ctx.funnel.count("reachable", checked[bound.name] - unreachable[bound.name])
             if scored is None:  # the robot can follow none of them
                 continue
             i, value, terms, _ = scored
@@ -234,6 +244,10 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
         if best is None:
             raise RuntimeError("no skill proposed an action")
         best.candidates, best.best, best.unreachable, best.reach_checked = counts, values, unreachable, checked
+        for name in counts:
+            ctx.funnel.skill = name
+            ctx.funnel.count("chosen", int(name == best.skill.name))
+        best.funnel = {name: ctx.funnel.stages(name) for name in counts}
         if top:
             top.result = best
         return best

@@ -389,6 +389,7 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
         rec = {
             "step": step, "skill": d.skill.name, "action": d.action.model_dump(), "objective": d.value,
             "terms": d.terms, "best_per_skill": d.best, "candidates": d.candidates,
+            "funnel": d.funnel,  # per skill asked: candidates left after each stage (interfaces.Funnel)
             # only with an arm (docs/robots.md): candidates checked against the robot, and those it cannot follow
             **({"reach_checked": d.reach_checked, "unreachable": d.unreachable} if d.reach_checked else {}),
             **({"arm": arm} if (arm := arm_record(ep, d)) is not None else {}),

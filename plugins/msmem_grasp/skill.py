@@ -95,6 +95,9 @@ from msmem_grasp.planning import (
 )
 
 log = logging.getLogger("msmem.grasp")
+FUNNEL_STAGES = ("fused", "confident", "preselected", "from_front", "on_object", "free_at_grasp", "collision_free",
+                 "under_top", "clear_exit")
+"""The stages ``GraspSkill.executable`` counts the candidates after (``propose`` reports them to the step's funnel)."""
 Vec3 = tuple[float, float, float]
 _SIN15 = math.sin(math.radians(15.0))
 _WARNED: set[str] = set()
@@ -384,19 +387,31 @@ class GraspSkill(Skill):
         self.track(ctx)
         if not ctx.manipulation_allowed:
             return []
-        return list(self.executable(ctx.belief, ctx.shelf))
+        stages: dict[str, int] = {}
+        out = self.executable(ctx.belief, ctx.shelf, stages)
+        funnel = getattr(ctx, "funnel", None)
+        if funnel is not None:  # the step record's candidate funnel: every stage, 0 after the one that left none
+            for stage in FUNNEL_STAGES:
+                funnel.count(stage, stages.get(stage, 0))
+        return list(out)
 
-    def candidates(self, belief: EvidentialMap, shelf: ShelfSpec) -> Candidates | None:
+    def candidates(self, belief: EvidentialMap, shelf: ShelfSpec,
+                   stages: dict[str, int] | None = None) -> Candidates | None:
         """Steps 1-2 of the module docstring: the buffer's grasps that pass the evidence, reach and
-        width tests, best E[q] first, with their poses and what the collision tests need."""
+        width tests, best E[q] first, with their poses and what the collision tests need. ``stages``
+        receives the grasps left after each test (``fused``, ``confident``, ``preselected``, ``from_front``)."""
         cfg = self.config
         grip = cfg.gripper
+        stages = {} if stages is None else stages
         h = self.buffer.hypotheses()
+        stages["fused"] = len(h)
         if not len(h):
             return None
         q, chi = h.affordance, h.uncertainty
         idx = np.flatnonzero((q >= cfg.min_affordance) & (chi <= cfg.max_uncertainty))
+        stages["confident"] = len(idx)
         idx = idx[np.argsort(-q[idx], kind="stable")][: cfg.preselect]
+        stages["preselected"] = len(idx)
         g = h.subset(idx)
         a, _ = g.approach()
         b = g.mu_b
@@ -406,6 +421,7 @@ class GraspSkill(Skill):
         if cfg.min_height_m > 0.0:  # the grasp's centre: the contact moved half the width along b
             keep &= g.contact[:, 2] + 0.5 * np.minimum(g.width, grip.max_opening_m) * b[:, 2] >= cfg.min_height_m
         g, a, b = g.subset(keep), a[keep], b[keep]
+        stages["from_front"] = len(g) * (2 if cfg.roll == "both" else 1)
         if not len(g):
             return None
         grid = belief.grid
@@ -446,10 +462,19 @@ class GraspSkill(Skill):
             uncertainty=float(np.clip(c.grasps.uncertainty[i], 0, 1)), predictor=self.predictor, hand_m=cfg.hand_m,
         )
 
-    def executable(self, belief: EvidentialMap, shelf: ShelfSpec) -> list[GraspAction]:
-        """The executable grasps of the fused buffer (steps 1-5 of the module docstring), best first."""
+    def executable(self, belief: EvidentialMap, shelf: ShelfSpec,
+                   stages: dict[str, int] | None = None) -> list[GraspAction]:
+        """The executable grasps of the fused buffer (steps 1-5 of the module docstring), best first.
+
+        ``stages`` receives the grasps left after each step: those of ``candidates``, then ``on_object``
+        (a believed object at the contact), ``free_at_grasp`` (the open gripper at the grasp touches no
+        blocked voxel), ``collision_free`` (nor on its way in), ``under_top`` (the lifted object and
+        gripper fit under the shelf top) and ``clear_exit`` (they leave the shelf: ``_lift``). Every
+        candidate is tested, also once ``top_k`` are found or its object has ``max_per_object``, so that
+        the counts say what each test removes."""
         cfg = self.config
-        c = self.candidates(belief, shelf)
+        stages = {} if stages is None else stages
+        c = self.candidates(belief, shelf, stages)
         if c is None:
             return []
         grid = belief.grid
@@ -461,24 +486,28 @@ class GraspSkill(Skill):
         # first test of step 4 for all candidates at once: the open gripper at the grasp
         at_grasp = sweep_hits(grid, c.blocked, c.objects.labels, local, c.poses[:, :3, 3], np.arange(n + 1),
                               np.arange(n), c.label, c.poses, c.opening, cfg.max_object_radius_m)
+        on_object = c.label > 0
+        stages["on_object"] = int(on_object.sum())
+        stages["free_at_grasp"] = int((on_object & ~at_grasp).sum())
+        stages["collision_free"] = stages["under_top"] = stages["clear_exit"] = 0
         out: list[GraspAction] = []
         per_object: dict[int, int] = {}
-        for i in range(n):  # candidates in order of E[q]; stops at top_k
+        for i in np.flatnonzero(on_object & ~at_grasp):  # candidates in order of E[q]
             lab = int(c.label[i])
-            if lab <= 0 or per_object.get(lab, 0) >= cfg.max_per_object or at_grasp[i]:
-                continue
             pose = c.poses[i]
             approach = self._plan_approach(grid, c.blocked, c.objects, local, i, pose, lab, float(c.opening[i]))
             if approach is None:
                 continue
+            stages["collision_free"] += 1
             region = c.objects.region(grid, lab, pose, c.opening[i], cfg.max_object_radius_m)
-            lift_m = self._lift(grid, c.p, c.objects, lab, region, pose, float(c.width[i]), c.top)
+            lift_m = self._lift(grid, c.p, c.objects, lab, region, pose, float(c.width[i]), c.top, stages)
             if lift_m is None:
-                continue  # the lifted object or gripper would hit the shelf top
+                continue  # the lifted object or gripper would hit the shelf top, or its way out is blocked
+            stages["clear_exit"] += 1
+            if per_object.get(lab, 0) >= cfg.max_per_object or len(out) >= cfg.top_k:
+                continue
             out.append(self.action(c, i, approach, lift_m, shelf))
             per_object[lab] = per_object.get(lab, 0) + 1
-            if len(out) >= cfg.top_k:
-                break
         return out
 
     def _plan_approach(self, grid: GridSpec, blocked: NDArray[np.bool_], objects: Objects, local: F64, i: int,
@@ -512,13 +541,14 @@ class GraspSkill(Skill):
                                np.array([label]), pose[None], np.array([opening]), self.config.max_object_radius_m)[0])
 
     def _lift(self, grid: GridSpec, p: NDArray[np.floating], objects: Objects, label: int, region: NDArray[np.int64],
-              pose: F64, width: float, top: float) -> float | None:
+              pose: F64, width: float, top: float, stages: dict[str, int] | None = None) -> float | None:
         """The lift: ``lift_m`` if at that height the grasped object (its region and the hidden
         voxels below it, ``planning.fill_down``) and the closed gripper, carried straight out of the
         front, meet no believed-occupied voxel of another object; else one voxel above the lowest
         height (in whole voxels, up to ``max_lift_m`` and the room under the shelf top) at which they
         do not; ``lift_m`` if there is none (None with ``blocked_exit: skip``); None if even ``lift_m``
-        brings the object's or the gripper's top closer than ``clearance_m`` to the shelf top."""
+        brings the object's or the gripper's top closer than ``clearance_m`` to the shelf top (else
+        ``stages["under_top"]``, if given, counts one)."""
         cfg = self.config
         s = grid.voxel_m
         pts = gripper_points(cfg.gripper, width, s / 2, cfg.tolerance_m, cfg.hand_m)
@@ -528,6 +558,8 @@ class GraspSkill(Skill):
         room = top - max(grip_top, obj_top)
         if room < cfg.lift_m - 1e-9:
             return None
+        if stages is not None:
+            stages["under_top"] = stages.get("under_top", 0) + 1
         body = fill_down(grid, p, objects.labels, region, label, cfg.geometric.free_threshold)
         mine = np.zeros(grid.size, dtype=bool)
         mine[body] = True
