@@ -23,7 +23,7 @@ from msmem_cnabu.mapeval import evaluate_rollouts
 from msmem_cnabu.mapnet import MapNet, MapNetConfig, analytic_update, bounded_evidence
 from msmem_cnabu.maptrain import MapTrainConfig, load_map_net, rollout_loss, sequence, start_masks, train_map
 
-from msmem_core.map.belief import EvidentialMap
+from msmem_core.map.belief import BeliefDelta, EvidentialMap
 from msmem_core.world.grid import GridSpec
 
 HELDOUT = Path(__file__).parent / "data" / "map_heldout"
@@ -741,10 +741,13 @@ def test_a_class_map_feeds_the_network_the_mapped_classes_and_maps_its_answer_ba
     f0, o0, s0 = start_masks(shard)
     b0 = AnalyticObservationModel().apply_masks(EvidentialMap.empty(shard.grid), f0, o0, s0)
     f, o, s = shard.masks(0)
-    plain = CNABUMapObservationModel(CNABUMapConfig(unlabelled_objects="keep"))
+    # the fill under surfaces takes the top voxel's class among the classes the belief holds: the unmapped
+    # twin could take one the scene does not have, so both leave it out here
+    plain = CNABUMapObservationModel(CNABUMapConfig(unlabelled_objects="keep", fill_under_surfaces=None))
     keep = np.random.default_rng(0).permutation(np.arange(1, 15))[:11]  # scene class i is trained class keep[i-1]
     cmap = {f"thing{i}": plain.classes[k] for i, k in enumerate(keep, 1)}
-    mapped = CNABUMapObservationModel(CNABUMapConfig(class_map=cmap, unlabelled_objects="keep"))
+    mapped = CNABUMapObservationModel(CNABUMapConfig(class_map=cmap, unlabelled_objects="keep",
+                                                     fill_under_surfaces=None))
     assert mapped.classes == ("background", *cmap)
     idx = np.r_[0, keep]
     unmapped = np.setdiff1d(np.arange(15), idx)
@@ -941,3 +944,51 @@ def test_the_networks_own_map_carries_through_a_manipulation_where_the_belief_is
     naive = plain.update_masks(pred, seq.free[2], seq.occ[2], seq.seen[2])
     assert not np.allclose(drop._state[1][0], naive.alpha, atol=1e-3)
     assert nxt.observed is not None
+
+
+# ------------------------------------------------------------------------------ ray evidence is authoritative
+def test_what_rays_reached_comes_from_the_rays_and_the_network_predicts_the_rest(shard):
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+
+    views = [start_masks(shard), *(shard.masks(i) for i in range(4))]
+    fused = CNABUMapObservationModel(CNABUMapConfig(fill_under_surfaces=None))
+    net = CNABUMapObservationModel(CNABUMapConfig(observed_voxels="network"))
+    rays = AnalyticObservationModel()
+    b = n = r = EvidentialMap.empty(shard.grid)
+    for f, o, s in views:
+        b, n, r = fused.update_masks(b, f, o, s), net.update_masks(n, f, o, s), rays.apply_masks(r, f, o, s)
+    labelled = r.eta.sum(axis=0) > r.num_classes
+    p = r.expected_occupancy()
+    leaning = p != 0.5
+    assert labelled.sum() > 10000
+    np.testing.assert_array_equal(b.eta[:, labelled], r.eta[:, labelled])  # the rays' classes, never overwritten
+    np.testing.assert_array_equal(b.alpha[leaning], r.alpha[leaning])
+    np.testing.assert_array_equal(b.beta[leaning], r.beta[leaning])
+    never = ~b.observed
+    assert never.sum() > 10000
+    np.testing.assert_array_equal(b.alpha[never], n.alpha[never])  # the network's prediction where no ray went
+    np.testing.assert_array_equal(b.eta[:, never], n.eta[:, never])
+    # the network alone overwrites classes the rays labelled (what the rule is there for)
+    assert (np.argmax(n.eta[:, labelled], axis=0) != np.argmax(r.eta[:, labelled], axis=0)).sum() > 100
+
+
+def test_a_predicted_change_hands_its_voxels_back_to_the_network_until_a_ray_reaches_them(shard):
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+
+    model = CNABUMapObservationModel(CNABUMapConfig(fill_under_surfaces=None))
+    f0, o0, s0 = start_masks(shard)
+    b = model.update_masks(EvidentialMap.empty(shard.grid), f0, o0, s0)
+    seen_occ = o0 & ~(shard.masks(0)[0] | shard.masks(0)[1])  # occupied in the start view, not in the next
+    assert seen_occ.sum() > 100
+    idx = np.flatnonzero(seen_occ)
+    k = b.num_classes
+    moved = BeliefDelta(idx, np.ones(len(idx), np.float32), np.ones(len(idx), np.float32),
+                        np.ones((k, len(idx)), np.float32)).apply(b)  # an effect model: these voxels left
+    assert not moved.observed[seen_occ].any()
+    after = model.update_masks(moved, *shard.masks(0))
+    stale = model._rays  # the record no longer holds the start view's hits there
+    assert (stale.alpha[seen_occ] == 1).all()
+    assert (stale.eta[:, seen_occ] == 1).all()
+    assert not after.observed[seen_occ].any()
