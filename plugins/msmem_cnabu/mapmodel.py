@@ -124,25 +124,27 @@ class CNABUMapObservationModel(ObservationModel):
         observed = ray if belief.observed is None else belief.observed | ray
         out_eta = e[0].numpy() if self._index is None else np.ascontiguousarray(e[0].numpy()[self._index])
         out_a, out_b = a[0].numpy(), b[0].numpy()
+        rays = self._ray_record(belief, free, occ, labels) if self.config.observed_voxels == "rays" else None
         if drop:
-            if belief.observed is None or not belief.observed.any() or self._labelled.shape != labels.shape:
-                self._labelled = np.zeros(labels.shape, dtype=bool)  # an episode's first view
-            self._labelled |= labels
+            if rays is not None:  # labelled: the class most of the episode's rays gave a voxel
+                self._labelled = majority_labels(rays)
+            else:  # labelled: any class a ray of the episode gave a voxel
+                if belief.observed is None or not belief.observed.any() or self._labelled.shape != labels.shape:
+                    self._labelled = np.zeros(labels.shape, dtype=bool)  # an episode's first view
+                self._labelled |= labels
             if self.config.restrict_state and self.config.unseen_class_weight < 1.0:
                 raw = (a, b, e)  # the restricted map is the next input, the objects' abstention is not
             unknown = unlabelled_objects(out_a / (out_a + out_b) > 0.5, out_eta, self._labelled, valid.numpy())
             out_a, out_b = out_a.copy(), out_b.copy()
             out_a[unknown] = out_b[unknown] = (out_a[unknown] + out_b[unknown]) / 2  # p = 0.5: a tie is free
-        if self.config.observed_voxels == "rays":
-            out_a, out_b, out_eta = fuse_rays(out_a, out_b, out_eta, self._ray_record(belief, free, occ, labels),
-                                              self.config.ray_confidence)
+        if rays is not None:
+            out_a, out_b, out_eta = fuse_rays(out_a, out_b, out_eta, rays, self.config.ray_confidence)
             if self.config.fill_under_surfaces is not None:
                 fill_under_surfaces(out_a, out_b, out_eta, observed, valid.numpy(), self.config.fill_under_surfaces)
         out = EvidentialMap(belief.grid, out_a, out_b, out_eta, observed)
         if raw is not None:
             self._state = (out, tuple(x[0].numpy() for x in raw))  # the trained slots: the next input as is
         return out
-
 
     def _ray_record(self, belief: EvidentialMap, free: NDArray[np.bool_], occ: NDArray[np.bool_],
                     seen: NDArray[np.bool_]) -> EvidentialMap:
@@ -159,6 +161,16 @@ class CNABUMapObservationModel(ObservationModel):
             r.eta[:, stale] = 1.0
         self._rays = self.rays.apply_masks(r, free, occ, seen)
         return self._rays
+
+
+def majority_labels(rays: EvidentialMap) -> NDArray[np.bool_]:
+    """[C, X, Y, Z]: voxel v is labelled with object class c where c is the ray record's most supported
+    class there and some ray gave it (a view's segmentation noise alone does not label an object)."""
+    top = np.argmax(rays.eta, axis=0)
+    out = np.zeros(rays.eta.shape, dtype=bool)
+    np.put_along_axis(out, top[None], (np.take_along_axis(rays.eta, top[None], axis=0) > 1.0), axis=0)
+    out[0] = False
+    return out
 
 
 def fuse_rays(alpha: NDArray[np.float32], beta: NDArray[np.float32], eta: NDArray[np.float32], rays: EvidentialMap,
