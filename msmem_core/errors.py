@@ -17,3 +17,9 @@ class IncompleteError(Exception):
 class Interrupted(BaseException):
     """Ctrl-C, caught where msmem knows what to tell (``interrupted at step N; partial run in DIR``);
     the CLI prints the message and exits 130."""
+
+
+class ComponentFailure(Exception):
+    """A plugin's component (skill, belief model, objective term, simulator, robot) raised while msmem ran
+    it. The message names the component, its plugin and distribution, the step and the exception; the CLI
+    prints it as one line and exits 3 (``--debug``: the traceback)."""

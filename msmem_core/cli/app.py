@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from msmem_core.errors import IncompleteError, Interrupted, UserError
+from msmem_core.errors import ComponentFailure, IncompleteError, Interrupted, UserError
 from msmem_core.util.interrupt import caused_by_interrupt
 
 if TYPE_CHECKING:
@@ -36,6 +36,8 @@ GROUPS: dict[str, str] = {  # the core's command groups (plugins add commands to
 MethodOpt = Annotated[str | None, typer.Option(
     "--method", "-m", help="Method preset: view-only, push-only, grasp-only, no-cdc, ours.")]
 ConfigOpt = Annotated[Path | None, typer.Option("--config", "-c", help="YAML/JSON config file overriding the preset.")]
+WaitOpt = Annotated[bool, typer.Option(
+    "--wait", help="If another msmem process is writing --out, wait for it to finish (default: stop with an error).")]
 
 
 def _root(debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks for errors.")] = False) -> None:
@@ -78,12 +80,15 @@ def plugins(as_json: Annotated[bool, typer.Option("--json", help="Machine-readab
 
 
 def config_show(method: MethodOpt = None, config: ConfigOpt = None) -> None:
-    """Print the resolved configuration (preset < --config file) as YAML."""
+    """Print the resolved configuration (preset < --config file) as YAML, once every component it names
+    is checked registered and its params valid."""
     import yaml
 
     from msmem_core.config import load_config
+    from msmem_core.run.runner import check_params
 
     cfg = load_config(method, config)
+    check_params(cfg, _pm())  # every component registered and its params valid, as `msmem run` checks them
     typer.echo(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
 
 
@@ -103,15 +108,39 @@ def run(
                                          help="Write report.html and PNGs to the run folder.")] = True,
     overwrite: Annotated[bool, typer.Option("--overwrite",
                                             help="Replace an existing non-empty --out folder whole.")] = False,
+    wait: WaitOpt = False,
 ) -> None:
     """Run one mapping episode and write config.json, steps.jsonl, metrics.json and the report to the run folder.
 
-    The run is written into OUT.partial-XXXX beside --out and renamed to --out when complete; Ctrl-C
-    leaves the partial folder and names it (docs/reliability.md)."""
+    The run is written into OUT.partial-XXXX beside --out and renamed to --out when complete; Ctrl-C, or a
+    plugin's component that fails (exit code 3), leaves the partial folder and names it. One writer per
+    --out: another run into it is refused, or waits with --wait (docs/reliability.md)."""
+    from contextlib import ExitStack
+
+    with ExitStack() as held:  # the lock of --out, from before it is checked until the run is renamed into it
+        _run(held, method, config, sim, robot, scene, scene_seed, steps, seed, out, quiet, report, overwrite, wait)
+
+
+def _lock_run(held: Any, out: Path, wait: bool) -> None:
+    """Hold the lock of run folder ``out`` until ``held`` closes (``UserError`` naming it if it cannot be taken)."""
+    from msmem_core.run.lock import FolderLocked, folder_lock, run_lock_file
+
+    try:
+        held.enter_context(folder_lock(out, run_lock_file(out), wait))
+    except FolderLocked:
+        raise
+    except OSError as e:
+        raise UserError(f"cannot write the run folder {out}: {e.strerror or e}"
+                        + (f": {e.filename}" if e.filename else "")) from e
+
+
+def _run(held: Any, method: str | None, config: Path | None, sim: str | None, robot: str | None,
+         scene: Path | None, scene_seed: int | None, steps: int | None, seed: int | None, out: Path | None,
+         quiet: bool, report: bool, overwrite: bool, wait: bool) -> None:
     import shutil
 
     from msmem_core.config import RunConfig, load_config
-    from msmem_core.run.runfolder import commit_run_dir, stage_run_dir
+    from msmem_core.run.runfolder import commit_run_dir, stage_run_dir, writing
     from msmem_core.run.runner import build_episode, run_episode
 
     if scene is not None and scene_seed is not None:
@@ -130,11 +159,15 @@ def run(
     if seed is not None:
         over["seed"] = seed
     cfg = load_config(method, config, over)
+    if out is not None:
+        _lock_run(held, out, wait)
     staged = stage_run_dir(out, overwrite) if out is not None else None  # checked before any work
     try:
         ep = build_episode(cfg, _pm())  # plugin names are checked before the scene is generated (seconds)
         out_dir = out or Path("runs") / f"{cfg.method}-{ep.scene.name}-seed{cfg.seed}"
-        staged = staged or stage_run_dir(out_dir, overwrite)
+        if staged is None:
+            _lock_run(held, out_dir, wait)
+            staged = stage_run_dir(out_dir, overwrite)
     except BaseException:
         if staged is not None:
             shutil.rmtree(staged, ignore_errors=True)
@@ -164,7 +197,8 @@ def run(
     if report:
         from msmem_core.run.report import write_report
 
-        report_file = out_dir / write_report(staged)[0].name
+        with writing(staged / "report.html", staged):  # a full disk names the folder (PNGs are named by their error)
+            report_file = out_dir / write_report(staged)[0].name
     commit_run_dir(staged, out_dir)
     keys = ("occupancy_iou", "observable_iou", "semantic_miou", "semantic_miou_bev", "position_change_m")
     typer.echo("final: " + ", ".join(f"{k} {final[k]:.3f}" for k in keys))
@@ -192,19 +226,18 @@ def bench(
     rerun_mismatched: Annotated[bool, typer.Option(
         "--rerun-mismatched", help="Rerun episodes whose files were made with another method, suite, scene, "
                                    "steps, config or plugin versions (default: stop with an error).")] = False,
+    wait: WaitOpt = False,
 ) -> None:
     """Run methods x scenes episodes; writes episodes/*.json, table.md, results.json and curves.png.
 
     Rerun into the same --out to resume: finished episodes are reused only if their fingerprint matches
-    (docs/reliability.md); crashed ones are retried."""
+    (docs/reliability.md); crashed ones are retried. One writer per --out: another bench into it is
+    refused, or waits with --wait."""
     import os
 
-    from msmem_core.config import preset
-    from msmem_core.run.bench import parse_range, run_bench, suite_scenes
+    from msmem_core.run.bench import parse_methods, parse_range, run_bench, suite_scenes
 
-    method_list = [m.strip() for m in methods.split(",") if m.strip()]
-    for m in method_list:
-        preset(m)  # unknown methods fail before any episode starts
+    method_list = parse_methods(methods)  # unknown methods fail before any episode starts
     suite_list = suite_scenes(suite)
     over: dict[str, Any] = {}
     if steps is not None:
@@ -216,7 +249,7 @@ def bench(
     try:
         summary = run_bench(method_list, suite_list, parse_range(scenes, len(suite_list)), out, over,
                             str(config) if config else None, executor, workers, threads, suite=suite,
-                            retry_crashed=retry_crashed, rerun_mismatched=rerun_mismatched)
+                            retry_crashed=retry_crashed, rerun_mismatched=rerun_mismatched, wait=wait)
     except (KeyboardInterrupt, Interrupted) as e:
         raise Interrupted(f"interrupted; finished episodes are kept in {out / 'episodes'}: rerun the same "
                           "command to resume") from e
@@ -232,7 +265,8 @@ def eval_ceiling(
     observe: Annotated[list[str] | None, typer.Option(
         "--observe", help="Observation model to compare (repeat; 'default': the config's).")] = None,
     variants: Annotated[str, typer.Option(
-        "--variants", help="Comma-separated: scene, front-occluder, all-occluders.")] = "scene,front-occluder,all-occluders",
+        "--variants", help="Comma-separated: scene, front-occluder, all-occluders.")
+    ] = "scene,front-occluder,all-occluders",
     method: MethodOpt = None,
     config: ConfigOpt = None,
     out: Annotated[Path | None, typer.Option("--out", help="Also write the rows and summary as JSON here.")] = None,
@@ -433,20 +467,6 @@ def add_plugin_commands(app: typer.Typer, groups: dict[str, typer.Typer], pm: Ms
         taken[spec.group].add(spec.name)
 
 
-def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
-                  file: Any = None, line: str | None = None) -> None:
-    """Plugin warnings as one ``msmem: warning: ...`` line; the others as Python prints them."""
-    from msmem_core.plugins.manager import PluginLoadWarning
-
-    if issubclass(category, PluginLoadWarning):
-        typer.echo(f"msmem: warning: {message}", err=True)
-    else:
-        _default_show_warning(message, category, filename, lineno, file, line)
-
-
-_default_show_warning = warnings.showwarning
-
-
 def interruptible(fn: Callable[..., Any]) -> Callable[..., Any]:
     """``fn`` with Ctrl-C raised as :class:`Interrupted`. Typer ends a ``KeyboardInterrupt`` as a
     silent exit 130 (``typer.core._main``) before ``main`` could say anything; ``Interrupted`` is not a
@@ -465,14 +485,25 @@ def interruptible(fn: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
+EXIT_INCOMPLETE = 1
+"""A command ran but could not deliver all it planned (``IncompleteError``)."""
+EXIT_USER_ERROR = 2
+"""Bad input, or the machine refused (a config, a path, a plugin name, a full disk, out of memory)."""
+EXIT_PLUGIN_FAILURE = 3
+"""A plugin's component raised while msmem ran it (``ComponentFailure``)."""
+EXIT_INTERRUPTED = 130
+"""Ctrl-C."""
+
+
 def main() -> None:
+    from msmem_core.plugins.manager import show_warning
     from msmem_core.util.malloc import keep_large_allocations
     from msmem_core.util.threads import configure_threads
 
     configure_threads()  # before any command imports torch or numba
     keep_large_allocations()
     debug = "--debug" in sys.argv
-    warnings.showwarning = _show_warning
+    warnings.showwarning = show_warning  # plugin warnings: one line each, once per process
     try:
         build_app()()
     except (UserError, IncompleteError, OSError, MemoryError) as e:
@@ -485,13 +516,18 @@ def main() -> None:
         else:
             message = str(e)
         typer.echo(f"msmem: error: {message}", err=True)
-        sys.exit(1 if isinstance(e, IncompleteError) else 2)
+        sys.exit(EXIT_INCOMPLETE if isinstance(e, IncompleteError) else EXIT_USER_ERROR)
+    except ComponentFailure as e:
+        if debug:
+            raise
+        typer.echo(f"msmem: error: {e} (--debug shows the traceback)", err=True)
+        sys.exit(EXIT_PLUGIN_FAILURE)
     except Interrupted as e:
         typer.echo(f"msmem: {e}", err=True)
-        sys.exit(130)
+        sys.exit(EXIT_INTERRUPTED)
     except KeyboardInterrupt:
         typer.echo("msmem: interrupted", err=True)
-        sys.exit(130)
+        sys.exit(EXIT_INTERRUPTED)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,8 @@ import json
 import time
 import zipfile
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -140,6 +141,23 @@ def check_same_simulator(out_dir: str | Path, manifest: dict[str, Any] | None, s
                         "use another --out")
 
 
+@contextmanager
+def data_folder_lock(out_dir: str | Path, wait: bool = False) -> Iterator[None]:
+    """Hold the lock of a data folder (``OUT/.msmem.lock``, ``msmem_core.run.lock``): one writer per
+    folder. Another process writing it is a one-line ``UserError`` naming it, or with ``wait`` is waited
+    for; a folder that cannot be created is a ``UserError`` naming it. Re-entrant in a process."""
+    from msmem_core.run.lock import FolderLocked, folder_lock
+
+    with ExitStack() as held:
+        try:
+            held.enter_context(folder_lock(Path(out_dir), wait=wait))
+        except FolderLocked:
+            raise
+        except OSError as e:
+            raise UserError(f"cannot write data to {out_dir}: {e.strerror or e}") from e
+        yield
+
+
 def generate_shards(
     out_dir: str | Path,
     seeds: Sequence[int],
@@ -159,11 +177,23 @@ def generate_shards(
     a warning and the shard regenerated. ``manifest`` is written to ``dataset.json``, then
     ``task_fn(ShardTask(seed, out_dir, config_json))`` (a module-level function: it is pickled) makes
     and writes each missing shard on ``msmem_core.run.executors`` (one thread per task). Its results are
-    ``generated``; the tasks that raised are logged and listed in ``failed``.
+    ``generated``; the tasks that raised are logged and listed in ``failed``. The folder is locked
+    meanwhile (:func:`data_folder_lock`): another process writing it is refused.
     """
-    from msmem_core.run.executors import TaskFailure, run_tasks
+    from msmem_core.run.executors import check_workers
 
     out = Path(out_dir)
+    check_workers(workers)
+    with data_folder_lock(out):  # one writer per folder (a command may hold it already: re-entrant)
+        return _generate_shards(out, seeds, task_fn, config_json, check, manifest, executor, workers, progress, log,
+                                description)
+
+
+def _generate_shards(out: Path, seeds: Sequence[int], task_fn: Callable[[ShardTask], dict[str, Any]],
+                     config_json: str, check: Callable[[Path], object], manifest: dict[str, Any], executor: str,
+                     workers: int, progress: bool, log: Callable[[str], None], description: str) -> DatagenSummary:
+    from msmem_core.run.executors import TaskFailure, run_tasks
+
     out.mkdir(parents=True, exist_ok=True)
     todo, skipped, corrupt = [], [], []
     for s in seeds:

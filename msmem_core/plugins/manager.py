@@ -7,6 +7,7 @@ import importlib.metadata as md
 import os
 import sys
 import warnings
+import weakref
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -14,7 +15,7 @@ from typing import Any, TypeVar
 import pluggy
 from pydantic import BaseModel, Field, ValidationError
 
-from msmem_core.errors import PluginError
+from msmem_core.errors import ComponentFailure, PluginError, UserError
 from msmem_core.plugins.hookspec import PROJECT, MsmemSpecs
 from msmem_core.plugins.types import (
     BeliefModelSpec,
@@ -44,6 +45,25 @@ class PluginLoadWarning(UserWarning):
     """A plugin could not be loaded; the others still are."""
 
 
+_shown: set[str] = set()
+"""Plugin warnings this process has printed (``show_warning``)."""
+
+
+def show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                 file: Any = None, line: str | None = None) -> None:
+    """A ``warnings.showwarning`` for msmem's processes (the command line, executor workers): a
+    :class:`PluginLoadWarning` as one ``msmem: warning: ...`` line on stderr, once per process (every
+    plugin manager a run makes loads the plugins again); other warnings as Python prints them."""
+    if not issubclass(category, PluginLoadWarning):
+        _python_show_warning(message, category, filename, lineno, file, line)
+    elif (text := str(message)) not in _shown:
+        _shown.add(text)
+        print(f"msmem: warning: {text}", file=sys.stderr if file is None else file, flush=True)
+
+
+_python_show_warning = warnings.showwarning
+
+
 class ComponentRef(BaseModel):
     """A reference to a plugin component in config: its registered name and its parameters."""
 
@@ -71,6 +91,57 @@ class RegisteredCommand:
     spec: CommandSpec
     plugin: str
     distribution: str
+
+
+@dataclass(frozen=True)
+class Component:
+    """A component the plugin manager built: its kind and registered name, and the plugin and
+    distribution that provide it."""
+
+    kind: str
+    name: str
+    plugin: str
+    distribution: str
+
+    def __str__(self) -> str:
+        return f"{self.kind} {self.name!r} (plugin {self.plugin!r} from {self.distribution})"
+
+
+_built: dict[int, tuple[weakref.ref[Any], Component]] = {}
+"""Every component ``MsmemPluginManager.build`` made in this process and is still alive, by ``id``."""
+
+
+def _remember(obj: Any, component: Component) -> None:
+    key = id(obj)
+
+    def forget(_: weakref.ref[Any]) -> None:
+        _built.pop(key, None)
+
+    try:
+        ref = weakref.ref(obj, forget)
+    except TypeError:  # an object without weak references (``__slots__``): not traced
+        return
+    _built[key] = (ref, component)
+
+
+def built_component(obj: Any) -> Component | None:
+    """The component ``obj`` is, if a plugin manager built it (None otherwise)."""
+    entry = _built.get(id(obj))
+    return entry[1] if entry is not None and entry[0]() is obj else None
+
+
+def failed_component(error: BaseException) -> Component | None:
+    """The component whose code raised ``error``: the innermost frame of its traceback that runs a method
+    of an object a plugin manager built (a component calling msmem's own code is still the one named).
+    None when no component's method is on the traceback (the error is msmem's own)."""
+    found = None
+    tb = error.__traceback__
+    while tb is not None:  # outermost to innermost: the last one found is the innermost
+        obj = tb.tb_frame.f_locals.get("self")
+        if obj is not None and (c := built_component(obj)) is not None:
+            found = c
+        tb = tb.tb_next
+    return found
 
 
 def _flag(name: str) -> bool:
@@ -334,8 +405,9 @@ class MsmemPluginManager(pluggy.PluginManager):
         return out
 
     # ------------------------------------------------------------------------------------ building
-    def build(self, kind: str, ref: ComponentRef | str, where: str | None = None, **extra: Any) -> Any:
-        """Validate ``ref.params`` against the spec's config model and call its factory.
+    def validate(self, kind: str, ref: ComponentRef | str, where: str | None = None, **extra: Any) -> BaseModel:
+        """``ref.params`` checked against the spec's config model: the component's config, or a
+        ``PluginError`` naming the component and the field (``where``: where the config names it).
 
         ``extra`` supplies run-wide values (camera, gripper, seed) for config fields the user did not set.
         """
@@ -353,12 +425,35 @@ class MsmemPluginManager(pluggy.PluginManager):
             if why:
                 raise PluginError(f"{kind} {ref.name!r}: {at}.{name}: {why}")
         try:
-            config = spec.config_model.model_validate(params)
+            return spec.config_model.model_validate(params)
         except ValidationError as e:
             err = e.errors()[0]
             loc = ".".join(str(x) for x in err["loc"])
             raise PluginError(f"{kind} {ref.name!r}: {at}.{loc}: {err['msg']}") from e
-        return spec.factory(config)
+
+    def build(self, kind: str, ref: ComponentRef | str, where: str | None = None, **extra: Any) -> Any:
+        """Validate ``ref.params`` (:meth:`validate`) and call the spec's factory.
+
+        ``extra`` supplies run-wide values (camera, gripper, seed) for config fields the user did not set.
+        A factory that raises (other than a ``UserError``, which says what the user must change) is a
+        :class:`~msmem_core.errors.ComponentFailure` naming the component, its plugin and distribution.
+        What is built is remembered (weakly), so that an exception its code raises later is traced to it
+        (:func:`failed_component`).
+        """
+        if isinstance(ref, str):
+            ref = ComponentRef(name=ref)
+        config = self.validate(kind, ref, where, **extra)
+        reg = self.registered(kind)[ref.name]
+        component = Component(kind, ref.name, reg.plugin, reg.distribution)
+        try:
+            built = reg.spec.factory(config)
+        except (UserError, KeyboardInterrupt):
+            raise
+        except Exception as e:
+            at = f" ({where})" if where else ""
+            raise ComponentFailure(f"{component} failed while being built{at}: {_reason(e)}") from e
+        _remember(built, component)
+        return built
 
     def listing(self) -> list[dict[str, Any]]:
         """One row per component: kind, name, distribution, plugin, description, config fields."""

@@ -86,6 +86,23 @@ def suite_scenes(suite: str) -> list[SceneSpec]:
     return [SceneSpec.model_validate_json(f.read_text()) for f in files]
 
 
+def parse_methods(text: str) -> list[str]:
+    """'view-only,push-only' -> ['view-only', 'push-only'], each a known method preset; a list naming
+    none, or one twice, or an unknown preset is a one-line ``UserError``."""
+    from msmem_core.config import preset
+
+    methods = [m.strip() for m in text.split(",")]
+    if not any(methods):
+        raise UserError(f"--methods {text!r}: expected comma-separated method presets, e.g. view-only,push-only")
+    if "" in methods:
+        raise UserError(f"--methods {text!r}: an empty name between commas")
+    if twice := sorted({m for m in methods if methods.count(m) > 1}):
+        raise UserError(f"--methods {text!r}: {twice[0]!r} is named twice")
+    for m in methods:
+        preset(m)
+    return methods
+
+
 def parse_range(text: str | None, n: int) -> list[int]:
     """'0-4,7' -> [0, 1, 2, 3, 4, 7]; None -> all n."""
     if not text:
@@ -94,6 +111,8 @@ def parse_range(text: str | None, n: int) -> list[int]:
     try:
         for part in text.split(","):
             lo, _, hi = part.partition("-")
+            if int(hi or lo) < int(lo):
+                raise UserError(f"--scenes {text!r}: the range {part!r} is empty (write it low-high)")
             out.extend(range(int(lo), int(hi or lo) + 1))
     except ValueError as e:
         raise UserError(f"--scenes {text!r}: expected indices like 0-4,7") from e
@@ -156,9 +175,14 @@ def write_atomic(path: Path, data: Any) -> None:
 
 
 def write_text_atomic(path: Path, text: str) -> None:
+    """``text`` to a temporary file renamed into place; an ``OSError`` (a full disk) names ``path``."""
     tmp = path.with_suffix(path.suffix + f".tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise OSError(e.errno, e.strerror or str(e), str(path)) from e
 
 
 def read_episode(path: Path) -> dict[str, Any]:
@@ -527,13 +551,40 @@ def _prepare_folder(folder: Path) -> None:
 def run_bench(methods: list[str], scenes: list[SceneSpec], scene_indices: list[int], out: Path,
               overrides: dict[str, Any], config_file: str | None, executor: str, workers: int,
               threads: int, progress: bool = True, suite: str = "custom", retry_crashed: bool = True,
-              rerun_mismatched: bool = False) -> dict[str, Any]:
+              rerun_mismatched: bool = False, wait: bool = False) -> dict[str, Any]:
     """Plan (:func:`plan_bench`), run the episodes to run, and write ``table.md``, ``results.json`` and
-    ``curves.png`` from exactly the planned episodes. ``suite`` names the scenes in the fingerprints."""
-    from msmem_core.run.executors import TaskFailure, run_tasks
+    ``curves.png`` from exactly the planned episodes. ``suite`` names the scenes in the fingerprints.
+
+    The results folder is locked from before the plan until the table is written (``OUT/.msmem.lock``,
+    ``msmem_core.run.lock``): another bench into it stops with :class:`~msmem_core.run.lock.FolderLocked`
+    naming the process, or with ``wait`` waits for it."""
+    from contextlib import ExitStack
+
+    from msmem_core.run.lock import FolderLocked, folder_lock
 
     if workers < 1 or threads < 1:
         raise UserError(f"--workers and --threads must be >= 1 (got {workers} and {threads})")
+    with ExitStack() as held:
+        try:
+            held.enter_context(folder_lock(out, wait=wait))
+        except FolderLocked:
+            raise
+        except OSError as e:  # e.g. --out is a file
+            raise UserError(f"cannot write bench results to {out / 'episodes'}: {e.strerror or e}") from e
+        return _run_bench(methods, scenes, scene_indices, out, overrides, config_file, executor, workers, threads,
+                          progress, suite, retry_crashed, rerun_mismatched)
+
+
+def _episode_name(task: BenchTask) -> str:
+    return f"{task.method} scene {task.scene_index}"
+
+
+def _run_bench(methods: list[str], scenes: list[SceneSpec], scene_indices: list[int], out: Path,
+               overrides: dict[str, Any], config_file: str | None, executor: str, workers: int,
+               threads: int, progress: bool, suite: str, retry_crashed: bool,
+               rerun_mismatched: bool) -> dict[str, Any]:
+    from msmem_core.run.executors import TaskFailure, run_tasks
+
     plan = plan_bench(methods, scenes, scene_indices, out, overrides, config_file, threads, suite, retry_crashed,
                       rerun_mismatched)
     _prepare_folder(out / "episodes")
@@ -546,14 +597,25 @@ def run_bench(methods: list[str], scenes: list[SceneSpec], scene_indices: list[i
     def on_result(index: int, res: Any) -> None:
         if isinstance(res, TaskFailure):  # e.g. a dead worker, or the episode file could not be written
             task = plan.tasks[index]
+            if res.worker_died:
+                print(f"msmem bench: episode {_episode_name(task)} killed its worker process (killed, e.g. by the "
+                      f"out-of-memory killer, or crashed in native code): recorded as crashed in {task.out_file}; "
+                      "the other episodes go on", file=sys.stderr, flush=True)
             try:
                 write_atomic(Path(task.out_file), crash_record(task, res.error, res.traceback))
             except OSError as e:
                 lost[Path(task.out_file)] = f"{res.error}; writing its crash record failed too: {e}"
 
+    def on_worker_death(indices: list[int]) -> None:
+        names = ", ".join(_episode_name(plan.tasks[i]) for i in indices)
+        again = ("rerunning it alone" if len(indices) == 1
+                 else "rerunning them one at a time to find the one that killed it")
+        print(f"msmem bench: a worker process died while running episode{'s' * (len(indices) > 1)} {names}; "
+              f"{again}", file=sys.stderr, flush=True)
+
     if plan.tasks:
         run_tasks(run_bench_task, plan.tasks, executor=executor, workers=workers, threads=threads,
-                  progress=progress, description="episodes", on_result=on_result)
+                  progress=progress, description="episodes", on_result=on_result, on_worker_death=on_worker_death)
     results, missing = [], []
     for f in plan.files:
         try:

@@ -54,6 +54,8 @@ class TaskFailure:
     task: Any
     error: str
     traceback: str
+    worker_died: bool = False
+    """The task's worker process died (killed, or crashed in native code) rather than the task raising."""
 
 
 class TaskError(RuntimeError):
@@ -129,10 +131,14 @@ def exit_with_parent(parent: int) -> None:
 
 
 def _worker_init(threads: int | None, parent: int | None = None) -> None:
+    import warnings
+
+    from msmem_core.plugins.manager import show_warning
     from msmem_core.util.malloc import keep_large_allocations
 
     if parent is not None:
         exit_with_parent(parent)
+    warnings.showwarning = show_warning  # plugin warnings once per worker, not once per task
     configure_threads()  # before a task imports torch or numba (also inherited from the parent, if it called it)
     keep_large_allocations()
     if threads is not None:  # before any task imports numba/torch, so the env vars take effect too
@@ -142,11 +148,16 @@ def _worker_init(threads: int | None, parent: int | None = None) -> None:
 def _dead_worker(index: int, task: Any, error: BaseException) -> TaskFailure:
     return TaskFailure(index, task, f"worker process died while running this task (killed, e.g. by the "
                        f"out-of-memory killer, or crashed in native code): {type(error).__name__}: {error}",
-                       "".join(traceback.format_exception(error)))
+                       "".join(traceback.format_exception(error)), worker_died=True)
+
+
+WorkerDeath = Callable[[list[int]], None]
+"""Told the indices of the tasks in flight when a local worker died, before they are rerun one at a time."""
 
 
 def _iter_local(
-    fn: Callable[[Any], Any], tasks: Sequence[Any], workers: int, threads: int | None
+    fn: Callable[[Any], Any], tasks: Sequence[Any], workers: int, threads: int | None,
+    on_worker_death: WorkerDeath | None = None,
 ) -> Iterator[tuple[int, Any]]:
     if workers <= 1:
         for i, t in enumerate(tasks):
@@ -176,6 +187,9 @@ def _iter_local(
                     broken = any(isinstance(f.exception(), BrokenProcessPool) for f in done)
                 if broken:
                     done = set(wait(pending).done)  # the pool is broken: every future ends now
+                    lost = sorted(pending[f] for f in done if isinstance(f.exception(), BrokenProcessPool))
+                    if lost and not solo and on_worker_death is not None:
+                        on_worker_death(lost)
                 for fut in done:
                     i = pending.pop(fut)
                     err = fut.exception()
@@ -229,17 +243,24 @@ def iter_tasks(
     executor: str = "local",
     workers: int | None = None,
     threads: int | None = 1,
+    on_worker_death: WorkerDeath | None = None,
 ) -> Iterator[tuple[int, Any]]:
     """``(task index, result or TaskFailure)`` in completion order. ``workers`` defaults to the CPU
-    count; ``threads`` (per task; None leaves the pools alone) defaults to 1."""
+    count; ``threads`` (per task; None leaves the pools alone) defaults to 1. ``on_worker_death``: see
+    :func:`run_tasks`."""
     if executor not in EXECUTORS:
         raise UserError(f"unknown executor {executor!r}; choose one of: {', '.join(EXECUTORS)}")
-    n = workers or os.cpu_count() or 1
-    if n < 1:
-        raise UserError(f"workers must be >= 1, got {workers}")
+    n = check_workers(workers) if workers is not None else os.cpu_count() or 1
     if executor == "ray":
         return _iter_ray(fn, tasks, n, threads)
-    return _iter_local(fn, tasks, min(n, max(1, len(tasks))), threads)
+    return _iter_local(fn, tasks, min(n, max(1, len(tasks))), threads, on_worker_death)
+
+
+def check_workers(workers: int, flag: str = "--workers") -> int:
+    """``workers``, or a one-line ``UserError`` naming ``flag`` if it is below 1."""
+    if workers < 1:
+        raise UserError(f"{flag} must be >= 1, got {workers}")
+    return workers
 
 
 def run_tasks(
@@ -252,15 +273,18 @@ def run_tasks(
     description: str = "tasks",
     on_error: Literal["collect", "raise"] = "collect",
     on_result: Callable[[int, Any], None] | None = None,
+    on_worker_death: WorkerDeath | None = None,
 ) -> list[Any]:
     """Run ``fn`` over ``tasks``; results (or :class:`TaskFailure` records) in task order.
 
     ``progress`` shows a rich progress bar with the rate in tasks per minute; ``on_result(index,
-    result)`` is called as each task finishes (e.g. to log).
+    result)`` is called as each task finishes (e.g. to log). ``on_worker_death(indices)`` (local
+    executor) is called when a worker process dies with the tasks then in flight, which are rerun one
+    at a time; the one that kills its worker again comes back as a ``TaskFailure`` with ``worker_died``.
     """
     tasks = list(tasks)
     results: list[Any] = [None] * len(tasks)
-    stream = iter_tasks(fn, tasks, executor, workers, threads)
+    stream = iter_tasks(fn, tasks, executor, workers, threads, on_worker_death)
     bar = None
     if progress and tasks:
         bar = progress_bar("{task.description}", "{task.fields[rate]}")

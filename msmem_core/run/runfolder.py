@@ -17,6 +17,8 @@ import json
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,6 +28,7 @@ from numpy.typing import NDArray
 
 from msmem_core.errors import UserError
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.run.failures import one_line
 from msmem_core.util.jsonable import nan_from_null
 from msmem_core.world.grid import GridSpec
 
@@ -49,6 +52,23 @@ def stage_run_dir(out: Path, overwrite: bool = False) -> Path:
     except OSError as e:
         raise UserError(f"cannot write the run folder {out}: {e.strerror or e}"
                         + (f": {e.filename}" if e.filename else "")) from e
+
+
+class OutputError(UserError):
+    """A file of the run folder could not be written (a full disk, a quota): the message names the file
+    and the partial run folder."""
+
+
+@contextmanager
+def writing(path: Path, partial: Path | None = None) -> Iterator[None]:
+    """Run the block that writes ``path``; an ``OSError`` in it becomes an :class:`OutputError` naming
+    the file (the error's own, else ``path``) and the ``partial`` run folder (a full disk's error names
+    neither: a write to an open file has no file name)."""
+    try:
+        yield
+    except OSError as e:
+        where = f"; partial run in {partial}" if partial is not None else ""
+        raise OutputError(f"cannot write {e.filename or path}: {e.strerror or one_line(e)}{where}") from e
 
 
 def commit_run_dir(staged: Path, out: Path) -> None:

@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import ValidationError
 
 from msmem_core.config import RunConfig
 from msmem_core.errors import Interrupted, PluginError, UserError
@@ -29,6 +28,8 @@ from msmem_core.map.belief import EvidentialMap
 from msmem_core.map.ig import IGService, shelf_interior_mask, shelf_wall_mask
 from msmem_core.msas import BoundSkill, Decision, Objective, run_msas
 from msmem_core.plugins.manager import ComponentRef, MsmemPluginManager
+from msmem_core.run.estimate import Estimate, check_estimate, estimate
+from msmem_core.run.failures import named_failures
 from msmem_core.run.metrics import (
     belief_nll,
     object_counts,
@@ -41,13 +42,13 @@ from msmem_core.run.metrics import (
     semantic_miou,
     semantic_miou_bev,
 )
-from msmem_core.run.runfolder import save_ground_truth, save_snapshot
+from msmem_core.run.runfolder import save_ground_truth, save_snapshot, writing
 from msmem_core.util.artifacts import sha256_file
 from msmem_core.util.interrupt import caused_by_interrupt
 from msmem_core.util.jsonable import dumps
 from msmem_core.util.threads import configure_threads
 from msmem_core.util.trace import Tracer
-from msmem_core.world.placement import load_scene
+from msmem_core.world.placement import check_placement
 from msmem_core.world.scene import ClassSpec, SceneSpec, class_mismatch
 from msmem_core.world.scenegen import generate_scene
 from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
@@ -68,9 +69,18 @@ def set_threads(n: int) -> None:
 
 def resolve_scene(cfg: RunConfig, offered: Mapping[str, ClassSpec] | None = None) -> SceneSpec:
     """The run's scene: its file (objects may name classes plugins ``offered``), else generated."""
-    if cfg.scene.file is not None:
-        return load_scene(str(cfg.scene.file), offered)  # fields, then placement: one-line errors
+    if cfg.scene.file is not None:  # fields, then size, then placement: one-line errors
+        scene = SceneSpec.from_json(str(cfg.scene.file), offered)
+        scene_estimate(cfg, scene, manipulates=False)  # a lower bound, before the placement checks' pairs
+        return check_placement(scene, f"scene file {cfg.scene.file}")
     return generate_scene(cfg.scene.seed, cfg.scene.generator)
+
+
+def scene_estimate(cfg: RunConfig, scene: SceneSpec, manipulates: bool) -> Estimate:
+    """The estimated memory and object work of an episode of ``cfg`` on ``scene`` (``msmem_core.run.estimate``),
+    or a one-line ``UserError`` naming the scene when it is above the limits."""
+    est = estimate(len(scene.objects), cfg.grid_spec(scene.shelf), scene.num_classes, cfg.steps, manipulates)
+    return check_estimate(est, f"scene {scene.name!r}")
 
 
 @dataclass
@@ -160,20 +170,11 @@ def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
     components may load (``artifact_files``), so that new weights are not mistaken for the old."""
     from importlib.metadata import PackageNotFoundError, version
 
-    common = run_wide(cfg)  # as build_episode gives them
     dists = set()
     weights: set[Path] = set()
-    for kind, ref, where in component_refs(cfg, pm):
-        spec = pm.spec(kind, ref.name)
-        fields = spec.config_model.model_fields
-        try:
-            spec.config_model.model_validate({k: v for k, v in common.items() if k in fields} | dict(ref.params))
-        except ValidationError as e:
-            err = e.errors()[0]
-            raise PluginError(f"{kind} {ref.name!r}: {where}.params.{'.'.join(map(str, err['loc']))}: "
-                              f"{err['msg']}") from e
+    for kind, ref, _ in check_params(cfg, pm):
         dists.add(pm.registered(kind)[ref.name].distribution)
-        weights.update(artifact_files(spec, dict(ref.params)))
+        weights.update(artifact_files(pm.spec(kind, ref.name), dict(ref.params)))
     out = {}
     for d in sorted(dists):
         try:
@@ -187,6 +188,17 @@ def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
             h.update(_file_sha256(f, st.st_size, st.st_mtime_ns).encode())
         out["weights"] = h.hexdigest()[:16]
     return out
+
+
+def check_params(cfg: RunConfig, pm: MsmemPluginManager) -> list[tuple[str, ComponentRef, str]]:
+    """Check that every component the config names is registered and accepts its params, as
+    ``build_episode`` will build it (``PluginError`` naming the component and the field otherwise);
+    returns ``component_refs``."""
+    common = run_wide(cfg)  # as build_episode gives them
+    refs = component_refs(cfg, pm)
+    for kind, ref, where in refs:
+        pm.validate(kind, ref, where=where, **common)
+    return refs
 
 
 def run_wide(cfg: RunConfig) -> dict[str, Any]:
@@ -253,6 +265,7 @@ def build_episode(cfg: RunConfig, pm: MsmemPluginManager, scene: SceneSpec | Non
         where = "msas.start_view" if cfg.msas.start_view is not None else "the default start view"
         raise UserError(f"robot {cfg.robot.name!r} cannot reach {where} ({start}): {reach.reason}; "
                         "set msas.start_view to a view it reaches (`msmem robot reach --json` lists them)")
+    scene_estimate(cfg, scene, any(b.skill.category == "manipulation" for b in skills))
     ig = IGService(cfg.grid_spec(scene.shelf), cfg.camera, viewpoints, scene.shelf, cfg.ig)
     return Episode(cfg, scene, sim, observe_model, skills, Objective(terms), ig, viewpoints, robot=robot)
 
@@ -360,7 +373,17 @@ def _arm_configuration(robot: Robot, ep: Episode, d: Decision) -> dict[str, Any]
 def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
                 tracer: Tracer | None = None) -> dict[str, Any]:
     """Run MSAS for ``cfg.steps`` actions; returns the final metrics (and writes the run folder).
-    ``tracer`` observes every stage of every step (``msmem_core.util.trace``)."""
+    ``tracer`` observes every stage of every step (``msmem_core.util.trace``).
+
+    An exception a component raises (a skill, belief model, objective term, simulator or robot the
+    plugin manager built) becomes a :class:`~msmem_core.errors.ComponentFailure` naming it, its plugin
+    and distribution, the step underway and the partial run folder; a failed write of the run folder
+    (a full disk) a ``UserError`` naming the file and the folder (``runfolder.writing``)."""
+    with named_failures(lambda: len(ep.records), out_dir):
+        return _run_episode(ep, out_dir, progress, tracer)
+
+
+def _run_episode(ep: Episode, out_dir: Path | None, progress: Any, tracer: Tracer | None) -> dict[str, Any]:
     cfg = ep.cfg
     set_threads(cfg.threads)
     ep.sim.reset(ep.scene)
@@ -368,10 +391,13 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
     grid = ep.ig.grid
     initial: dict[str, float] = {}
     if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "config.json").write_text(cfg.model_dump_json(indent=2))
-        ep.scene.to_json(out_dir / "scene.json")
-        steps_file = (out_dir / "steps.jsonl").open("w")
+        with writing(out_dir / "config.json", out_dir):
+            out_dir.mkdir(parents=True, exist_ok=True)
+            (out_dir / "config.json").write_text(cfg.model_dump_json(indent=2))
+        with writing(out_dir / "scene.json", out_dir):
+            ep.scene.to_json(out_dir / "scene.json")
+        with writing(out_dir / "steps.jsonl", out_dir):
+            steps_file = (out_dir / "steps.jsonl").open("w")
     counts: Counter[str] = Counter()
     snapshot_steps = set(cfg.snapshot_steps())
     t0 = t_last = time.perf_counter()
@@ -399,10 +425,12 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
         t_last = now
         ep.records.append(rec)
         if out_dir is not None:
-            steps_file.write(dumps(rec) + "\n")
-            steps_file.flush()
+            with writing(out_dir / "steps.jsonl", out_dir):
+                steps_file.write(dumps(rec) + "\n")
+                steps_file.flush()
             if step in snapshot_steps:
-                save_snapshot(out_dir / f"belief_step{step}.npz", b, metrics.gt_occ, metrics.gt_cls)
+                with writing(snap := out_dir / f"belief_step{step}.npz", out_dir):
+                    save_snapshot(snap, b, metrics.gt_occ, metrics.gt_cls)
         if progress is not None:
             progress(rec)
 
@@ -416,7 +444,8 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
         raise Interrupted(f"interrupted at step {len(ep.records)}{where}") from e
     finally:
         if out_dir is not None:
-            steps_file.close()
+            with writing(out_dir / "steps.jsonl", out_dir):
+                steps_file.close()
     final: dict[str, Any] = dict(ep.records[-1]["metrics"]) if ep.records else dict(initial)
     final.update({
         "initial": initial,
@@ -430,7 +459,10 @@ def run_episode(ep: Episode, out_dir: Path | None = None, progress: Any = None,
         "paper_counts": metrics.paper_counts,  # of the final belief; msmem bench sums them over scenes
     })
     if out_dir is not None:
-        (out_dir / "metrics.json").write_text(dumps(final, indent=2))
-        belief.save(out_dir / "belief_final.npz")
-        save_ground_truth(out_dir / "gt_final.npz", grid, metrics.gt_occ, metrics.gt_cls)
+        with writing(out_dir / "metrics.json", out_dir):
+            (out_dir / "metrics.json").write_text(dumps(final, indent=2))
+        with writing(out_dir / "belief_final.npz", out_dir):
+            belief.save(out_dir / "belief_final.npz")
+        with writing(out_dir / "gt_final.npz", out_dir):
+            save_ground_truth(out_dir / "gt_final.npz", grid, metrics.gt_occ, metrics.gt_cls)
     return final

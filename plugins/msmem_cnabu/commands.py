@@ -53,17 +53,23 @@ def datagen_cnabu(
                             "scenes of your own mesh classes; default: the built-in classes.")] = None,
     sim: SimOpt = "pybullet",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    wait: Annotated[bool, typer.Option(
+        "--wait", help="If another msmem process is writing --out, wait for it to finish (default: stop with "
+                       "an error).")] = False,
 ) -> None:
-    """CNABU training data: belief before, action, simulator ground truth after (sharded, resumable)."""
+    """CNABU training data: belief before, action, simulator ground truth after (sharded, resumable).
+    One writer per --out: another datagen into it is refused, or waits with --wait."""
     from pydantic import ValidationError
 
     from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset
     from msmem_core.config import load_generator_config
-    from msmem_core.learn.datagen import seed_range
+    from msmem_core.learn.datagen import data_folder_lock, seed_range
     from msmem_core.plugins import ComponentRef
+    from msmem_core.run.executors import check_workers
 
     kind = _kind(kind)
     seeds = seed_range(scenes, seed)
+    check_workers(workers)
     try:
         cfg = CNABUDataConfig(kind=kind, voxel_m=voxel, states=states, actions_per_state=actions,
                               observe_samples=samples, min_views=min_views, max_views=max_views,
@@ -76,8 +82,9 @@ def datagen_cnabu(
     typer.echo(f"msmem datagen cnabu: {kind}, {scenes} scenes (seeds {seeds[0]}..{seeds[-1]}) -> {out}, "
                f"{workers} worker(s), executor {executor}, simulator {sim}"
                + (f", observation model {observation}" if observation != "analytic-observation" else ""))
-    summary = generate_dataset(out, seeds, cfg, executor=executor, workers=workers, progress=not quiet,
-                               log=lambda m: typer.echo(m, err=True))
+    with data_folder_lock(out, wait):  # from before the folder's manifest is checked until the last shard
+        summary = generate_dataset(out, seeds, cfg, executor=executor, workers=workers, progress=not quiet,
+                                   log=lambda m: typer.echo(m, err=True))
     gen = summary.generated
     line = summary.headline()
     if gen:
