@@ -288,9 +288,10 @@ def test_batched_collision_tests_equal_the_per_grasp_loop(seed: int) -> None:
 
 
 # ----------------------------------------------------------------------------------------- proposal
-def test_executable_grasps_come_from_the_belief_are_reachable_and_collision_free(caplog, tmp_path) -> None:  # type: ignore[no-untyped-def]
+def test_executable_grasps_come_from_the_belief_are_reachable_and_collision_free(caplog, tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
     belief = box_belief([TARGET, BYSTANDER])
-    skill = GraspSkill(GraspConfig(weights=tmp_path / "missing.pt"))  # auto with no weights: the fallback
+    monkeypatch.setattr("msmem_grasp.weights.SHIPPED_WEIGHTS", tmp_path / "missing.pt")  # none installed
+    skill = GraspSkill(GraspConfig())  # auto, none named, none installed: the fallback
     with caplog.at_level(logging.WARNING, logger="msmem.grasp"):
         grasps = skill.propose(ctx(belief))
     assert "geometric fallback" in caplog.text  # no weights: the fallback is announced

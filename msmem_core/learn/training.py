@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from msmem_core.errors import UserError
-from msmem_core.util.artifacts import atomic_save, sidecar_path
+from msmem_core.util.artifacts import atomic_save, load_state, non_finite_tensor, sidecar_path
 from msmem_core.util.progress import progress_bar
 
 
@@ -93,9 +93,11 @@ class TrainingRun:
         self._t_start = time.perf_counter()
         self._bar: Any = None
         if resume and self.ckpt_path.exists():
-            import torch
-
-            ck = torch.load(self.ckpt_path, weights_only=True)
+            ck = load_state(self.ckpt_path, UserError, "a training checkpoint")
+            bad = non_finite_tensor(ck.get("model") if isinstance(ck, dict) else None)
+            if bad:
+                raise UserError(f"{self.ckpt_path}: the checkpoint's weights are not finite (NaN or infinite) in "
+                                f"tensor {bad}; delete it to train from the start")
             model.load_state_dict(ck["model"])
             opt.load_state_dict(ck["optimizer"])
             self.history = json.loads(ck["history"])

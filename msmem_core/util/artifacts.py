@@ -85,19 +85,55 @@ def read_sidecar(
     return meta
 
 
+def non_finite_tensor(state: Any) -> str | None:
+    """The name of the first floating-point tensor of a state dict holding a NaN or an infinity, with
+    how many of its values do, or None when every tensor is finite."""
+    import torch
+
+    items = state.items() if isinstance(state, dict) else ()
+    for name, t in items:
+        if isinstance(t, torch.Tensor) and (t.is_floating_point() or t.is_complex()):
+            bad = int((~torch.isfinite(t)).sum())
+            if bad:
+                return f"{name} ({bad} of {t.numel()} values)"
+    return None
+
+
+def load_state(weights: Path, error: Callable[[str], Exception], what: str = "weights") -> Any:
+    """A state dict read with ``torch.load(weights_only=True)`` (no code runs), every tensor finite;
+    problems raise ``error(message)`` naming the file."""
+    import pickle
+    import warnings
+
+    import torch
+
+    try:
+        with warnings.catch_warnings():  # torch warns about pickle protocols before it refuses: the line below says it
+            warnings.simplefilter("ignore", UserWarning)
+            state = torch.load(weights, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise error(f"{weights}: not readable as {what}: not a plain state dict (the safe loader, weights_only, "
+                    "refused it: a corrupt file, or one holding code or objects that are not tensors)") from e
+    except Exception as e:  # truncated files, not a torch file at all
+        first = (str(e).strip().splitlines() or [""])[0]
+        raise error(f"{weights}: not readable as {what} ({type(e).__name__}: {first})") from e
+    bad = non_finite_tensor(state)
+    if bad:
+        raise error(f"{weights}: {what} with values that are not finite (NaN or infinite) in tensor {bad}")
+    return state
+
+
 def load_weights(
     weights: Path, meta: dict[str, Any], build: Callable[[dict[str, Any]], Any], verify: bool, remedy: str,
     error: Callable[[str], Exception],
 ) -> Any:
     """``build(meta["model"])`` (a torch module) with the state dict at ``weights``, in eval mode.
 
-    With ``verify`` the file's sha256 must equal the sidecar's. A mismatch, an unreadable file or
-    tensors that do not fit raise ``error(message)`` naming the file and the hash it should have; a
-    mismatch's message ends with what to do: "... Restore the file (reinstall msmem / git checkout)
-    or " + ``remedy``.
+    With ``verify`` the file's sha256 must equal the sidecar's. A mismatch, an unreadable file,
+    tensors that are not finite or that do not fit raise ``error(message)`` naming the file (and the
+    hash it should have); a mismatch's message ends with what to do: "... Restore the file (reinstall
+    msmem / git checkout) or " + ``remedy``.
     """
-    import torch
-
     expected = meta["sha256"]
     hint = (f"{weights}: weights are corrupt or not the ones described by {sidecar_path(weights).name}: expected"
             f" sha256 {expected}")
@@ -105,10 +141,10 @@ def load_weights(
         actual = sha256_file(weights)
         if actual != expected:
             raise error(f"{hint}, got {actual}. Restore the file (reinstall msmem / git checkout) or {remedy}")
+    state = load_state(weights, error)
     try:
-        state = torch.load(weights, map_location="cpu", weights_only=True)
         model = build(meta["model"])
         model.load_state_dict(state)
-    except Exception as e:  # unpickling errors, missing/unexpected keys, shape mismatches
+    except Exception as e:  # missing/unexpected keys, shape mismatches, an architecture the sidecar cannot build
         raise error(f"{hint}; loading failed with {type(e).__name__}: {e}") from e
     return model.eval()

@@ -239,7 +239,7 @@ ClassName = Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$", max_length=64)]
 
 class MeshSpec(BaseModel):
     """A mesh file as an object's geometry (``world.meshparts``): OBJ, STL, PLY, or a URDF whose first
-    collision mesh (with its scale) is used."""
+    collision mesh (with its scale and origin) is used."""
 
     model_config = FROZEN_MODEL_CONFIG
 
@@ -255,6 +255,9 @@ class MeshSpec(BaseModel):
     """At most this many convex pieces (CoACD)."""
     threshold: float = Field(0.05, gt=0.0, le=1.0)
     """CoACD's concavity threshold: lower follows the mesh more closely, with more pieces."""
+    package_roots: tuple[str, ...] = ()
+    """A URDF's meshes lie in its folder; ``package://NAME/...`` ones in the folder of these named
+    ``NAME`` (relative paths in a scene file are relative to that file). Nothing else is read."""
 
 
 class ClassSpec(BaseModel):
@@ -299,7 +302,8 @@ def _mesh_parts(mesh: MeshSpec, stamp: tuple[int, int] | None) -> tuple[Part, ..
     declares the class (a suite's 25 files) would otherwise read and hash the mesh and its cache again."""
     from msmem_core.world.meshparts import mesh_pieces
 
-    pieces, _ = mesh_pieces(mesh.file, mesh.scale, mesh.max_hulls, mesh.threshold, quat_xyzw=mesh.quat_xyzw)
+    pieces, _ = mesh_pieces(mesh.file, mesh.scale, mesh.max_hulls, mesh.threshold, quat_xyzw=mesh.quat_xyzw,
+                            package_roots=mesh.package_roots)
     return tuple(Part(kind="convex", vertices_m=tuple(map(tuple, v))) for v in pieces)
 
 
@@ -366,13 +370,19 @@ class ObjectSpec(BaseModel):
 
 
 def relative_mesh_files(classes: Any, folder: Path) -> None:
-    """In place: the relative mesh paths of raw class declarations (a list of mappings, as read from a
-    file in ``folder``) made absolute against ``folder``; ``pybullet_data:...`` paths stay."""
+    """In place: the relative mesh paths (and package roots) of raw class declarations (a list of
+    mappings, as read from a file in ``folder``) made absolute against ``folder``; ``pybullet_data:...``
+    paths stay."""
     for c in classes if isinstance(classes, list) else []:
         mesh = c.get("mesh") if isinstance(c, dict) else None
-        file = mesh.get("file") if isinstance(mesh, dict) else None
-        if isinstance(mesh, dict) and isinstance(file, str) and not Path(file).is_absolute() and ":" not in file:
+        if not isinstance(mesh, dict):
+            continue
+        file = mesh.get("file")
+        if isinstance(file, str) and not Path(file).is_absolute() and ":" not in file:
             mesh["file"] = str((folder / file).resolve())
+        roots = mesh.get("package_roots")
+        if isinstance(roots, list):
+            mesh["package_roots"] = [str((folder / r).resolve()) if isinstance(r, str) else r for r in roots]
 
 
 class SceneSpec(BaseModel):
@@ -426,7 +436,7 @@ class SceneSpec(BaseModel):
             try:
                 parts = c.geometry()
             except UserError as e:
-                raise ValueError(f"classes.{i}.mesh: {e}") from None
+                raise ValueError(f"classes.{i}.mesh: {e} (class {c.name!r})") from None
             known[c.name] = ObjectClass(name=c.name, class_id=len(known) + 1, parts=parts, mass_kg=c.mass_kg,
                                         confusable_with=c.confusable_with, color_rgb=c.color_rgb)
         for i, c in enumerate(self.classes):

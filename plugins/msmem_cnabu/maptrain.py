@@ -45,7 +45,7 @@ from msmem_core.errors import UserError
 from msmem_core.interfaces import Workspace
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.plugins import ComponentRef
-from msmem_core.util.artifacts import atomic_save, write_sidecar
+from msmem_core.util.artifacts import atomic_save, load_state, write_sidecar
 from msmem_core.util.validation import error_lines
 from msmem_core.world.scene import CLASS_NAMES, model_classes
 
@@ -388,7 +388,7 @@ def train_map(data_dir: str | Path | Sequence[str | Path], out: str | Path, cfg:
         raise UserError(f"the data's grid is {shape}, the network's {tuple(model_cfg.grid_shape)}")
     net = MapNet(model_cfg)
     if init is not None:
-        load_widened(net, torch.load(init, map_location="cpu", weights_only=True), str(init))
+        load_widened(net, load_state(Path(init), UserError, "initial weights"), str(init))
     valid = torch.from_numpy(first.valid)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     total_batches = cfg.batches or max(1, int(cfg.epochs * len(paths) / cfg.batch))

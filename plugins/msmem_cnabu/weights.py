@@ -30,10 +30,16 @@ def shipped_weights(kind: str) -> Path:
 
 def resolve_weights(path: str | Path) -> Path:
     """``path`` as given, except that a relative ``msmem_cnabu/weights/NAME`` that does not exist from the
-    working directory names the shipped folder (so a config file can pick shipped weights by name)."""
+    working directory names the shipped folder (so a config file can pick shipped weights by name). A
+    shipped name resolves only inside that folder: one that leads out (``..``, a symlink) is refused."""
     p = Path(path)
     if not p.is_absolute() and not p.exists() and p.parts[:2] == ("msmem_cnabu", "weights"):
-        return WEIGHTS_DIR.joinpath(*p.parts[2:])
+        shipped = WEIGHTS_DIR.joinpath(*p.parts[2:])
+        real, folder = shipped.resolve(), WEIGHTS_DIR.resolve()
+        if not real.is_relative_to(folder) or real == folder:
+            raise WeightsError(f"weights {str(path)!r}: a shipped weights name must name a file inside the shipped "
+                               f"folder {folder}, this one leads to {real}")
+        return shipped
     return p
 
 

@@ -7,7 +7,8 @@ first manipulation also one virtual front camera per viewpoint grid; after one, 
 really looked, since the rest of the belief may be an effect model's unconfirmed prediction)
 (``fpp.frontier_points``, ``num_points`` points) -> per-point
 evidential grasps (FE-vMF with the shipped weights; if none are installed, the geometric fallback of
-``msmem_grasp.geometric``, logged once as a warning and recorded in every action's ``predictor``)
+``msmem_grasp.geometric``, logged once as a warning and recorded in every action's ``predictor``;
+weights named in ``weights`` are loaded when the skill is built and never fall back)
 -> FE-UMGF buffer update (``msmem_grasp.fusion``). A manipulation (``ctx.last_manipulation``) clears
 the buffer, and nothing is fused until a view has been taken after it. Nothing is ever read from
 ground truth.
@@ -190,10 +191,12 @@ class GraspConfig(BaseModel):
     seed: int = 0
     """Seed of the FPP point sampling (the run's seed; each step draws its own from it)."""
     predictor: Literal["auto", "fe-vmf", "geometric"] = "auto"
-    """auto: FE-vMF with ``weights`` if they exist, else the geometric fallback (logged);
-    fe-vmf: the weights must load; geometric: always the fallback."""
+    """auto: FE-vMF with the shipped weights if they load, else the geometric fallback (said once); named
+    ``weights`` must load. fe-vmf: the weights must load. geometric: always the fallback."""
     weights: Path | None = None
-    """FE-vMF weights (None: the shipped ``msmem_grasp/weights/fe_vmf.pt``)."""
+    """FE-vMF weights (None: the shipped ``msmem_grasp/weights/fe_vmf.pt``). Weights named here are
+    loaded when the skill is built; weights that do not load (hash, format, non-finite tensors) refuse
+    the run, naming the file and the reason."""
     num_points: int = Field(3072, ge=16, le=100_000)
     """FPP points per step (the paper samples 1e4 on a GPU; FE-vMF's training clouds have 4096)."""
     ray_stride_px: int = Field(4, ge=1, le=64)
@@ -308,6 +311,9 @@ class GraspSkill(Skill):
         """``last_manipulation`` of the context the buffer was built under."""
         self._confirm = False
         """The next update confirms the buffer (``after_manipulation: confirm``)."""
+        if self.config.predictor != "geometric" and (self.config.weights is not None
+                                                     or self.config.predictor == "fe-vmf"):
+            _ = self.predictor  # weights the user asked for load now, before any episode, or refuse the run
 
     # ------------------------------------------------------------------------------ prediction
     @property
@@ -325,8 +331,10 @@ class GraspSkill(Skill):
                     self._model = load_fe_vmf(path)
                     self._predictor = f"fe-vmf:{Path(path).name}"
                 except WeightsError as e:
-                    if cfg.predictor == "fe-vmf":
-                        raise
+                    if cfg.predictor == "fe-vmf" or cfg.weights is not None:
+                        why = "named in its weights parameter" if cfg.weights is not None else "predictor: fe-vmf"
+                        raise WeightsError(f"grasp skill: FE-vMF weights {path} ({why}) cannot be used, no fallback: "
+                                           f"{e}") from e
                     if str(path) not in _WARNED:  # once per process and weights file
                         _WARNED.add(str(path))
                         log.warning("grasp skill: no usable FE-vMF weights (%s); using the untrained geometric "
