@@ -487,3 +487,22 @@ def test_a_long_decomposition_reports_its_progress_and_a_short_or_cached_one_is_
     assert f"(cached: {report.cache})" in err[1]
     mesh_pieces(f, 0.02, max_hulls=8)  # cached: no decomposition, nothing said
     assert capfd.readouterr().err == ""
+
+
+@pytest.mark.slow  # about 10 s (a fresh msmem process): run by CI's `make test-slow`
+def test_msmem_run_with_named_grasp_weights_that_do_not_load_is_refused_before_the_episode(tmp_path):
+    import subprocess
+
+    w = _corrupt(tmp_path / "named.pt")
+    cfg = tmp_path / "run.yaml"
+    cfg.write_text(f"skill_params:\n  grasp:\n    weights: {w}\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(str(ROOT / d) for d in ("", "plugins", "simulators"))}
+    res = subprocess.run([str(Path(sys.executable).with_name("msmem")), "run", "-m", "ours", "-c", str(cfg),
+                          "--steps", "2", "--out", str(tmp_path / "run"), "-q"],
+                         capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300, check=False)
+    assert res.returncode == 2, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr
+    assert lines[0].startswith(f"msmem: error: grasp skill: FE-vMF weights {w} (named in its weights parameter)")
+    assert "expected sha256" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["named.json", "named.pt", "run.yaml"]  # no run folder
