@@ -31,6 +31,7 @@ import numpy as np
 from scipy import stats
 
 from msmem_core.errors import IncompleteError, UserError
+from msmem_core.run.funnel import funnel_counts, funnel_markdown, sum_funnels
 from msmem_core.run.metrics import PAPER_COUNT_KEYS, PAPER_METRIC_KEYS, paper_metrics_from_counts, sum_paper_counts
 from msmem_core.util.jsonable import dumps, nan_from_null
 from msmem_core.world.scene import SceneSpec
@@ -249,7 +250,8 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
             "scene": ep.scene.name, "status": "ok", "metrics": episode_metrics(final, ep.records),
             "paper_counts": final["paper_counts"], "curves": curves, "skills": kinds,
             "terms": [r["terms"] for r in ep.records],  # the chosen action's objective terms, per step
-            "candidates": candidate_counts(ep.records), "seconds": time.perf_counter() - t0,
+            "candidates": candidate_counts(ep.records), "funnel": funnel_counts(ep.records),
+            "seconds": time.perf_counter() - t0,
         })
     except Exception as e:  # isolate the crash: the table reports it, the other episodes go on
         import traceback
@@ -357,6 +359,7 @@ def summarise(results: list[dict[str, Any]], methods: list[str]) -> dict[str, An
         table[m]["counted"] = {k: n for k, _, _ in TABLE_METRICS  # columns some episodes lack (older files) or
                                if (n := sum(_counts(r["metrics"].get(k)) for r in rows)) < len(rows)}  # leave NaN
         table[m]["cumulative"] = cumulative(rows)
+        table[m]["funnel"] = sum_funnels(r["funnel"] for r in rows if "funnel" in r)  # older files lack it
         counted = [r for r in rows if all(k in r["metrics"] for k, _ in COUNT_METRICS)]  # older files lack them
         table[m]["counts"] = {
             "episodes": len(counted),
@@ -437,6 +440,7 @@ def table_markdown(summary: dict[str, Any]) -> str:
         n = counts["episodes"]
         cells = [f"{counts['sum'][k]} ({counts['mean'][k]:.1f})" if n else "-" for k, _ in COUNT_METRICS]
         lines.append(f"| {m} | {n} | " + " | ".join(cells) + " |")
+    lines += funnel_markdown(summary["table"], summary["methods"])
     if summary["errors"]:
         lines += ["", "Crashed episodes:", ""] + [f"- {e['method']} scene {e['scene_index']}: {e['error']}"
                                                   for e in summary["errors"]]

@@ -78,6 +78,8 @@ from msmem_push.geometry import (
     tool_boxes,
 )
 
+FUNNEL_STAGES = ("drawn", "in_shelf", "collision_free")
+"""The stages ``PushSkill.sample`` counts its candidates after (``propose`` reports them to the step's funnel)."""
 START_FRONT_MARGIN_M = 0.05
 """A push may start at most this far in front of the shelf opening (y >= -0.05 m)."""
 ROUNDS = 3
@@ -380,13 +382,23 @@ class PushSkill(Skill):
     def propose(self, ctx: Any) -> list[Action]:
         if not ctx.manipulation_allowed:
             return []
-        return list(self.sample(ctx.belief, ctx.shelf, ctx.rng, ctx.workspace.classes))
+        stages: dict[str, int] = {}
+        out = self.sample(ctx.belief, ctx.shelf, ctx.rng, ctx.workspace.classes, stages)
+        funnel = getattr(ctx, "funnel", None)
+        if funnel is not None:  # the step record's candidate funnel (0 for stages never reached)
+            for stage in FUNNEL_STAGES:
+                funnel.count(stage, stages.get(stage, 0))
+        return list(out)
 
     def sample(self, belief: Any, shelf: ShelfSpec, rng: np.random.Generator,
-               classes: tuple[ObjectClass, ...] = ()) -> list[PushAction]:
+               classes: tuple[ObjectClass, ...] = (), stages: dict[str, int] | None = None) -> list[PushAction]:
         """UPS: push candidates from the belief (see the module docstring); ``classes`` are the belief's
-        object classes (``Workspace.classes``), whose shapes ``class_height_ratio`` judges."""
+        object classes (``Workspace.classes``), whose shapes ``class_height_ratio`` judges. ``stages``
+        receives the raw candidates ``drawn`` for the occluders found (none without a hidden column and
+        an occluder), those ``in_shelf`` (a start and room for ``min_length_m``: ``_candidate``) and
+        those ``collision_free`` (``_valid``), before the ``max_samples`` cap."""
         cfg = self.config
+        stages = {} if stages is None else stages
         grid = belief.grid
         s = grid.voxel_m
         o = grid.origin
@@ -424,12 +436,20 @@ class PushSkill(Skill):
         per_target = max(2, math.ceil(2 * cfg.max_samples / len(targets)))
         groups: list[list[PushAction]] = [[] for _ in targets]
         interior_m = shelf.interior_box
+        drawn = shaped = 0
         for _ in range(ROUNDS):  # in dense shelves most sideways pushes collide: sample again
             for g, t in zip(groups, targets, strict=True):
-                raw = (self._candidate(t, rng, grid, interior_m, blocked, chain) for _ in range(per_target))
-                g += [a for a in raw if a is not None and self._valid(a, grid, walls, occupied, interior_m)]
+                for _ in range(per_target):
+                    a = self._candidate(t, rng, grid, interior_m, blocked, chain)
+                    drawn += 1
+                    if a is None:
+                        continue
+                    shaped += 1
+                    if self._valid(a, grid, walls, occupied, interior_m):
+                        g.append(a)
             if sum(len(g) for g in groups) >= cfg.max_samples:
                 break
+        stages.update(drawn=drawn, in_shelf=shaped, collision_free=sum(len(g) for g in groups))
         out: list[PushAction] = []
         i = 0
         while len(out) < cfg.max_samples and any(i < len(g) for g in groups):
