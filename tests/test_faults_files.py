@@ -101,7 +101,7 @@ def test_pieces_holding_far_less_than_the_mesh_are_refused_naming_both_volumes(t
     assert str(f) in text
 
 
-def test_an_open_mesh_is_checked_against_its_hull_and_an_old_cache_record_is_checked_too(tmp_path, caplog):
+def test_an_open_mesh_is_checked_against_its_hull_and_an_unchecked_cache_record_is_checked_too(tmp_path, caplog):
     """An open mesh's pieces far smaller than its hull are warned about (an open container's thin walls
     hold little; so does the sliver CoACD made of a cube with a dropped vertex: 1.18e-5 m^3 in 170 s)."""
     box = trimesh.creation.box((6.0, 6.0, 6.0))
@@ -111,7 +111,7 @@ def test_an_open_mesh_is_checked_against_its_hull_and_an_old_cache_record_is_che
     assert load_mesh(f).is_watertight is False
     settings = {"max_hulls": 16, "threshold": 0.05, "convex_ratio": 0.95, "quat_xyzw": [0.0, 0.0, 0.0, 1.0]}
     cache = f.with_name(f"{f.name}.hulls-{meshparts._key(f, 0.01, settings)}.json")
-    # a record as written before the checks (no hull volume): the mesh is read to check it
+    # a record without a hull volume (unchecked): the mesh is read to check it
     cache.write_text(json.dumps({"source": str(f), "decomposed": True, "mesh_volume_m3": None,
                                  "pieces_volume_m3": 1.18e-5, "pieces": [SLIVER.tolist()]}))
     with caplog.at_level(logging.WARNING, logger="msmem_core.world.meshparts"):

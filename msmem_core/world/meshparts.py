@@ -365,7 +365,7 @@ def mesh_pieces(
         except (OSError, ValueError, KeyError, TypeError):
             pass  # a broken cache file is made again
         else:
-            unchecked = "hull_volume_m3" not in data  # written before the checks: check the mesh as a new one
+            unchecked = "hull_volume_m3" not in data  # no hull volume recorded: check the mesh as a new one
             if unchecked:
                 mesh = load_mesh(p, scale, quat_xyzw, package_roots)
                 report = MeshReport(report.pieces, report.decomposed, report.mesh_volume_m3,
