@@ -53,7 +53,7 @@ def test_a_second_bench_into_a_locked_folder_is_refused_naming_the_holder(tmp_pa
     with holder(out, "--seconds", "120") as proc:
         line = _one_error_line(run_cli(*BENCH, "--out", str(out)))
     assert line.startswith(f"msmem: error: {out} is being written by process {proc.pid} "
-                           f"(hold_lock.py {out} --seconds 120), since ")
+                           f"(hold_lock.py {out} --seconds 120; since ")
     assert "--wait" in line
     assert sorted(p.name for p in out.iterdir()) == [LOCK_NAME]  # the holder's: nothing planned, nothing written
 
@@ -62,7 +62,7 @@ def test_a_second_run_into_a_locked_run_folder_is_refused_before_any_work(tmp_pa
     out = tmp_path / "run"
     with holder(out, "--run") as proc:
         line = _one_error_line(run_cli("run", "-m", "view-only", "--sim", "nosuch", "--out", str(out)))
-    assert f"msmem: error: {out} is being written by process {proc.pid} (hold_lock.py {out} --run)" in line
+    assert f"msmem: error: {out} is being written by process {proc.pid} (hold_lock.py {out} --run; since " in line
     assert "nosuch" not in line  # refused before the config's components are even looked at
     assert [p.name for p in tmp_path.iterdir()] == [".run.msmem.lock"]  # the holder's: no partial folder
 
@@ -90,8 +90,8 @@ def test_wait_waits_for_the_holder_then_goes_on(tmp_path):
         proc.send_signal(signal.SIGUSR1)
         rest = cmd.communicate(timeout=120)[1]
         assert proc.wait(timeout=30) == 0  # the holder released the lock and ended normally
-    assert first == f"msmem: waiting for process {proc.pid} (hold_lock.py {out}), since {first.split('since ')[1]}"
-    assert first.rstrip().endswith(f"to finish writing {out} (lock {out / LOCK_NAME})")
+    assert first.startswith(f"msmem: waiting for process {proc.pid} (hold_lock.py {out}; since ")
+    assert first.rstrip().endswith(f") to finish writing {out} (lock {out / LOCK_NAME})")
     assert cmd.returncode == 2, rest
     assert rest.strip().splitlines() == ["msmem: error: no simulator named 'nosuch'; available: pybullet, sapien"]
 
@@ -107,8 +107,8 @@ def test_a_lock_left_by_a_dead_process_is_taken_over(tmp_path):
     assert res.returncode == 2, res.stderr
     first, last = res.stderr.strip().splitlines()
     assert first.startswith(f"msmem: taking over the lock {left} left by process {proc.pid} (hold_lock.py {out} "
-                            "--run --die)")
-    assert first.endswith("which is no longer running")
+                            "--run --die; since ")
+    assert first.endswith("), which is no longer running")
     assert "no simulator named 'nosuch'" in last  # it went on past the lock
     assert not left.exists()
 

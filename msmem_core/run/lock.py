@@ -52,7 +52,7 @@ def command_line() -> str:
 
 
 def holder(lock_file: Path) -> str:
-    """Who a lock file names: ``process PID (COMMAND), since HH:MM:SS``, or ``another process`` when it
+    """Who a lock file names: ``process PID (COMMAND; since HH:MM:SS)``, or ``another process`` when it
     names none (it is being written, or was written by hand)."""
     for _ in range(20):  # the holder writes it right after taking the lock: give it a moment
         try:
@@ -63,8 +63,8 @@ def holder(lock_file: Path) -> str:
         if fields.get("pid", "").isdigit():
             since = ""
             if fields.get("since", "").replace(".", "", 1).isdigit():
-                since = time.strftime(", since %H:%M:%S", time.localtime(float(fields["since"])))
-            return f"process {fields['pid']} ({fields.get('command') or '?'}){since}"
+                since = time.strftime("; since %H:%M:%S", time.localtime(float(fields["since"])))
+            return f"process {fields['pid']} ({fields.get('command') or '?'}{since})"
         time.sleep(0.05)
     return "another process"
 
