@@ -20,14 +20,15 @@ CAM = CameraConfig(width_px=64, height_px=48)
 NUM_VIEWS = 6
 
 
-def service(early_exit: float) -> IGService:
+def service(early_exit: float, never_observed: str = "prior") -> IGService:
     rng = np.random.default_rng(0)
     target = np.array([0.0, 0.06, 0.04])
     poses = []
     for _ in range(NUM_VIEWS):
         eye = target + np.array([rng.uniform(-0.15, 0.15), -rng.uniform(0.2, 0.35), rng.uniform(-0.05, 0.15)])
         poses.append(look_at(eye, target + rng.normal(scale=0.02, size=3)))
-    return IGService(GRID, CAM, np.stack(poses), SHELF, IGConfig(early_exit=early_exit))
+    return IGService(GRID, CAM, np.stack(poses), SHELF,
+                     IGConfig(early_exit=early_exit, never_observed=never_observed))  # type: ignore[arg-type]
 
 
 def random_belief(rng: np.random.Generator) -> EvidentialMap:
@@ -59,11 +60,13 @@ def random_deltas(base: EvidentialMap, rng: np.random.Generator, k: int) -> list
 
 
 @settings(max_examples=10, deadline=None)
-@given(st.integers(0, 2**31 - 1), st.sampled_from([0.0, 1e-3, 0.05]), st.integers(1, 70))
-def test_incremental_ig_equals_a_full_rescore(seed: int, eps: float, k: int) -> None:
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.0, 1e-3, 0.05]), st.integers(1, 70), st.booleans())
+def test_incremental_ig_equals_a_full_rescore(seed: int, eps: float, k: int, record: bool) -> None:
     rng = np.random.default_rng(seed)
     svc = service(eps)
     belief = random_belief(rng)
+    if record:  # a ray record (cnabu-map): never-reached voxels count at the prior's entropy
+        belief.observed = rng.random(GRID.shape) < 0.6
     deltas = random_deltas(belief, rng, k)
     base = svc.prepare(belief)
     predicted = DeltaBeliefs(belief, deltas)
@@ -123,3 +126,23 @@ def test_a_small_change_scores_alike_alone_duplicated_and_beside_others() -> Non
     np.testing.assert_array_equal(svc.view_ig_delta(base, [small, small]), np.concatenate([alone, alone]))
     mixed = svc.view_ig_delta(base, [deltas[0], small, *deltas[1:], small])
     np.testing.assert_allclose(mixed[[1, -1]], np.concatenate([alone, alone]), rtol=1e-12, atol=1e-12)
+
+
+def test_never_reached_voxels_count_at_the_prior_and_a_prediction_injects_nothing() -> None:
+    svc = service(0.0)
+    belief = random_belief(np.random.default_rng(5))
+    belief.alpha[:], belief.beta[:] = 1.0, 41.0  # everything confidently free ...
+    belief.observed = np.ones(GRID.shape, bool)
+    belief.observed[5:9, 8:12, 2:6] = False  # ... except a never-reached block the belief calls free too
+    field = svc.prepare(belief)
+    block = ~belief.observed.ravel() & ~svc.walls
+    np.testing.assert_allclose(field.H[block], np.log(2.0), rtol=1e-6)
+    assert (field.H[belief.observed.ravel() & ~svc.walls] == 0).all()
+    assert svc.view_ig(field).max() > 1.0
+    # a predicted change of observed free voxels to the prior adds no entropy
+    idx = np.flatnonzero(belief.observed.ravel() & ~svc.walls)[:200]
+    d = svc.belief_delta(field, BeliefDelta(idx, np.ones(len(idx), np.float32), np.ones(len(idx), np.float32),
+                                            np.ones((belief.num_classes, len(idx)), np.float32)))
+    assert (d.H == 0).all()
+    blind = svc.prepare(EvidentialMap(belief.grid, belief.alpha, belief.beta, belief.eta))  # no ray record
+    assert svc.view_ig(blind).max() == 0.0

@@ -43,6 +43,14 @@ class IGConfig(BaseModel):
     """Expected occupancy above this counts as certainly occupied (p = 1, H = 0), as MEM."""
     p_free_clamp: float = Field(0.05, ge=0.0, lt=0.5)
     """Expected occupancy below this counts as certainly free (p = 0, H = 0), as MEM."""
+    never_observed: Literal["belief", "prior"] = "belief"
+    """The entropy IG counts on a voxel no camera ray has reached, for a belief that keeps a ray record
+    (``EvidentialMap.observed``: ``cnabu-map``). ``belief``: the entropy of the predicted occupancy (a
+    confident completion counts as known). ``prior``: the prior's ln 2, whatever the belief predicts
+    there (the predicted occupancy still decides how far rays get); with the learned push model, whose
+    predictions rewrite thousands of never-reached voxels, pushes then win on space the prediction made
+    transparent and cost the map (docs/map-prediction.md). A belief without a ray record (the analytic
+    update) holds the prior in never-reached voxels anyway."""
     predicted_entropy: Literal["no-gain", "as-predicted"] = "no-gain"
     """What a manipulation's predicted change may do to the entropy IG counts. ``no-gain``: a voxel an
     effect model changed keeps at most the entropy it had before (``min(H_before, H_predicted)``): the
@@ -51,6 +59,10 @@ class IGConfig(BaseModel):
     camera can gain. A manipulation earns IG only where it opens space whose entropy was there
     before: never-observed voxels and the residual uncertainty of observed ones. ``as-predicted``: the
     predicted belief's own entropy (MEM's rule)."""
+
+
+LN2 = np.float32(np.log(2.0))
+"""The prior's occupancy entropy (nats)."""
 
 
 def _unique_deltas(deltas: Sequence[IGDelta]) -> tuple[list[IGDelta], NDArray[np.int64]]:
@@ -98,9 +110,12 @@ class IGField:
 
     p: NDArray[np.float32]
     H: NDArray[np.float32]
+    observed_record: bool = False
+    """Whether ``H`` came from a belief with a ray record and ``never_observed: prior`` (a voxel a
+    prediction rewrites is then never observed in the predicted belief)."""
 
     def copy(self) -> IGField:
-        return IGField(self.p.copy(), self.H.copy())
+        return IGField(self.p.copy(), self.H.copy(), self.observed_record)
 
 
 @dataclass
@@ -171,9 +186,12 @@ class IGService:
         with span("ig.prepare"):
             p = belief.expected_occupancy().ravel().astype(np.float32)
             p, h = self._clamp(p, self.walls)
+            record = belief.observed is not None and self.config.never_observed == "prior"
+            if record:
+                h[~belief.observed.ravel() & ~self.walls] = LN2  # type: ignore[union-attr]
             if before is not None and self.config.predicted_entropy == "no-gain":
                 h = np.minimum(h, before.H)
-            return IGField(p, h)
+            return IGField(p, h, record)
 
     def _clamp(
         self, p: NDArray[np.float32], walls: NDArray[np.bool_]
@@ -200,6 +218,8 @@ class IGService:
         a = np.asarray(delta.alpha, dtype=np.float32)
         p = (a / (a + np.asarray(delta.beta, dtype=np.float32))).astype(np.float32)
         p, h = self._clamp(p, self.walls[idx])
+        if base.observed_record:  # a predicted change clears the ray record where it writes
+            h = np.where(self.walls[idx], h, LN2).astype(np.float32)
         if self.config.predicted_entropy == "no-gain":
             h = np.minimum(h, base.H[idx])
         keep = (p != base.p[idx]) | (h != base.H[idx])
@@ -316,7 +336,7 @@ class IGService:
             h = raycast.zero_entropy_along_view(
                 field.p, field.H, self.origins[view], self.dirs[view], self._g0, self._s, self._n, self.t_min,
                 self.t_max)
-            return IGField(field.p, h)
+            return IGField(field.p, h, field.observed_record)
 
     def best_two_step(
         self, field: IGField, excluded: set[int] | frozenset[int] = frozenset(),
