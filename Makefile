@@ -82,6 +82,7 @@ docs: setup
 	$(VENV)/bin/msmem docs config > docs/config-reference.md
 	$(VENV)/bin/msmem docs cli > docs/cli.md
 	$(VENV)/bin/msmem docs api > docs/api.md
+	$(VENV)/bin/msmem docs results > docs/results.md
 
 clean:
 	rm -rf $(VENV) runs mutants .pytest_cache .mypy_cache .ruff_cache

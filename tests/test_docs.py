@@ -49,6 +49,13 @@ def test_api_reference_is_generated_from_the_docstrings():
     _same(ROOT / "docs" / "api.md", api_reference(), "msmem docs api > docs/api.md")
 
 
+def test_results_page_is_generated_from_the_committed_result_folders():
+    from msmem_core.run.results import results_page
+
+    _same(ROOT / "docs" / "results.md", results_page(ROOT / "docs" / "results"),
+          "msmem docs results > docs/results.md")
+
+
 def test_the_docs_have_runnable_blocks():
     assert len(runnable_blocks()) >= 5
 

@@ -382,13 +382,24 @@ def docs_api() -> None:
     typer.echo(api_reference(), nl=False)
 
 
+def docs_results(
+    folder: Annotated[Path, typer.Option("--folder", help="The committed result folders.")] = Path("docs/results"),
+) -> None:
+    """Print the current results page (docs/results.md), generated from the committed result folders."""
+    from msmem_core.run.results import results_page
+
+    if not folder.is_dir():
+        raise UserError(f"--folder {folder}: no such folder (run from the repository root)")
+    typer.echo(results_page(folder), nl=False)
+
+
 # ------------------------------------------------------------------------------------ the app
 CORE_COMMANDS: dict[str | None, dict[str, Callable[..., Any]]] = {  # group (None: top level) -> name -> command
     None: {"plugins": plugins, "run": run, "bench": bench, "report": report_cmd},
     "config": {"show": config_show},
     "perf": {"ig": perf_ig, "step": perf_step},
     "scene": {"generate": scene_generate},
-    "docs": {"config": docs_config, "cli": docs_cli, "api": docs_api},
+    "docs": {"config": docs_config, "cli": docs_cli, "api": docs_api, "results": docs_results},
     "eval": {"ceiling": eval_ceiling},
 }
 
