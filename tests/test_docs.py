@@ -15,7 +15,7 @@ from msmem_core.cli import build_app
 from msmem_core.cli.docgen import api_reference, cli_reference, config_reference
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = [*sorted((ROOT / "docs").glob("*.md")), ROOT / "README.md", ROOT / "examples" / "msmem-nudge" / "README.md"]
+DOCS = [*sorted((ROOT / "docs").rglob("*.md")), ROOT / "README.md", ROOT / "examples" / "msmem-nudge" / "README.md"]
 FENCE = re.compile(r"^```bash runnable[^\n]*\n(.*?)^```", re.S | re.M)
 
 
