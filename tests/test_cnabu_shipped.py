@@ -70,7 +70,7 @@ def test_shipped_weights_beat_no_change_on_heldout_scenes(kind):
 @pytest.mark.parametrize("kind", KIND_PARAMS)
 def test_default_model_per_role_is_the_one_with_better_heldout_nll(kind):
     """Of a role's learned CNABU model and its analytic twin, the one with the better held-out NLL is the
-    default. The observation role has a third model since session 21: the whole-map ``cnabu-map`` is the
+    default. The observation role has a third model: the whole-map ``cnabu-map`` is the
     default there, chosen by the map-prediction benchmark (docs/results.md), so the rule only says the
     per-view ``cnabu-observe`` is not the default while its twin is better."""
     better = heldout(kind)["better_nll"]

@@ -1,4 +1,4 @@
-"""Fault injection for ``msmem bench`` and its executors (issue 22): each test reproduces a failure
+"""Fault injection for ``msmem bench`` and its executors: each test reproduces a failure
 that used to pass silently (a wrong table with rc 0, a lost episode, an orphaned worker)."""
 
 from __future__ import annotations

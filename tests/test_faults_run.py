@@ -1,4 +1,4 @@
-"""Fault injection for ``msmem run`` and Ctrl-C (issue 22): run folders are written atomically, an
+"""Fault injection for ``msmem run`` and Ctrl-C: run folders are written atomically, an
 existing --out is never mixed with a new run, a bad --out fails before any work, and Ctrl-C says
 where the partial run is."""
 

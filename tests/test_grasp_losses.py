@@ -164,7 +164,7 @@ def test_assign_targets_labels_points_near_gt_contacts():
     assert t.label.tolist() == [1.0, 1.0, 0.0]
 
 
-# ---------------------------------------------------------------- precision at large evidence (issue 22)
+# ---------------------------------------------------------------- precision at large evidence
 def test_beta_kl_uniform_is_minus_the_differential_entropy_in_float32_too():
     from msmem_grasp.learn.losses import beta_kl_uniform
     from scipy import stats

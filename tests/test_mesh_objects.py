@@ -1,4 +1,4 @@
-"""Mesh objects (issue 23): convex parts voxelise exactly, a mesh file becomes convex pieces (its hull,
+"""Mesh objects: convex parts voxelise exactly, a mesh file becomes convex pieces (its hull,
 or a CoACD decomposition) in the object frame, cached; URDFs give their collision mesh; a scene class
 from a mesh stands on the PyBullet shelf, is seen with its own class and is mapped."""
 

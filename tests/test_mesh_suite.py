@@ -1,4 +1,4 @@
-"""Generated scenes of declared classes (issue 23): the generator draws from a class registry (the
+"""Generated scenes of declared classes: the generator draws from a class registry (the
 built-ins and/or classes declared as parts or meshes), ``msmem scene generate --generator`` writes a
 suite, and the shipped ``mesh25`` suite of ``pybullet_data`` meshes loads without decomposing anything
 and stands still on the PyBullet shelf."""

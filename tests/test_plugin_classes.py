@@ -1,4 +1,4 @@
-"""Object classes that plugins declare (issue 23): any scene may name them, the scene written to a run
+"""Object classes that plugins declare: any scene may name them, the scene written to a run
 folder declares them, and clashes are left out with a warning naming the plugin."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Plugin isolation (issue 22): a plugin that exits, raises in a hook or takes a built-in's name is
+"""Plugin isolation: a plugin that exits, raises in a hook or takes a built-in's name is
 named and skipped; the others load and every command keeps working (as pytest and conda do it).
 
 Third-party distributions are throwaway ``*.dist-info`` folders on ``sys.path``: importlib.metadata

@@ -135,7 +135,7 @@ def test_the_wrist_cameras_body_collides_and_may_not_sit_in_the_hand():
     finally:
         out.close()
         bodiless.close()
-    # the mount before session 22 put the camera's body 25 mm into the hand: refused, naming the fields
+    # a camera mount 6 cm along the flange's y puts the camera's body 25 mm into the hand: refused, naming the fields
     inside = PandaRobot(PandaConfig(camera_offset_m=(0.0, 0.06, 0.03), camera_rpy_deg=(0.0, 0.0, 0.0),
                                     disk_cache=False))
     with pytest.raises(PluginError, match=r"camera_offset_m \(0.0, 0.06, 0.03\).*into panda_hand \(25 mm\)"):

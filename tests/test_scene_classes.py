@@ -1,4 +1,4 @@
-"""Classes a scene declares beside the built-ins (issue 23): numbered after them, known to every object,
+"""Classes a scene declares beside the built-ins: numbered after them, known to every object,
 the backends and ground truth, counted in the belief, shown in the report; learned models trained on
 other classes are refused in one line naming the classes they lack."""
 

@@ -1,4 +1,4 @@
-"""Candidate views from a poses file (issue 23): the file's views, its start and front views, checks
+"""Candidate views from a poses file: the file's views, its start and front views, checks
 that name the file and the entry at fault, paths relative to the config file, benchmark fingerprints
 that follow the file's content, and a real PyBullet episode over the views of a file."""
 

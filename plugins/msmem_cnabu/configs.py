@@ -93,8 +93,8 @@ class CNABUMapConfig(BaseModel):
     """What the returned belief says of an object the network predicts but no ray has labelled with its
     class (a 26-connected component of voxels believed occupied with one top object class, none of
     them labelled with it by a ray of the episode): ``keep`` it as predicted, or return it as
-    ``unknown`` (expected occupancy 0.5, the total evidence kept; a tie counts as free; the default
-    since session 21), so that a hidden object's guessed class does not enter the maps. With
+    ``unknown`` (expected occupancy 0.5, the total evidence kept; a tie counts as free; the
+    default), so that a hidden object's guessed class does not enter the maps. With
     ``unknown`` the network's own map stays its next input, through a manipulation too where the effect
     model's prediction left the returned belief unchanged (as with ``restrict_state: false``;
     docs/map-prediction.md)."""

@@ -84,7 +84,7 @@ def evidential_dirichlet_loss(eta: Tensor, y: Tensor, kl_weight: float) -> tuple
 
 
 def blend(old: Tensor, pred: Tensor, p: Tensor) -> Tensor:
-    """old * (1 - p) + pred * p (DESIGN.md): stays >= 1 when both are."""
+    """old * (1 - p) + pred * p (docs/cnabu.md, "The networks"): stays >= 1 when both are."""
     return old * (1.0 - p) + pred * p
 
 

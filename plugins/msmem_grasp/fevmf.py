@@ -22,7 +22,7 @@ from msmem_grasp.backbone import PointTransformer
 
 
 class FEVMFConfig(BaseModel):
-    """Architecture of FE-vMF (defaults: the small PTv3 of DESIGN.md, ~0.25 M parameters)."""
+    """Architecture of FE-vMF (defaults: a small PTv3 backbone, ~0.25 M parameters; docs/grasp.md)."""
 
     model_config = ConfigDict(extra="forbid")
 

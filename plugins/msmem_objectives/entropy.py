@@ -5,7 +5,7 @@ of the expected categorical summed over all voxels (``EvidentialMap.total_semant
 the changed voxels contribute, so each candidate is scored on its change (``Prediction.changes``)
 alone. Weighted by [MEM]'s zeta_o = 0.2 in the presets.
 
-``clip: true`` is MEM's reference rule (DESIGN.md), ``min(0, dH)``: a manipulation is penalised for
+``clip: true`` is MEM's reference rule (docs/push.md), ``min(0, dH)``: a manipulation is penalised for
 the semantic uncertainty its predicted change adds and never rewarded for entropy the prediction
 removes. The presets keep it until the unclipped form is tuned on tune10 (docs/results.md): with
 the learned effect models a push's predicted change *removes* about one nat per changed voxel (the

@@ -254,14 +254,14 @@ class PushConfig(BaseModel):
     """With ``chain_clearance_m``: a moving object (the target, or one the chain drives) whose believed
     height is more than this multiple of the believed height of an object it meets stops before that
     object instead of driving it: the push is shortened to end there. A tall object pushed low trips
-    over a much lower one in its way and falls (docs/push.md, "Falls"). The default since session 23,
-    with ``max_pushes_per_object: 1``: together they took push-only from a fall in 4 of 20 episodes
+    over a much lower one in its way and falls (docs/push.md, "Falls"). The default, with
+    ``max_pushes_per_object: 1``: together they took push-only from a fall in 4 of 20 episodes
     (``hard25`` and ``mesh25`` scenes 0-9) to 0 of 20. None: no check."""
     max_pushes_per_object: int | None = Field(1, ge=1)
     """An object the skill has pushed this many times in the episode is not pushed again. It is recognised
     by its believed class and a believed footprint (with its 8 neighbours) that holds the contact point
     of an earlier push of that class, where it started or where the push left it. A tall object pushed
-    again and again ends up falling (docs/push.md, "Falls"). The default since session 23 (with
+    again and again ends up falling (docs/push.md, "Falls"). The default (with
     ``trip_height_ratio: 3``). None: no limit."""
     speed_mps: float = Field(0.1, gt=0.0, le=1.0)
     travel_speed_mps: float = Field(0.25, gt=0.0, le=2.0)

@@ -29,13 +29,13 @@ OVERRIDES: dict[str, Any] = {"steps": STEPS, "scene": {"seed": SCENE_SEED, "file
                              "msas": {"manipulation_window": [1, 38]}, "report_steps": []}
 PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
     # with the default blocked_exit (skip) no grasp of this scene leaves without meeting a believed object
-    # in five steps: the grasp this episode executes needs the pre-session-18 rule to be proposed
+    # in five steps: the grasp this episode executes needs blocked_exit: lift_m to be proposed
     "grasp-only": {"skill_params": {"grasp": {"blocked_exit": "lift_m"}}},
 }
 
 
-# The presets' episodes keep the library defaults before session 21 (the analytic update and the effect
-# models trained on its beliefs), so that they still guard the analytic path and every manipulation
+# The presets' episodes run the analytic models (examples/analytic.yaml: the analytic update and the
+# effect models trained on its beliefs), so that they still guard the analytic path and every manipulation
 # skill; ``library-defaults`` is the default method under today's library defaults (cnabu-map).
 ANALYTIC = read_config_file(ROOT / "examples" / "analytic.yaml")
 DEFAULTS_EPISODE = "library-defaults"

@@ -1,5 +1,5 @@
-"""The library defaults before session 21 (``examples/analytic.yaml``: the analytic observation update and
-the effect models trained on its beliefs), for tests of the machinery around a model (custom classes,
+"""The analytic models (``examples/analytic.yaml``: the analytic observation update and the effect
+models trained on its beliefs), for tests of the machinery around a model (custom classes,
 reports, backends, a manipulation executed) that must not depend on which observation model is the
 default. Tests of the defaults themselves (``tests/test_golden.py``'s ``library-defaults``) do not use it.
 """

@@ -148,7 +148,7 @@ def assign_targets(
     """Label the points within ``radius_m`` of a GT contact [G, 3] positive and gather, per positive,
     up to ``max_grasps`` GT grasps whose contact lies within the radius (nearest first).
 
-    Use radius max(2 mm, half a voxel) for clouds taken from a voxel belief (DESIGN.md, Losses).
+    Use radius max(2 mm, half a voxel) for clouds taken from a voxel belief.
     """
     if len(contacts) == 0 or len(points) == 0:
         z = points.new_zeros((0, max_grasps, 3))

@@ -36,7 +36,7 @@ from msmem_grasp.weights import WEIGHTS_VERSION
 
 
 def default_model_config() -> FEVMFConfig:
-    """The shipped architecture: the DESIGN.md backbone with the FPP features (normal, occupancy)."""
+    """The shipped architecture: ``FEVMFConfig``'s backbone with the FPP features (normal, occupancy)."""
     return FEVMFConfig(in_features=len(FEATURES))
 
 
