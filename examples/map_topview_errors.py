@@ -49,7 +49,7 @@ def main() -> None:
     pm = get_plugin_manager()
     scenes = suite_scenes(args.suite)
     totals: dict[str, list[object]] = {}
-    # the network's own output, as these offline checks were measured (before session 21's default, unknown)
+    # the network's own output, as these offline checks were measured (unlabelled_objects: keep; the default is unknown)
     params: dict[str, object] = {"unlabelled_objects": "keep", **({"weights": args.weights} if args.weights else {})}
     extra: dict[str, object] = {}
     if args.config:

@@ -41,7 +41,7 @@ def main() -> None:
     args = ap.parse_args()
     pm = get_plugin_manager()
     scenes = suite_scenes(args.suite)
-    # the network's own output, as measured before session 21 (its default since then: unknown)
+    # the network's own output (unlabelled_objects: keep; the default is unknown)
     params = {"unlabelled_objects": "keep", **({"weights": args.weights} if args.weights else {})}
     configs = {"analytic": {"observation_model": {"name": "analytic-observation"}},
                "cnabu-map": {"observation_model": {"name": "cnabu-map", "params": params}}}
