@@ -218,11 +218,12 @@ def test_many_faults_are_summarised_in_one_line():
 # ----------------------------------------------------------------------------- what ships still validates
 SHIPPED_SCENES = [*sorted((ROOT / "msmem_core" / "suites").glob("*/scene_*.json")),
                   *sorted(ROOT.glob("examples/**/*scene*.json"))]
-SHIPPED_CONFIGS = sorted(p for p in ROOT.glob("examples/**/*.yaml")
+SHIPPED_CONFIGS = sorted(p for p in [*ROOT.glob("examples/**/*.yaml"), *ROOT.glob("docs/lab/**/*.yaml")]
                          if "train" not in p.relative_to(ROOT).parts
                          and not p.name.endswith((".poses.yaml", ".generator.yaml")))
-"""Run configs (``examples/train/`` holds network settings for the train commands, checked in their tests;
-``*.poses.yaml`` are viewpoint files and ``*.generator.yaml`` scene-generator settings, checked below)."""
+"""Run configs, of examples and of the dated studies in docs/lab (``examples/train/`` holds network settings
+for the train commands, checked in their tests; ``*.poses.yaml`` are viewpoint files and ``*.generator.yaml``
+scene-generator settings, checked below)."""
 SHIPPED_POSES = sorted(ROOT.glob("examples/**/*.poses.yaml"))
 SHIPPED_GENERATORS = sorted(ROOT.glob("examples/**/*.generator.yaml"))
 
