@@ -68,6 +68,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+from scipy import ndimage
 
 from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill, Workspace
 from msmem_core.map.belief import EvidentialMap
@@ -76,7 +77,7 @@ from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import F64
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec, HandDims
-from msmem_core.world.scene import ShelfSpec
+from msmem_core.world.scene import ObjectClass, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig
 from msmem_grasp.fpp import FPPConfig, frontier_points, virtual_front_views
 from msmem_grasp.fusion import FusionConfig, GraspBuffer, GraspHypotheses
@@ -231,6 +232,11 @@ class GraspConfig(BaseModel):
     """Lift after closing (at least); raised up to ``max_lift_m`` (and the room under the shelf top)
     when that lets the object leave without meeting a believed object."""
     max_lift_m: float = Field(0.10, ge=0.0, le=0.5)
+    exit_margin_m: float = Field(0.02, ge=0.0, le=0.1)
+    """The grasped object's own component (``planning.Objects``), at any height in the columns within this
+    of the footprint of the part the fingers hold (its region), is carried out with it: it must fit under
+    the shelf top and does not stop it on its way out (``GraspSkill._carried``; docs/grasp.md, "Where grasp
+    candidates go")."""
     blocked_exit: Literal["lift_m", "skip"] = "skip"
     """When no lift up to ``max_lift_m`` carries the grasped object out of the front without meeting a
     believed-occupied voxel of another object: ``skip`` (the default, chosen on ``tune10``) does not
@@ -396,7 +402,7 @@ class GraspSkill(Skill):
         if not ctx.manipulation_allowed:
             return []
         stages: dict[str, int] = {}
-        out = self.executable(ctx.belief, ctx.shelf, stages)
+        out = self.executable(ctx.belief, ctx.shelf, stages, ctx.workspace.classes)
         funnel = getattr(ctx, "funnel", None)
         if funnel is not None:  # the step record's candidate funnel: every stage, 0 after the one that left none
             for stage in FUNNEL_STAGES:
@@ -470,9 +476,11 @@ class GraspSkill(Skill):
             uncertainty=float(np.clip(c.grasps.uncertainty[i], 0, 1)), predictor=self.predictor, hand_m=cfg.hand_m,
         )
 
-    def executable(self, belief: EvidentialMap, shelf: ShelfSpec,
-                   stages: dict[str, int] | None = None) -> list[GraspAction]:
-        """The executable grasps of the fused buffer (steps 1-5 of the module docstring), best first.
+    def executable(self, belief: EvidentialMap, shelf: ShelfSpec, stages: dict[str, int] | None = None,
+                   classes: tuple[ObjectClass, ...] = ()) -> list[GraspAction]:
+        """The executable grasps of the fused buffer (steps 1-5 of the module docstring), best first;
+        ``classes``: the belief's object classes (``Workspace.classes``), whose shapes give a grasped
+        object's height where the belief does not (``_lift``).
 
         ``stages`` receives the grasps left after each step: those of ``candidates``, then ``on_object``
         (a believed object at the contact), ``free_at_grasp`` (the open gripper at the grasp touches no
@@ -508,7 +516,8 @@ class GraspSkill(Skill):
                 continue
             stages["collision_free"] += 1
             region = c.objects.region(grid, lab, pose, c.opening[i], cfg.max_object_radius_m)
-            lift_m = self._lift(grid, c.p, c.objects, lab, region, pose, float(c.width[i]), c.top, stages)
+            lift_m = self._lift(grid, c.p, c.objects, lab, region, pose, float(c.width[i]), c.top, stages,
+                                self._class_shape(classes, int(c.objects.classes[lab])))
             if lift_m is None:
                 continue  # the lifted object or gripper would hit the shelf top, or its way out is blocked
             stages["clear_exit"] += 1
@@ -549,33 +558,41 @@ class GraspSkill(Skill):
                                np.array([label]), pose[None], np.array([opening]), self.config.max_object_radius_m)[0])
 
     def _lift(self, grid: GridSpec, p: NDArray[np.floating], objects: Objects, label: int, region: NDArray[np.int64],
-              pose: F64, width: float, top: float, stages: dict[str, int] | None = None) -> float | None:
-        """The lift: ``lift_m`` if at that height the grasped object (its region and the hidden
-        voxels below it, ``planning.fill_down``) and the closed gripper, carried straight out of the
-        front, meet no believed-occupied voxel of another object; else one voxel above the lowest
-        height (in whole voxels, up to ``max_lift_m`` and the room under the shelf top) at which they
-        do not; ``lift_m`` if there is none (None with ``blocked_exit: skip``); None if even ``lift_m``
-        brings the object's or the gripper's top closer than ``clearance_m`` to the shelf top (else
-        ``stages["under_top"]``, if given, counts one)."""
+              pose: F64, width: float, top: float, stages: dict[str, int] | None = None,
+              extents: tuple[float, float, float] | None = None) -> float | None:
+        """The lift: ``lift_m`` if at that height the grasped object (the body ``_carried`` carries, its
+        sides one voxel in) and the closed gripper, carried straight out of the front, meet no voxel in
+        its way (``_carried``: of another believed object); else one voxel above the lowest height (in
+        whole voxels, up to ``max_lift_m`` and the room under the shelf top) at which they do not;
+        ``lift_m`` if there is none (None with ``blocked_exit: skip``); None if even ``lift_m`` brings
+        the body's or the gripper's top closer than ``clearance_m`` to the shelf top (else
+        ``stages["under_top"]``, if given, counts one). With its class's ``extents``, the body stands
+        at least as tall as the smallest of them that its believed top reaches (less a voxel): an
+        object whose top the views have not seen is as tall as its class."""
         cfg = self.config
         s = grid.voxel_m
         pts = gripper_points(cfg.gripper, width, s / 2, cfg.tolerance_m, cfg.hand_m)
         r = pose[:3, :3]
         grip_top = float((pts @ r.T)[:, 2].max()) + pose[2, 3]
-        obj_top = float(voxel_centres(grid, region)[:, 2].max()) + s / 2 if len(region) else pose[2, 3]
+        body, occupied = self._carried(grid, p, objects, label, region)
+        obj_top = float(voxel_centres(grid, body)[:, 2].max()) + s / 2 if len(body) else pose[2, 3]
+        if extents is not None:
+            floor = float(grid.origin[2] + s * np.unravel_index(body, grid.shape)[2].min()) if len(body) else 0.0
+            taller = [e for e in extents if floor + e >= obj_top - s - 1e-9]
+            obj_top = max(obj_top, floor + min(taller)) if taller else obj_top
         room = top - max(grip_top, obj_top)
         if room < cfg.lift_m - 1e-9:
             return None
         if stages is not None:
             stages["under_top"] = stages.get("under_top", 0) + 1
-        body = fill_down(grid, p, objects.labels, region, label, cfg.geometric.free_threshold)
-        mine = np.zeros(grid.size, dtype=bool)
-        mine[body] = True
-        occupied = (p.reshape(-1) > cfg.occupied_threshold) & ~mine
+        # its sides one voxel in (a voxel both of whose x neighbours are the body's): a neighbour whose
+        # voxels overlap the body's silhouette by one voxel is within the voxels' slack of it, not in its way
+        stride = grid.shape[1] * grid.shape[2]
+        core = body[np.isin(body - stride, body) & np.isin(body + stride, body)]
         first = max(0, math.ceil(cfg.lift_m / s - 1e-9))
         last = min(int(np.floor(min(room, cfg.max_lift_m) / s + 1e-9)), first + 20)
         for k in range(first, max(first, last) + 1):
-            path, _ = way_out(grid, body, k)
+            path, _ = way_out(grid, core, k)
             if occupied[path].any():
                 continue
             lifted = pose[:3, 3] + np.array([0.0, 0.0, k * s])
@@ -586,6 +603,60 @@ class GraspSkill(Skill):
             # one voxel more where there is room: the voxels' heights are only known to a voxel
             return max(cfg.lift_m, min((k + 1) * s, room)) if k > first else cfg.lift_m
         return cfg.lift_m if cfg.blocked_exit == "lift_m" else None
+
+    @staticmethod
+    def _class_shape(classes: tuple[ObjectClass, ...], cls: int) -> tuple[float, float, float] | None:
+        """The extents (``class_extents_m``) of class id ``cls`` among ``classes`` (id 1 first); None
+        when its shape is not known."""
+        if not 1 <= cls <= len(classes):
+            return None
+        from msmem_core.world.meshes import class_extents_m
+
+        return class_extents_m(classes[cls - 1])
+
+    def _carried(self, grid: GridSpec, p: NDArray[np.floating], objects: Objects, label: int,
+                 region: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+        """What leaves the shelf with a grasp of ``region`` (of component ``label``) and what may stop it:
+        (flat indices of the carried body, flat mask of the voxels in its way).
+
+        The body: the region, the hidden voxels below it (``planning.fill_down``) and the voxels of its
+        own component in the columns within ``exit_margin_m`` of its footprint, at any height: the
+        object beyond the region the fingers close on (a front grasp's region stops 10 cm above the
+        grasp; believed objects are up to about 2 cm fatter than the width a grasp measures). A
+        touching object of the same class further in front is not carried. In the way: believed-
+        occupied voxels of believed objects (``Objects``: components of an object class) outside the
+        body, except those under its top in its own columns and in the columns its footprint surrounds:
+        nothing else stands there (on the default belief they are the object's own voxels of another
+        class). Believed-occupied voxels whose class is background are no object's, as in ``Objects``:
+        on the default belief they are mostly objects' surface voxels, the grasped one's own included,
+        that rays labelled background."""
+        cfg = self.config
+        body = fill_down(grid, p, objects.labels, region, label, cfg.geometric.free_threshold)
+        way = (p.reshape(-1) > cfg.occupied_threshold) & (objects.labels.reshape(-1) > 0)
+        if len(body):
+            nx, ny, nz = grid.shape
+
+            def footprint(vox: NDArray[np.int64]) -> NDArray[np.bool_]:
+                foot = np.zeros(nx * ny, dtype=bool)
+                foot[np.unique(vox // nz)] = True
+                return foot.reshape(nx, ny)
+
+            near = footprint(body)
+            margin = math.floor(cfg.exit_margin_m / grid.voxel_m + 1e-9)
+            if margin > 0:
+                near = ndimage.binary_dilation(near, np.ones((3, 3), dtype=bool), iterations=margin)
+            own = objects.voxels_of(label)
+            body = np.union1d(body, own[near.reshape(-1)[own // nz]])
+            # under its top in its own columns, and in the columns it surrounds, nothing else stands: the
+            # belief's voxels there are its own (of another class), not in its way
+            foot = footprint(body)
+            top = np.full(nx * ny, -1, dtype=np.int64)
+            np.maximum.at(top, body // nz, body % nz)
+            top[(ndimage.binary_fill_holes(foot) & ~foot).reshape(-1)] = nz
+            ahead = np.flatnonzero(way)
+            way[ahead[ahead % nz < top[ahead // nz]]] = False
+        way[body] = False
+        return body, way
 
     # ------------------------------------------------------------------------------- execution
     def tool_path(self, action: Action, workspace: Workspace) -> NDArray[np.float64]:
