@@ -64,6 +64,17 @@ def _star(lo: float, hi: float) -> str:
     return "*" if (lo > 0 or hi < 0) else ""
 
 
+def _ranges(xs: list[int]) -> str:
+    """[0, 1, 2, 5] -> '0-2, 5'."""
+    out: list[str] = []
+    for x in xs:
+        if out and x == int(out[-1].split("-")[-1]) + 1:
+            out[-1] = f"{out[-1].split('-')[0]}-{x}"
+        else:
+            out.append(str(x))
+    return ", ".join(out) or "none"
+
+
 def _source(folder: Path) -> str:
     p = provenance(folder)
     return f"Folder `docs/results/{folder.name}`, made at commit `{p['commit']}` by:\n\n```bash\n{p['command']}\n```\n"
@@ -73,9 +84,12 @@ def table_one(folder: Path, root: Path) -> str:
     """Table I and II, paired differences against view-only, the issue's claims, IG tracking, funnel."""
     eps = read_bench_folder(folder)
     methods = [m for m in METHODS if any(k[0] == m for k in eps)]
-    per = {m: {s: v for (mm, s), v in eps.items() if mm == m} for m in methods}
-    counts = {m: read_paper_counts(folder, m) for m in methods}
-    out = ["## Table I: the five methods on `hard25`, 40 steps", "", _source(folder)]
+    # the scenes every method finished: a table over one set of scenes
+    common = sorted(set.intersection(*({s for (mm, s) in eps if mm == m} for m in methods))) if methods else []
+    per = {m: {s: eps[(m, s)] for s in common} for m in methods}
+    counts = {m: {s: c for s, c in read_paper_counts(folder, m).items() if s in common} for m in methods}
+    out = ["## Table I: the five methods on `hard25`, 40 steps", "", _source(folder),
+           f"Scenes {_ranges(common)} ({len(common)} of 25), every method on each."]
     out += ["| method | scenes | occupancy mIoU pooled | per scene | 2-D semantic mIoU pooled | per scene | "
             "Position Change (m) | pushes | grasps (held) | paper: occupancy / semantics / Position Change |",
             "|---|---|---|---|---|---|---|---|---|---|"]
