@@ -464,15 +464,17 @@ class EffectModel(BeliefModel):
 # -------------------------------------------------------------------------------------- decision context
 @dataclass
 class Funnel:
-    """How many of each skill's candidates are left after each stage of one step's proposals, in order:
-    ``counts[skill][stage]``, with ``skill`` the skill's name in config. A skill reports its own stages
-    from ``propose`` (``count``: e.g. collision-free, or what its effect-free filters keep); MSAS
-    (``msas.decide``) sets ``skill`` before asking each one and adds its own stages after the skill's:
-    ``proposed`` (the actions returned), with an arm ``reach_checked`` and ``reachable`` (only candidates
-    that could win are checked, best first), and ``chosen`` (1 if the step's action is this skill's).
-    A skill not asked at a step (a manipulation skill while manipulation is not allowed) has no entry."""
+    """How many of each skill's candidates are left after each stage of one step's proposals, in order
+    (``DecisionContext.funnel``; the step record's ``funnel``). A skill reports its own stages from
+    ``propose``, in the order they filter (``ctx.funnel.count("collision_free", n)``; the stage names
+    are its own); MSAS (``msas.decide``) sets ``skill`` before asking each one and adds its own stages
+    after the skill's: ``proposed`` (the actions returned), with an arm ``reach_checked`` and
+    ``reachable`` (only candidates that could win are checked, best first), and ``chosen`` (1 if the
+    step's action is this skill's). A skill not asked at a step (a manipulation skill while
+    manipulation is not allowed) has no entry."""
 
     counts: dict[str, dict[str, int]] = field(default_factory=dict)
+    """``counts[skill][stage]``: the candidates of ``skill`` (its name in config) left after ``stage``."""
     skill: str = ""
     """The skill being asked; its ``count`` calls go to ``counts[skill]``."""
 

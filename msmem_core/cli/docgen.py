@@ -340,9 +340,9 @@ API_SECTIONS: tuple[tuple[str, str, tuple[str, ...]], ...] = (
         "msmem_core.interfaces.Outcome", "msmem_core.interfaces.Skill", "msmem_core.interfaces.Prediction",
         "msmem_core.interfaces.BeliefModel", "msmem_core.interfaces.EffectModel",
         "msmem_core.interfaces.ObservationModel", "msmem_core.interfaces.DecisionContext",
-        "msmem_core.interfaces.CandidateBatch", "msmem_core.interfaces.Term", "msmem_core.interfaces.Simulator",
-        "msmem_core.interfaces.Contact", "msmem_core.interfaces.Capabilities", "msmem_core.interfaces.Robot",
-        "msmem_core.interfaces.RobotModel", "msmem_core.interfaces.Reach")),
+        "msmem_core.interfaces.Funnel", "msmem_core.interfaces.CandidateBatch", "msmem_core.interfaces.Term",
+        "msmem_core.interfaces.Simulator", "msmem_core.interfaces.Contact", "msmem_core.interfaces.Capabilities",
+        "msmem_core.interfaces.Robot", "msmem_core.interfaces.RobotModel", "msmem_core.interfaces.Reach")),
     ("Spec records and the plugin manager", "msmem_core.plugins", (
         "msmem_core.plugins.types.SkillSpec", "msmem_core.plugins.types.BeliefModelSpec",
         "msmem_core.plugins.types.ObjectiveTermSpec", "msmem_core.plugins.types.SimulatorSpec",
