@@ -75,6 +75,7 @@ def test_the_default_belief_keeps_what_rays_labelled_on_every_variant(scene0) ->
     assert all(np.isclose(x["pooled_semantic_miou_2d"], x["mean_semantic_miou_2d"]) for x in s)  # one scene
 
 
+@pytest.mark.slow
 def test_the_command_prints_both_paper_metrics_and_writes_json(tmp_path) -> None:
     out = tmp_path / "c.json"
     r = subprocess.run([MSMEM, "eval", "ceiling", "--scenes", "0", "--views", "3",
