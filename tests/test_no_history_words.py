@@ -20,8 +20,11 @@ DESIGN = re.compile(r"\bDESIGN\.md\b")
 # a link target inside docs/lab/ (an archived heading's anchor may carry its history)
 LAB_LINK = re.compile(r"\S*lab/[^\s)#]*#[\w-]+")
 
-# Lines left to files whose owners are rewriting them; each entry is cleared with its file.
+# Lines left to files whose owners are rewriting them; each entry is cleared with its file. An empty
+# tuple leaves the whole file.
 ALLOW: dict[str, tuple[str, ...]] = {
+    # being rewritten: the front page (the committed one still has its status table)
+    "README.md": (),
     # being rewritten: the grasp skill (blocked_exit's docstring)
     "plugins/msmem_grasp/skill.py": ("the behaviour before session 18",),
     # being rewritten: generated from plugins/msmem_grasp/skill.py's docstring
@@ -53,7 +56,8 @@ def hits(path: Path) -> list[str]:
         return []
     found = []
     for number, line in enumerate(text.splitlines(), 1):
-        if any(phrase in line for phrase in ALLOW.get(rel, ())):
+        allowed = ALLOW.get(rel)
+        if allowed is not None and (not allowed or any(phrase in line for phrase in allowed)):
             continue
         bare = LAB_LINK.sub("", line)
         for m in [*HISTORY.finditer(bare), *DESIGN.finditer(bare)]:
