@@ -506,3 +506,22 @@ def test_msmem_run_with_named_grasp_weights_that_do_not_load_is_refused_before_t
     assert lines[0].startswith(f"msmem: error: grasp skill: FE-vMF weights {w} (named in its weights parameter)")
     assert "expected sha256" in lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["named.json", "named.pt", "run.yaml"]  # no run folder
+
+
+def test_a_bench_refuses_named_weights_that_do_not_load_before_any_episode(tmp_path):
+    import torch
+
+    from msmem_core.config import load_config
+    from msmem_core.plugins import get_plugin_manager
+    from msmem_core.run.runner import check_components
+
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a torch file")
+    nan = tmp_path / "nan.pt"
+    torch.save({"w": torch.full((2,), float("nan"))}, nan)
+    pm = get_plugin_manager()
+    for f, why in ((bad, "not readable"), (nan, "not finite")):
+        cfg = load_config("grasp-only", None, {"skill_params": {"grasp": {"weights": str(f)}}})
+        with pytest.raises(UserError, match=f"grasp's weights: {f}.*{why}"):
+            check_components(cfg, pm)
+    assert check_components(load_config("grasp-only"), pm)  # the shipped ones pass

@@ -172,9 +172,10 @@ def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
 
     dists = set()
     weights: set[Path] = set()
-    for kind, ref, _ in check_params(cfg, pm):
+    for kind, ref, where in check_params(cfg, pm):
         dists.add(pm.registered(kind)[ref.name].distribution)
         weights.update(artifact_files(pm.spec(kind, ref.name), dict(ref.params)))
+        check_named_weights(ref, where)
     out = {}
     for d in sorted(dists):
         try:
@@ -188,6 +189,17 @@ def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
             h.update(_file_sha256(f, st.st_size, st.st_mtime_ns).encode())
         out["weights"] = h.hexdigest()[:16]
     return out
+
+
+def check_named_weights(ref: ComponentRef, where: str) -> None:
+    """A weights file a component's params name explicitly (an existing ``.pt`` path) loads with the safe
+    loader and holds only finite tensors, or a ``UserError`` names the component, the file and the reason
+    before anything runs (a bench would otherwise record every episode as crashed)."""
+    from msmem_core.util.artifacts import load_state
+
+    for key, v in ref.params.items():
+        if isinstance(v, str | Path) and str(v).endswith(".pt") and Path(v).is_file():
+            load_state(Path(v), lambda m, k=key: UserError(f"{where}: {ref.name}'s {k}: {m}"))
 
 
 def check_params(cfg: RunConfig, pm: MsmemPluginManager) -> list[tuple[str, ComponentRef, str]]:
