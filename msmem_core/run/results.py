@@ -217,6 +217,28 @@ def ceiling_section(folder: Path, root: Path) -> str:
     return "\n".join(out)
 
 
+def mesh25_section(folder: Path, analytic: Path) -> str:
+    """View-only on mesh objects under the defaults (classes mapped), paired with the analytic update's
+    view-only episodes of the same scenes."""
+    new = {s: m for (meth, s), m in read_bench_folder(folder).items() if meth == "view-only"}
+    old = {s: m for (meth, s), m in read_bench_folder(analytic).items() if meth == "view-only"} \
+        if analytic.is_dir() else {}
+    common = sorted(set(new) & set(old))
+    out = ["## Mesh objects (`mesh25`), view-only, 40 steps", "", _source(folder),
+           f"The default belief with the scene's classes mapped onto the trained ones "
+           f"(`examples/scenes/mesh25-defaults.yaml`), paired per scene with the analytic update's view-only "
+           f"episodes in `docs/results/{analytic.name}` (scenes {_ranges(common)}):", "",
+           "| observation model | occupancy mIoU per scene | 2-D semantic mIoU per scene |", "|---|---|---|"]
+    for name, eps in (("cnabu-map (default, classes mapped)", new), ("analytic-observation", old)):
+        out.append(f"| {name} | " + " | ".join(_fmt_ci(*mean_ci([eps[s][k] for s in common])) for k in KEYS) + " |")
+    cells = []
+    for k in KEYS:
+        mean, h = mean_ci([new[s][k] - old[s][k] for s in common])
+        cells.append(f"{_fmt_ci(mean, h, sign=True)}{_star(mean - h, mean + h)}")
+    out.append("| difference | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def results_page(root: Path) -> str:
     """The page from ``root`` (``docs/results``)."""
     parts = [HEADER]
@@ -224,4 +246,6 @@ def results_page(root: Path) -> str:
         parts.append(table_one(root / "table1", root))
     if (root / "ceiling").is_dir():
         parts.append(ceiling_section(root / "ceiling", root))
+    if (root / "mesh25-view-only").is_dir():
+        parts.append(mesh25_section(root / "mesh25-view-only", root / "mesh25-all"))
     return "\n\n".join(p.strip() for p in parts if p.strip()) + "\n"
