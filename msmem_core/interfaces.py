@@ -537,6 +537,9 @@ class Skill(ABC):
     """Proposes candidate actions from the belief and executes a chosen one with the Simulator vocabulary."""
 
     category: ClassVar[Category] = "perception"
+    """``perception``: proposes ``PerceptionAction`` views, scored by two-step IG; ``manipulation``: its
+    actions are predicted by the effect model bound to it in config and scored by the IG of the best view
+    after the prediction, plus the manipulation terms (semantic entropy, CDC). Set it on the class."""
 
     @abstractmethod
     def propose(self, ctx: DecisionContext) -> list[Action]:

@@ -63,7 +63,8 @@ class BoundSkill:
                     raise PluginError(
                         f"perception skill {self.name!r} proposed a {type(a).__name__} ({a.kind!r}) without a view "
                         "index: a perception skill's actions must be msmem_core.interfaces.PerceptionAction, which "
-                        "names the viewpoint it observes from (`view`)")
+                        "names the viewpoint it observes from (`view`). A skill is a perception skill unless its "
+                        "class says `category = \"manipulation\"` (then an effect model predicts its actions)")
                 views.append(a.view)
             return CandidateBatch(self.name, "perception", actions, view_indices=np.array(views, dtype=np.int64))
         if self.effect_model is None:
