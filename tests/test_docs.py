@@ -77,3 +77,16 @@ def test_relative_links_point_at_existing_files(path):
     broken = [link for link in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text)
               if "://" not in link and not (path.parent / link).exists()]
     assert not broken, f"{path.relative_to(ROOT)} links to missing files: {broken}"
+
+
+def test_every_name_the_api_reference_lists_under_the_testing_kit_imports_from_msmem_core_testing():
+    import msmem_core.testing as kit
+
+    text = (ROOT / "docs" / "api.md").read_text()
+    names = set()
+    for section in text.split("\n## ")[1:]:
+        if section.startswith("Testing kit"):
+            names |= set(re.findall(r"^- \[`(\w+)`\]", section, re.M))
+    assert len(names) >= 15
+    missing = sorted(n for n in names if not hasattr(kit, n))
+    assert not missing, f"api.md lists {missing} under the testing kit; msmem_core.testing does not export them"

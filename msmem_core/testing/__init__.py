@@ -16,6 +16,7 @@
 from msmem_core.testing.builders import (
     belief_of_scene,
     belief_with_boxes,
+    conformance_scene,
     decision_context,
     default_objective,
     default_workspace,
@@ -28,18 +29,34 @@ from msmem_core.testing.fake import FakeSimulator
 from msmem_core.testing.plugin_conformance import (
     ConformanceError,
     ConformanceUsageError,
+    SkillReport,
+    check_actions,
+    check_base_unchanged,
+    check_manipulation_gate,
+    check_outcome,
+    check_prediction,
+    check_reproducible,
     effect_model_conformance,
     skill_conformance,
 )
-from msmem_core.testing.robot_conformance import RobotReport, robot_conformance
+from msmem_core.testing.robot_conformance import RobotReport, check_answer, robot_conformance
 
 __all__ = [
     "ConformanceError",
     "ConformanceUsageError",
     "FakeSimulator",
     "RobotReport",
+    "SkillReport",
     "belief_of_scene",
     "belief_with_boxes",
+    "check_actions",
+    "check_answer",
+    "check_base_unchanged",
+    "check_manipulation_gate",
+    "check_outcome",
+    "check_prediction",
+    "check_reproducible",
+    "conformance_scene",
     "decision_context",
     "default_objective",
     "default_workspace",
