@@ -973,6 +973,7 @@ def test_what_rays_reached_comes_from_the_rays_and_the_network_predicts_the_rest
     assert (np.argmax(n.eta[:, labelled], axis=0) != np.argmax(r.eta[:, labelled], axis=0)).sum() > 100
 
 
+@pytest.mark.slow
 def test_a_predicted_change_hands_its_voxels_back_to_the_network_until_a_ray_reaches_them(shard):
     from msmem_cnabu.configs import CNABUMapConfig
     from msmem_cnabu.mapmodel import CNABUMapObservationModel
