@@ -68,6 +68,7 @@ def _non_increasing(stages: dict[str, int]) -> bool:
     return all(a >= b for a, b in itertools.pairwise(counts))
 
 
+@pytest.mark.slow  # about 20 s
 def test_a_pybullet_episode_records_a_consistent_funnel_for_every_skill(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """``ours`` (view, push, grasp; the analytic models) for 5 steps on a generated scene, manipulation
     allowed from step 1: every step's funnel holds the skills asked, in stage order, each count at
