@@ -241,7 +241,7 @@ class GraspConfig(BaseModel):
     """When no lift up to ``max_lift_m`` carries the grasped object out of the front without meeting a
     believed-occupied voxel of another object: ``skip`` (the default, chosen on ``tune10``) does not
     propose the grasp; ``lift_m`` proposes it anyway, at the minimum lift (what it drags along is the
-    effect model's prediction; the behaviour before session 18). docs/grasp.md, "Grasps that drag a
+    effect model's prediction). docs/grasp.md, "Grasps that drag a
     neighbour out"."""
     retreat_y_m: float = Field(-0.30, lt=0.0, ge=-2.0)
     """The gripper retreats to this y: the largest object (16 cm) is then past the opening."""
