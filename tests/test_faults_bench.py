@@ -280,12 +280,14 @@ def test_the_fingerprint_follows_the_weights_a_component_may_load(tmp_path):
     analytic = {"observation_model": {"name": "analytic-observation"}}
     assert "weights" not in check_components(load_config("view-only", None, analytic), pm)  # the analytic loads none
     shipped = check_components(load_config("ours"), pm)["weights"]  # the learned effect models, FE-vMF
-    w = tmp_path / "map.pt"
-    w.write_bytes(b"first weights")
+    import torch
+
+    w = tmp_path / "map.pt"  # named weights must load (check_named_weights): two tiny state dicts
+    torch.save({"a": torch.zeros(1)}, w)
     cfg = load_config("view-only", None, {"observation_model": {"name": "cnabu-map", "params": {"weights": str(w)}}})
     before = check_components(cfg, pm)
     assert before["weights"] != shipped
-    w.write_bytes(b"other weights")
+    torch.save({"a": torch.ones(1)}, w)
     after = check_components(cfg, pm)
     assert after["weights"] != before["weights"]
     scene = suite_scenes("tune10")[0]

@@ -808,7 +808,9 @@ def test_restrict_state_false_restricts_the_returned_belief_and_keeps_the_networ
     from msmem_cnabu.mapmodel import CNABUMapObservationModel
 
     def model(**kw):  # type: ignore[no-untyped-def]
-        m = CNABUMapObservationModel(CNABUMapConfig(**{"unlabelled_objects": "keep", **kw}))
+        # the network's own map and what it returns (the ray record's authority is tested on its own below)
+        m = CNABUMapObservationModel(CNABUMapConfig(**{"unlabelled_objects": "keep", "observed_voxels": "network",
+                                                       **kw}))
         torch.manual_seed(0)  # the same network for every model (whatever ran before in the process)
         m.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
         with torch.no_grad():
@@ -871,7 +873,9 @@ def test_unlabelled_objects_unknown_abstains_in_the_output_and_keeps_the_network
     from msmem_core.run.metrics import prediction_from_belief
 
     def model(**kw):  # type: ignore[no-untyped-def]
-        m = CNABUMapObservationModel(CNABUMapConfig(**{"unlabelled_objects": "keep", **kw}))
+        # the network's own map and what it returns (the ray record's authority is tested on its own below)
+        m = CNABUMapObservationModel(CNABUMapConfig(**{"unlabelled_objects": "keep", "observed_voxels": "network",
+                                                       **kw}))
         torch.manual_seed(0)  # the same network for both models
         m.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
         with torch.no_grad():
@@ -915,7 +919,9 @@ def test_the_networks_own_map_carries_through_a_manipulation_where_the_belief_is
     from msmem_cnabu.mapmodel import CNABUMapObservationModel
 
     def model(**kw):  # type: ignore[no-untyped-def]
-        m = CNABUMapObservationModel(CNABUMapConfig(**{"unlabelled_objects": "keep", **kw}))
+        # the network's own map and what it returns (the ray record's authority is tested on its own below)
+        m = CNABUMapObservationModel(CNABUMapConfig(**{"unlabelled_objects": "keep", "observed_voxels": "network",
+                                                       **kw}))
         torch.manual_seed(0)
         m.net = MapNet(MapNetConfig(grid_shape=tuple(shard.grid.shape), class_head="object"))
         with torch.no_grad():

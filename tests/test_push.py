@@ -541,7 +541,7 @@ def test_manipulation_ig_is_the_best_view_after_the_predicted_belief_and_screeni
     assert len(actions) > 4
     pred = AnalyticPushEffect().predict(belief, actions, WORKSPACE)
     batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
-    full = ig.view_ig([ig.prepare(b) for b in pred.beliefs]).max(axis=1)
+    full = ig.view_ig([ig.prepare(b, before=ctx.field) for b in pred.beliefs]).max(axis=1)
     exact = IGTerm(IGTermConfig(screen_ray_step=1)).score(ctx, batch)
     np.testing.assert_allclose(exact, full, rtol=1e-9)
     reference = IGTerm(IGTermConfig(incremental=False)).score(ctx, batch)
