@@ -191,6 +191,10 @@ def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
     return out
 
 
+def _prefixed_error(prefix: str, message: str) -> UserError:
+    return UserError(prefix + message)
+
+
 def check_named_weights(ref: ComponentRef, where: str) -> None:
     """A weights file a component's params name explicitly (an existing ``.pt`` path) loads with the safe
     loader and holds only finite tensors, or a ``UserError`` names the component, the file and the reason
@@ -199,7 +203,7 @@ def check_named_weights(ref: ComponentRef, where: str) -> None:
 
     for key, v in ref.params.items():
         if isinstance(v, str | Path) and str(v).endswith(".pt") and Path(v).is_file():
-            load_state(Path(v), lambda m, k=key: UserError(f"{where}: {ref.name}'s {k}: {m}"))
+            load_state(Path(v), functools.partial(_prefixed_error, f"{where}: {ref.name}'s {key}: "))
 
 
 def check_params(cfg: RunConfig, pm: MsmemPluginManager) -> list[tuple[str, ComponentRef, str]]:

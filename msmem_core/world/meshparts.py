@@ -117,7 +117,7 @@ class UrdfMesh:
     """4x4: the ``<origin rpy xyz>`` of the collision (or visual) element, in the link frame."""
 
 
-def rpy_matrix(rpy: Sequence[float]) -> NDArray[np.float64]:
+def rpy_matrix(rpy: Sequence[float] | NDArray[np.float64]) -> NDArray[np.float64]:
     """The rotation of a URDF ``rpy``: roll about x, then pitch about y, then yaw about z, all about the
     fixed axes (R = Rz(yaw) Ry(pitch) Rx(roll))."""
     r, p, y = (float(a) for a in rpy)
