@@ -61,10 +61,11 @@ def test_oracle_variants_remove_the_occluders_of_hidden_objects(scene0) -> None:
 
 @pytest.mark.slow
 def test_the_default_belief_keeps_what_rays_labelled_on_every_variant(scene0) -> None:
-    """With 30 views of hard25 scene 0, the default belief's 2-D semantic mIoU is at least the analytic
-    update's (less 0.01) on the scene and both oracle variants, and removing every occluder raises it."""
+    """With the acceptance's 100 evenly spaced views of hard25 scene 0, the default belief's 2-D semantic
+    mIoU is at least the analytic update's (less 0.01) on the scene and both oracle variants, and removing
+    every occluder raises it (at 30 views one variant fell 0.010 short)."""
     cfg, scene, _ = scene0
-    rows = ceiling(cfg, get_plugin_manager(), [(0, scene)], num_views=30, progress=False)
+    rows = ceiling(cfg, get_plugin_manager(), [(0, scene)], num_views=100, progress=False)
     by = {(r.variant, r.model.split(" ")[0]): r.metrics for r in rows}
     for v in ("scene", "front-occluder", "all-occluders"):
         assert by[(v, "cnabu-map")]["semantic_miou_2d"] >= by[(v, "analytic-observation")]["semantic_miou_2d"] - 0.01
