@@ -487,9 +487,11 @@ def threshold_agreement(
     params: dict[str, Any] = {"change_threshold": thresholds[0], "change_epsilon": epsilon}
     if weights is not None:
         params["weights"] = str(weights)
-    # the beliefs of the analytic update, on which the effect models' thresholds were chosen
+    # the beliefs of the analytic update and MEM's IG for predictions, under which the effect models'
+    # thresholds were chosen
     cfg = load_config("ours", None, {"scene": {"seed": scene_seed}, "simulator": _sim_ref(simulator).model_dump(),
-                                     "observation_model": {"name": "analytic-observation"}})
+                                     "observation_model": {"name": "analytic-observation"},
+                                     "ig": {"predicted_entropy": "as-predicted"}})
     skills = [s.model_copy(update={"effect_model": ComponentRef(name=f"cnabu-{kind}", params=params)})
               if s.name == kind else s for s in cfg.skills]
     cfg = cfg.model_copy(update={"skills": skills})
