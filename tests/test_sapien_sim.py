@@ -295,7 +295,7 @@ def test_view_only_episode_runs_unchanged_on_each_backend(simulator: str, tmp_pa
 NARROW_VIEWS = {"targets_x_m": [-0.1], "grid": 3, "azimuth_deg": [-10, 10], "elevation_deg": [0, 15]}
 """9 viewpoints around the front of ``_episode_scene``'s cracker box (the soup can is behind it)."""
 RECORD_KEYS = {"step", "skill", "action", "objective", "terms", "best_per_skill", "candidates", "success",
-               "fell_or_left", "info", "metrics", "seconds"}
+               "fell_or_left", "info", "metrics", "seconds", "funnel"}
 METRIC_KEYS = {"occupancy_iou", "observable_iou", "semantic_miou", "semantic_miou_bev", "position_change_m",
                "correctly_found", "misclassified", "not_found", "hallucinated", "removed"}
 
