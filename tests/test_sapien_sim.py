@@ -314,8 +314,10 @@ def test_full_method_episode_runs_unchanged_on_each_backend(simulator: str, tmp_
     # and the action, never the backend, and chose views in all 4 steps of this scene
     skills = [{"name": "view"}, {"name": "push", "effect_model": {"name": "push-analytic"}},
               {"name": "grasp", "effect_model": {"name": "grasp-analytic"}}]
+    # and MEM's IG for predictions (the entropy a prediction adds counts), under which the push wins
     cfg = load_config("ours", None, {**EPISODE, "steps": steps, "simulator": {"name": simulator}, "skills": skills,
-                                     "msas": {"manipulation_window": [1, 38]}, "viewpoints": NARROW_VIEWS})
+                                     "msas": {"manipulation_window": [1, 38]}, "viewpoints": NARROW_VIEWS,
+                                     "ig": {"predicted_entropy": "as-predicted"}})
     ep = build_episode(cfg, get_plugin_manager(), scene=_episode_scene())
     assert ep.sim.capabilities().name == simulator
     assert [b.name for b in ep.skills] == ["view", "push", "grasp"]
