@@ -542,8 +542,13 @@ def test_the_effect_removes_the_target_and_pushes_out_what_is_in_its_way() -> No
 
     target, way, by = inside(TARGET), inside(IN_THE_WAY), inside(BYSTANDER)
     p = after.expected_occupancy()
+    # the grasped box left with the gripper: its space is believed free (target: free, the default)
     assert np.all(after.alpha[target] == 1.0)
-    assert np.all(after.beta[target] == 1.0)
+    assert np.all(after.beta[target] == 21.0)
+    assert np.all(np.argmax(after.eta, axis=0)[target] == 0)
+    # as MEM (target: prior): its voxels return to the prior
+    mem = AnalyticGraspEffect(GraspEffectConfig(target="prior")).predict(belief, [a], WORKSPACE).beliefs[0]
+    assert np.all(mem.alpha[target] == 1.0) and np.all(mem.beta[target] == 1.0) and np.all(mem.eta[:, target] == 1.0)
     assert pred.excluded is not None
     excluded = np.isin(np.arange(GRID.size), pred.excluded[0]).reshape(GRID.shape)
     assert np.array_equal(excluded, target)

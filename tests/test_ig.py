@@ -16,6 +16,9 @@ from msmem_core.world.geometry import look_at
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
 
+MEM = {"gain": "entropy", "information": "occupancy"}
+"""MEM's IG (the paper): a voxel counts the entropy of its clamped occupancy."""
+
 SHELF = ShelfSpec(width_m=0.16, depth_m=0.12, height_m=0.08)
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)  # 18 x 14 x 10
 CAM = CameraConfig(width_px=64, height_px=48)  # every 8th pixel: 8 x 6 = 48 rays per view
@@ -33,7 +36,7 @@ def small_views(seed: int = 0) -> np.ndarray:
 
 
 def service(early_exit: float = 1e-3) -> IGService:
-    return IGService(GRID, CAM, small_views(), SHELF, IGConfig(early_exit=early_exit))
+    return IGService(GRID, CAM, small_views(), SHELF, IGConfig(early_exit=early_exit, **MEM))
 
 
 def random_belief(seed: int) -> EvidentialMap:

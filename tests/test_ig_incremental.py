@@ -14,6 +14,9 @@ from msmem_core.world.geometry import look_at
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
 
+MEM = {"gain": "entropy", "information": "occupancy"}
+"""MEM's IG (the paper): a voxel counts the entropy of its clamped occupancy."""
+
 SHELF = ShelfSpec(width_m=0.16, depth_m=0.12, height_m=0.08)
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)  # 18 x 14 x 10
 CAM = CameraConfig(width_px=64, height_px=48)
@@ -28,7 +31,7 @@ def service(early_exit: float, never_observed: str = "prior") -> IGService:
         eye = target + np.array([rng.uniform(-0.15, 0.15), -rng.uniform(0.2, 0.35), rng.uniform(-0.05, 0.15)])
         poses.append(look_at(eye, target + rng.normal(scale=0.02, size=3)))
     return IGService(GRID, CAM, np.stack(poses), SHELF,
-                     IGConfig(early_exit=early_exit, never_observed=never_observed))  # type: ignore[arg-type]
+                     IGConfig(early_exit=early_exit, never_observed=never_observed, **MEM))  # type: ignore[arg-type]
 
 
 def random_belief(rng: np.random.Generator) -> EvidentialMap:

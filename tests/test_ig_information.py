@@ -4,7 +4,7 @@ the view after it sees past) but adds no entropy of its own (``IGConfig.predicte
 from __future__ import annotations
 
 import numpy as np
-from msmem_grasp.effect import AnalyticGraspEffect
+from msmem_grasp.effect import AnalyticGraspEffect, GraspEffectConfig
 from msmem_objectives.ig import IGTerm
 
 from msmem_core.interfaces import CandidateBatch
@@ -13,10 +13,14 @@ from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
 from tests.test_grasp import BYSTANDER, IN_THE_WAY, TARGET, WORKSPACE, box_belief, ctx, top_grasp
 from tests.test_push import GRID, SHELF, SMALL_CAM
 
+MEM = {"gain": "entropy", "information": "occupancy"}
+"""MEM's IG (the paper): a voxel counts the entropy of its clamped occupancy."""
 
-def _service(rule: str) -> IGService:
+
+def _service(rule: str, mem: bool = True) -> IGService:
     views = generate_viewpoints(ViewpointConfig(), SHELF)[::15]
-    return IGService(GRID, SMALL_CAM, views, SHELF, IGConfig(predicted_entropy=rule))  # type: ignore[arg-type]
+    extra = MEM if mem else {}
+    return IGService(GRID, SMALL_CAM, views, SHELF, IGConfig(predicted_entropy=rule, **extra))  # type: ignore[arg-type]
 
 
 def _known_shelf_with_an_open_unknown_patch():
@@ -31,14 +35,17 @@ def _known_shelf_with_an_open_unknown_patch():
     return b
 
 
-def _view_and_grasp(rule: str) -> tuple[float, float]:
+def _view_and_grasp(rule: str, mem: bool = True, target: str = "prior") -> tuple[float, float]:
+    """The best view's and the front box's grasp's IG term; ``mem``: MEM's voxel entropy (else the
+    library default, the expected reduction of occupancy and class entropy); ``target``: what the
+    analytic grasp model makes of the grasped box (``prior``: MEM's rule; ``free``: the default)."""
     belief = _known_shelf_with_an_open_unknown_patch()
-    ig = _service(rule)
+    ig = _service(rule, mem)
     c = ctx(belief, ig=ig)
     (x0, y0), (x1, y1), h, cls = IN_THE_WAY
     grasp = top_grasp((x0 + x1) / 2, (y0 + y1) / 2, h - 0.02, y1 - y0, cls=cls)
-    pred = AnalyticGraspEffect().predict(belief, [grasp], WORKSPACE)
-    assert len(pred.changes[0].idx) > 100  # the grasped box's voxels return to the prior
+    pred = AnalyticGraspEffect(GraspEffectConfig(target=target)).predict(belief, [grasp], WORKSPACE)  # type: ignore[arg-type]
+    assert len(pred.changes[0].idx) > 100  # the grasped box's voxels change
     views = np.arange(ig.num_views)
     term = IGTerm()
     view_value = float(term.score(c, CandidateBatch("view", "perception", [], view_indices=views)).max())
@@ -49,6 +56,12 @@ def _view_and_grasp(rule: str) -> tuple[float, float]:
 def test_a_manipulation_that_opens_no_never_observed_voxel_does_not_beat_the_best_view() -> None:
     view_value, grasp_value = _view_and_grasp("no-gain")
     assert view_value > 1.0  # the patch is worth looking at
+    assert grasp_value <= view_value
+
+
+def test_under_the_library_defaults_too_a_grasp_that_opens_nothing_does_not_beat_the_best_view() -> None:
+    view_value, grasp_value = _view_and_grasp("no-gain", mem=False, target="free")
+    assert view_value > 0.3  # the patch is worth looking at
     assert grasp_value <= view_value
 
 

@@ -22,6 +22,9 @@ from msmem_core.util.trace import Span, Tracer, tracing
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
 
+MEM = {"gain": "entropy", "information": "occupancy"}
+"""MEM's IG (the paper): a voxel counts the entropy of its clamped occupancy."""
+
 # every number a binary fraction: voxel centres land exactly on the interior's faces (x = +-0.375,
 # y = 0 and 0.375, z = 0 and 0.25), so < against <= and > against >= decide those voxels
 EXACT_SHELF = ShelfSpec(width_m=0.75, depth_m=0.375, height_m=0.25)
@@ -89,7 +92,7 @@ def test_a_delta_applied_to_a_field_changes_only_its_voxels_and_leaves_the_base(
 
 def test_service_keeps_its_inputs_and_coarse_rays_subsample_both_image_axes():
     views = small_views().astype(np.float32)  # float32 poses are widened, not kept
-    svc = IGService(GRID, CAM, views, SHELF)
+    svc = IGService(GRID, CAM, views, SHELF, IGConfig(**MEM))
     assert svc.camera is CAM
     assert svc.viewpoints.dtype == np.float64
     assert svc.walls.shape == (GRID.size,)
@@ -176,7 +179,7 @@ def test_a_ray_lying_on_the_low_faces_of_the_changed_voxel_is_rescored(exact):
     pose = np.eye(4)
     pose[:3, :3] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]  # camera x -> world x, y (down) -> -z, z -> +y
     pose[:3, 3] = [g[0] + i * s, -0.5, g[2] + k * s]  # on the low x and z faces of voxel (i, ., k)
-    svc = IGService(EXACT_GRID, cam, pose[None], EXACT_SHELF)
+    svc = IGService(EXACT_GRID, cam, pose[None], EXACT_SHELF, IGConfig(**MEM))
     base = svc.prepare(EvidentialMap.empty(EXACT_GRID))
     flat = np.ravel_multi_index((i, j, k), EXACT_GRID.shape)
     assert base.p[flat] == 0.5
@@ -202,7 +205,7 @@ def test_the_clamp_is_strict_at_its_thresholds():
     themselves stay uncertain (binary-exact thresholds, so that p lands exactly on them)."""
     from msmem_core.map.belief import EvidentialMap
 
-    svc = IGService(GRID, CAM, small_views(), SHELF, IGConfig(p_occ_clamp=0.75, p_free_clamp=0.25))
+    svc = IGService(GRID, CAM, small_views(), SHELF, IGConfig(p_occ_clamp=0.75, p_free_clamp=0.25, **MEM))
     b = EvidentialMap.empty(GRID)
     inside = np.flatnonzero(~svc.walls)[:4]
     for flat, (a, bb) in zip(inside, [(3.0, 1.0), (1.0, 3.0), (7.0, 1.0), (1.0, 7.0)], strict=True):

@@ -714,8 +714,11 @@ def test_cnabu_map_keeps_the_ray_record_and_ups_finds_hidden_space_on_its_comple
     from msmem_cnabu.mapmodel import CNABUMapObservationModel
     from msmem_push.skill import PushSkill
 
+    from msmem_cnabu.configs import CNABUMapConfig
+
     seq = sequence(shard)
-    model = CNABUMapObservationModel()
+    # unlabelled objects as ties of the network's evidence: every voxel no ray reached is confident
+    model = CNABUMapObservationModel(CNABUMapConfig(unknown_evidence="tie"))
     b = EvidentialMap.empty(shard.grid, seq.seen.shape[1])
     reached = np.zeros(shard.grid.shape, dtype=bool)
     for t in range(3):
@@ -884,19 +887,25 @@ def test_unlabelled_objects_unknown_abstains_in_the_output_and_keeps_the_network
         return m
 
     drop, plain = model(unlabelled_objects="unknown"), model()
+    tie = model(unlabelled_objects="unknown", unknown_evidence="tie")
     seq = sequence(shard)
     empty = EvidentialMap.empty(shard.grid, seq.seen.shape[1])
-    b_drop, b_plain = empty, empty
+    b_drop, b_plain, b_tie = empty, empty, empty
     for t in range(3):
         b_drop = drop.update_masks(b_drop, seq.free[t], seq.occ[t], seq.seen[t])
         b_plain = plain.update_masks(b_plain, seq.free[t], seq.occ[t], seq.seen[t])
+        b_tie = tie.update_masks(b_tie, seq.free[t], seq.occ[t], seq.seen[t])
         for mine, plain_map in zip(drop._state[1], (b_plain.alpha, b_plain.beta, b_plain.eta), strict=True):
             assert np.allclose(mine, plain_map, atol=1e-5)
     p_drop, p_plain = b_drop.expected_occupancy(), b_plain.expected_occupancy()
     changed = ~np.isclose(p_drop, p_plain, atol=1e-6)
     assert changed.any(), "the guessing network predicts objects no ray labelled"
     assert np.all(p_drop[changed] == 0.5)
-    assert np.allclose((b_drop.alpha + b_drop.beta), (b_plain.alpha + b_plain.beta), rtol=1e-5)
+    # the default unknown_evidence: the prior there (nothing known of it); tie: the network's evidence split
+    assert np.all(b_drop.alpha[changed] == 1.0) and np.all(b_drop.beta[changed] == 1.0)
+    assert np.all(b_drop.eta[:, changed] == 1.0)
+    np.testing.assert_array_equal(b_tie.expected_occupancy(), p_drop)
+    assert np.allclose((b_tie.alpha + b_tie.beta), (b_plain.alpha + b_plain.beta), rtol=1e-5)
     occ_drop, _ = prediction_from_belief(p_drop, b_drop.class_probs())
     occ_plain, _ = prediction_from_belief(p_plain, b_plain.class_probs())
     assert (occ_drop <= occ_plain).all()

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, Field
 
 from msmem_core.map import raycast
-from msmem_core.map.belief import BeliefDelta, EvidentialMap, bernoulli_entropy
+from msmem_core.map.belief import BeliefDelta, EvidentialMap, _xlogx, bernoulli_entropy, categorical_entropy
 from msmem_core.util.interrupt import deferred_interrupt
 from msmem_core.util.trace import span
 from msmem_core.util.validation import MODEL_CONFIG, Int
@@ -51,6 +51,22 @@ class IGConfig(BaseModel):
     predictions rewrite thousands of never-reached voxels, pushes then win on space the prediction made
     transparent and cost the map (docs/map-prediction.md). A belief without a ray record (the analytic
     update) holds the prior in never-reached voxels anyway."""
+    information: Literal["occupancy", "occupancy-and-class"] = "occupancy-and-class"
+    """What a voxel's state is. ``occupancy``: free or occupied (MEM, the paper). ``occupancy-and-class``:
+    free or occupied by one of the object classes, whose entropy is ``H_b(p) + p * H(pi)`` with ``pi`` the
+    expected categorical over the object classes (chain rule): a ray that would reach an object whose
+    class no ray has seen is credited for the class it would resolve, not only for its occupancy."""
+    gain: Literal["entropy", "expected-reduction"] = "expected-reduction"
+    """What a voxel a ray reaches contributes. ``entropy``: the Shannon entropy of its expected state
+    (MEM, the paper: one observation resolves it). ``expected-reduction``: the expected drop of that entropy
+    when one more observation adds ``observation_evidence`` to the outcome it sees (a hit or a miss,
+    drawn from the expected occupancy; the class, from the expected categorical): ``H(E[p]) -
+    E_y[H(E[p | y])] >= 0``. A voxel that many rays have already reached, or whose evidence is split
+    (a surface voxel that rays both hit and pass), gains little from one more; never-reached space and
+    a vague prediction gain much."""
+    observation_evidence: float = Field(10.0, gt=0.0)
+    """Evidence one observation adds to a voxel (``expected-reduction``): the analytic update's ``w_occ``,
+    ``w_free`` and ``w_cls``, which the ray record of ``cnabu-map`` uses too."""
     predicted_entropy: Literal["no-gain", "as-predicted"] = "no-gain"
     """What a manipulation's predicted change may do to the entropy IG counts. ``no-gain``: a voxel an
     effect model changed keeps at most the entropy it had before (``min(H_before, H_predicted)``): the
@@ -63,6 +79,30 @@ class IGConfig(BaseModel):
 
 LN2 = np.float32(np.log(2.0))
 """The prior's occupancy entropy (nats)."""
+
+
+def occupancy_reduction(alpha: NDArray[np.floating], beta: NDArray[np.floating], w: float) -> NDArray[np.float64]:
+    """Expected drop of the Shannon entropy (nats) of the expected occupancy of ``Beta(alpha, beta)`` when one
+    observation adds ``w`` to alpha (a hit, with probability ``E[p]``) or to beta (a miss). ``>= 0`` (entropy
+    is concave and the expected posterior mean is the prior mean)."""
+    a, b = np.asarray(alpha, np.float64), np.asarray(beta, np.float64)
+    n = a + b
+    p = a / n
+    after = p * bernoulli_entropy((a + w) / (n + w)) + (1.0 - p) * bernoulli_entropy(a / (n + w))
+    return np.maximum(bernoulli_entropy(p) - after, 0.0)
+
+
+def class_reduction(eta: NDArray[np.floating], w: float) -> NDArray[np.float64]:
+    """Expected drop of the Shannon entropy (nats) of the expected categorical of Dirichlet evidence
+    ``eta [C, ...]`` when one observation adds ``w`` to class c, drawn from the expected categorical. ``>= 0``."""
+    e = np.asarray(eta, np.float64)
+    s = e.sum(axis=0)
+    elog = _xlogx(e)
+    total = elog.sum(axis=0)
+    # entropy after class c: log(S + w) - (sum_k e_k log e_k - e_c log e_c + (e_c + w) log(e_c + w)) / (S + w)
+    after_c = np.log(s + w) - (total - elog + _xlogx(e + w)) / (s + w)
+    expected = ((e / s) * after_c).sum(axis=0)
+    return np.maximum(categorical_entropy(e) - expected, 0.0)
 
 
 def _unique_deltas(deltas: Sequence[IGDelta]) -> tuple[list[IGDelta], NDArray[np.int64]]:
@@ -187,11 +227,42 @@ class IGService:
             p = belief.expected_occupancy().ravel().astype(np.float32)
             p, h = self._clamp(p, self.walls)
             record = belief.observed is not None and self.config.never_observed == "prior"
-            if record:
-                h[~belief.observed.ravel() & ~self.walls] = LN2  # type: ignore[union-attr]
+            if self._mem():
+                if record:
+                    h[~belief.observed.ravel() & ~self.walls] = LN2  # type: ignore[union-attr]
+            else:
+                a, b = belief.alpha.ravel(), belief.beta.ravel()
+                eta = belief.eta.reshape(belief.eta.shape[0], -1)
+                if record:  # the prior's evidence where no ray reached
+                    never = ~belief.observed.ravel()  # type: ignore[union-attr]
+                    a, b = np.where(never, np.float32(1), a), np.where(never, np.float32(1), b)
+                    eta = np.where(never[None], np.float32(1), eta)
+                    p = np.where(never & ~self.walls, np.float32(0.5), p).astype(np.float32)
+                h = self._information(a, b, eta, p, self.walls)
             if before is not None and self.config.predicted_entropy == "no-gain":
                 h = np.minimum(h, before.H)
             return IGField(p, h, record)
+
+    def _mem(self) -> bool:
+        """Whether a voxel's value is MEM's: the entropy of its clamped occupancy alone."""
+        return self.config.information == "occupancy" and self.config.gain == "entropy"
+
+    def _information(self, alpha: NDArray[np.floating], beta: NDArray[np.floating], eta: NDArray[np.floating],
+                     p: NDArray[np.float32], walls: NDArray[np.bool_]) -> NDArray[np.float32]:
+        """Per voxel what a ray reaching it gains (``gain``, ``information``), from its evidence and its
+        clamped occupancy ``p``; 0 on walls and where ``p`` is clamped to 0, and no occupancy part where
+        ``p`` is clamped to 1."""
+        cfg = self.config
+        sure = (p <= 0.0) | (p >= 1.0)
+        if cfg.gain == "entropy":
+            h = bernoulli_entropy(p)
+        else:
+            h = np.where(sure, 0.0, occupancy_reduction(alpha, beta, cfg.observation_evidence))
+        if cfg.information == "occupancy-and-class":
+            cls = (categorical_entropy(eta[1:]) if cfg.gain == "entropy"
+                   else class_reduction(eta[1:], cfg.observation_evidence))
+            h = h + p * cls
+        return np.where(walls, 0.0, h).astype(np.float32)
 
     def _clamp(
         self, p: NDArray[np.float32], walls: NDArray[np.bool_]
@@ -218,8 +289,17 @@ class IGService:
         a = np.asarray(delta.alpha, dtype=np.float32)
         p = (a / (a + np.asarray(delta.beta, dtype=np.float32))).astype(np.float32)
         p, h = self._clamp(p, self.walls[idx])
-        if base.observed_record:  # a predicted change clears the ray record where it writes
-            h = np.where(self.walls[idx], h, LN2).astype(np.float32)
+        if self._mem():
+            if base.observed_record:  # a predicted change clears the ray record where it writes
+                h = np.where(self.walls[idx], h, LN2).astype(np.float32)
+        elif base.observed_record:
+            one = np.ones(len(idx), dtype=np.float32)
+            p = np.where(self.walls[idx], p, np.float32(0.5)).astype(np.float32)
+            h = self._information(one, one, np.ones((np.asarray(delta.eta).shape[0], len(idx)), np.float32), p,
+                                  self.walls[idx])
+        else:
+            h = self._information(a, np.asarray(delta.beta, dtype=np.float32), np.asarray(delta.eta), p,
+                                  self.walls[idx])
         if self.config.predicted_entropy == "no-gain":
             h = np.minimum(h, base.H[idx])
         keep = (p != base.p[idx]) | (h != base.H[idx])

@@ -50,6 +50,13 @@ class CNABUEffectConfig(BaseModel):
     faster per candidate and need more working memory: docs/cnabu.md)."""
     threads: int | None = Field(None, ge=1)
     """torch threads while predicting (None: leave the process's setting)."""
+    grasped_region: Literal["free", "network"] = "free"
+    """``cnabu-grasp``: what the grasped object's believed region (as ``grasp-analytic`` finds it)
+    becomes. ``free``: believed free with ``free_evidence`` over the network's prediction (the object
+    left with the gripper; as ``grasp-analytic``'s ``target: free``), so rays pass where it stood.
+    ``network``: as the network predicts it (it empties only part of it). Not used by ``cnabu-push``."""
+    free_evidence: float = Field(20.0, ge=0.0)
+    """``grasped_region: free``: its free and background-class evidence (two views' worth)."""
     class_map: dict[str, str] | None = None
     """For scenes whose classes the weights were not trained on: each object class of the scene, in the
     scene's order, to a distinct class the weights know, as ``cnabu-map``'s ``class_map`` (a run
@@ -93,11 +100,17 @@ class CNABUMapConfig(BaseModel):
     """What the returned belief says of an object the network predicts but no ray has labelled with its
     class (a 26-connected component of voxels believed occupied with one top object class, none of
     them labelled with it by a ray of the episode): ``keep`` it as predicted, or return it as
-    ``unknown`` (expected occupancy 0.5, the total evidence kept; a tie counts as free; the
+    ``unknown`` (expected occupancy 0.5, a tie, which counts as free, ``unknown_evidence``; the
     default), so that a hidden object's guessed class does not enter the maps. With
     ``unknown`` the network's own map stays its next input, through a manipulation too where the effect
     model's prediction left the returned belief unchanged (as with ``restrict_state: false``;
     docs/map-prediction.md)."""
+    unknown_evidence: Literal["prior", "tie"] = "prior"
+    """``unlabelled_objects: unknown``: the evidence of such an object's voxels. ``prior``: the prior
+    (occupancy 1/2, no class evidence): nothing is known of it, so IG with ``gain: expected-reduction``
+    credits a view or a manipulation that would show it. ``tie``: occupancy 1/2 with the network's
+    total evidence kept, and its class evidence: to IG a confident tie, worth almost nothing to see.
+    The maps are the same either way (a tie counts as free)."""
     class_map: dict[str, str] | None = None
     """For scenes whose classes the weights were not trained on: each object class of the scene, in the
     scene's order, to a distinct class the weights know (e.g. ``{cereal: cracker_box, ...}``). The

@@ -136,7 +136,12 @@ class CNABUMapObservationModel(ObservationModel):
                 raw = (a, b, e)  # the restricted map is the next input, the objects' abstention is not
             unknown = unlabelled_objects(out_a / (out_a + out_b) > 0.5, out_eta, self._labelled, valid.numpy())
             out_a, out_b = out_a.copy(), out_b.copy()
-            out_a[unknown] = out_b[unknown] = (out_a[unknown] + out_b[unknown]) / 2  # p = 0.5: a tie is free
+            if self.config.unknown_evidence == "prior":  # p = 0.5 (a tie is free), no class evidence
+                out_a[unknown] = out_b[unknown] = 1.0
+                out_eta = out_eta.copy()
+                out_eta[:, unknown] = 1.0
+            else:
+                out_a[unknown] = out_b[unknown] = (out_a[unknown] + out_b[unknown]) / 2  # p = 0.5: a tie is free
         if rays is not None:
             out_a, out_b, out_eta = fuse_rays(out_a, out_b, out_eta, rays, self.config.ray_confidence)
             if self.config.fill_under_surfaces is not None:

@@ -251,7 +251,12 @@ class _CNABUEffect(EffectModel):
                 parts.append(self.net.predict_flat(prep, None, vox, torch.from_numpy(scalars[start:stop]),
                                                    cfg.change_threshold, region=None, nonzero=nz))
         out = _scene_classes(FlatPrediction.cat(parts), self._index)
-        return Prediction(belief, _deltas(belief, out, cfg.change_epsilon), excluded=regions)
+        deltas = _deltas(belief, out, cfg.change_epsilon)
+        if self.kind == "grasp" and cfg.grasped_region == "free" and regions is not None:
+            from msmem_grasp.effect import emptied
+
+            deltas = [emptied(belief, d, r, cfg.free_evidence).against(belief) for d, r in zip(deltas, regions, strict=True)]
+        return Prediction(belief, deltas, excluded=regions)
 
     def _check_actions(self, actions: Sequence[Action]) -> None:
         from msmem_grasp.skill import GraspAction

@@ -38,7 +38,7 @@ the ``Workspace``. The components are labelled once per call.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -63,8 +63,14 @@ class GraspEffectConfig(BaseModel):
     """Voxels with expected occupancy above this belong to objects."""
     max_object_radius_m: float = Field(0.10, gt=0.0, le=1.0)
     """An object (grasped or pushed) reaches at most this far across from where it is touched."""
+    target: Literal["free", "prior"] = "free"
+    """What the grasped object's region becomes. ``free``: believed free with ``free_evidence`` (the
+    object left with the gripper, so rays pass where it stood and the view after the grasp is scored
+    for what it reveals behind it; what is behind keeps its belief until seen). ``prior``: the prior
+    (``target_keep`` of its evidence kept), as MEM; rays through a prior voxel go on with probability
+    1/2 only, so a grasped box of six voxels depth still hides what is behind it from the prediction."""
     target_keep: float = Field(0.0, ge=0.0, le=1.0)
-    """Fraction of evidence above the prior kept in the grasped object's region (0: the prior)."""
+    """``target: prior``: fraction of evidence above the prior kept in the grasped object's region (0: the prior)."""
     free_evidence: float = Field(20.0, ge=0.0)
     """Free (Beta beta) and background-class evidence of the voxels a pushed-out object left
     (20 = two views of the analytic observation model: p = 1/22, vacuity 15/35 < tau_chi)."""
@@ -77,6 +83,26 @@ class GraspEffectConfig(BaseModel):
     """The gripper's boxes are shrunk by this (as in the skill's collision test)."""
     touch_shift_m: float = Field(0.0, ge=0.0, le=0.2)
     """Objects touching the grasped one (and not in the way) are shifted this far along the retreat."""
+
+
+def emptied(belief: EvidentialMap, delta: BeliefDelta, region: I64, evidence: float) -> BeliefDelta:
+    """``delta`` with the voxels ``region`` (flat indices) believed free: Beta ``(1, 1 + evidence)``
+    and background-class evidence ``1 + evidence`` (what a grasped object leaves, ``target: free``)."""
+    region = np.asarray(region, dtype=np.int64)
+    if not len(region):
+        return delta
+    idx = np.union1d(delta.idx, region)
+    c = belief.num_classes
+    a = belief.alpha.reshape(-1)[idx].copy()
+    b = belief.beta.reshape(-1)[idx].copy()
+    e = belief.eta.reshape(c, -1)[:, idx].copy()
+    at = np.searchsorted(idx, delta.idx)
+    a[at], b[at], e[:, at] = delta.alpha, delta.beta, delta.eta
+    r = np.searchsorted(idx, region)
+    f = np.float32(evidence)
+    a[r], b[r], e[:, r] = 1.0, 1.0 + f, 1.0
+    e[0, r] += f
+    return BeliefDelta(idx, a.astype(np.float32), b.astype(np.float32), e.astype(np.float32))
 
 
 class AnalyticGraspEffect(EffectModel):
@@ -217,8 +243,11 @@ class AnalyticGraspEffect(EffectModel):
             ne[:, p] = 1.0 + (ne[:, p] - 1.0) * np.float32(keep)
 
         prior(at(vacated), 0.0)
-        prior(at(region), cfg.target_keep)
-        pg = at(gone)  # the pushed objects left: their voxels are believed free (confidently)
+        if cfg.target == "prior":
+            prior(at(region), cfg.target_keep)
+        else:
+            gone = np.concatenate([region, gone])
+        pg = at(gone)  # the grasped and the pushed objects left: their voxels are believed free (confidently)
         na[pg], nb[pg], ne[:, pg] = 1.0, 1.0 + np.float32(cfg.free_evidence), 1.0
         ne[0, pg] += np.float32(cfg.free_evidence)
         if len(dst):
