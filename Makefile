@@ -34,7 +34,7 @@ $(STAMP): pyproject.toml
 
 # The demo runs `ours` under the library defaults (msmem_core/presets/defaults.yaml: the learned whole-map
 # observation model and the effect models fine-tuned on its beliefs; README, "make demo");
-# `make demo DEMO_CONFIG=examples/analytic.yaml` runs the defaults before session 21 (the analytic update).
+# `make demo DEMO_CONFIG=examples/analytic.yaml` runs the analytic update and its effect models instead.
 DEMO_CONFIG ?=
 
 demo: setup
@@ -49,7 +49,7 @@ test-slow: setup
 
 # Optional SAPIEN backend (not part of `make test`'s install): the extra, and a CPU Vulkan driver
 # (Mesa 25 lavapipe, unpacked into .venv/lavapipe; no system package changes) for SAPIEN's own
-# renderer. Without the driver the backend uses its ray-cast camera. See docs/sapien.md.
+# renderer. Without the driver the backend uses its ray-cast camera. See docs/how-to/use-sapien.md.
 sapien: setup
 	$(PY) -m pip install -q -e ".[dev,sapien]"
 	bash simulators/msmem_sapien/setup_lavapipe.sh || echo "lavapipe not set up: the SAPIEN backend will use its ray-cast camera"
@@ -79,9 +79,9 @@ perf: setup
 
 # The generated references (a test fails when they drift from the code).
 docs: setup
-	$(VENV)/bin/msmem docs config > docs/config-reference.md
-	$(VENV)/bin/msmem docs cli > docs/cli.md
-	$(VENV)/bin/msmem docs api > docs/api.md
+	$(VENV)/bin/msmem docs config > docs/reference/config.md
+	$(VENV)/bin/msmem docs cli > docs/reference/cli.md
+	$(VENV)/bin/msmem docs api > docs/reference/api.md
 	$(VENV)/bin/msmem docs results > docs/results.md
 
 clean:

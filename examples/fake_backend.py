@@ -1,6 +1,6 @@
 """The testing kit's ``FakeSimulator`` registered as a simulator plugin named ``fake``.
 
-Used by docs/write-a-simulator.md to show registration without installing anything::
+Used by docs/how-to/write-a-simulator.md to show registration without installing anything::
 
     PYTHONPATH=examples MSMEM_PLUGINS=fake=fake_backend msmem plugins
 

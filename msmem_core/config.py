@@ -76,8 +76,7 @@ class MSASConfig(_Strict):
     """Semantic vacuity below which a voxel's class counts as known (paper: tau_chi)."""
     manipulation_window: tuple[Int, Int] = (3, 25)
     """Steps (inclusive) in which manipulation may be chosen: 3 to 25 leaves at least 14 views to check
-    the last one's outcome ([MEM]: 3 to 38, ``examples/mem-rules.yaml``; docs/results.md, "One set of
-    rules")."""
+    the last one's outcome ([MEM]: 3 to 38, ``examples/mem-rules.yaml``; docs/explanation/msas.md)."""
     conf_cutoff: float = Field(0.85, gt=0.0, lt=1.0)
     """A BEV cell counts as mapped when its max class probability (MEM's p^1.8 scaling) exceeds this."""
     mapped_fraction: float = Field(0.99, gt=0.0, le=1.0)
@@ -89,7 +88,7 @@ class MSASConfig(_Strict):
     by ``disturbed_margin_voxels``) is shrunk towards the prior until alpha + beta <= this, keeping
     which side of 0.5 each expected occupancy is on, so later views can overturn a wrong prediction and
     IG looks there again; 2 resets them to the prior (unknown). None: the belief is the prediction as
-    is, the paper's rule (``examples/mem-rules.yaml``; measured in docs/results.md, "One set of rules")."""
+    is, the paper's rule (``examples/mem-rules.yaml``; why: docs/explanation/msas.md)."""
     disturbed_margin_voxels: Int = Field(2, ge=0, le=10)
     """Dilation (voxels) of the changed mask for ``disturbed_evidence_cap`` and ``failed_manipulation_cap``."""
     failed_manipulation_cap: float = Field(4.0, ge=2.0)
@@ -128,8 +127,9 @@ class RunConfig(_Strict):
     scene: SceneConfig = SceneConfig()
     simulator: ComponentRef = ComponentRef(name="pybullet")
     robot: ComponentRef = ComponentRef(name="floating")
-    """The arm that carries the camera and the gripper (docs/robots.md): ``floating`` (no arm, everything
-    reachable) or ``panda`` (the view skill proposes only the views its wrist camera reaches)."""
+    """The arm that carries the camera and the gripper (docs/explanation/robots.md): ``floating`` (no arm,
+    everything reachable), ``panda`` or ``ur5e`` (the view skill proposes only the views its wrist camera
+    reaches)."""
     observation_model: ComponentRef = Field(
         default_factory=lambda: ComponentRef.model_validate(library_defaults()["observation_model"]))
     """sigma_o, the observation update (default ``cnabu-map``: ``msmem_core/presets/defaults.yaml``)."""

@@ -5,7 +5,7 @@
         --tests tests/test_ig.py tests/test_ig_incremental.py tests/test_ig_mutation.py --out ig_scan.jsonl
 
 ``mutmut run`` runs each mutant's tests through its fork server, where some of this project's tests die
-with SIGTERM ("suspicious", docs/reliability.md), and finds no tests for plugin modules. This scanner
+with SIGTERM ("suspicious", docs/explanation/reliability.md), and finds no tests for plugin modules. This scanner
 generates the mutants with mutmut's own code (``--generate``), then, per mutant, forks a child of a
 process that has already imported pytest, numpy, numba and the test modules, sets the mutant with
 mutmut's ``set_mutant_under_test`` and runs the given test files with ``-x``. A child that does not

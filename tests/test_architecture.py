@@ -1,4 +1,4 @@
-"""The core's import rules, checked on the source (docs/concepts.md, "Layout").
+"""The core's import rules, checked on the source (docs/explanation/design.md, "Layers").
 
 - ``msmem_core`` imports no plugin and no backend;
 - a core module imports only from its own layer or the layers below it (listed bottom-up in

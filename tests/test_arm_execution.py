@@ -1,5 +1,5 @@
 """The arm in physics: the PyBullet and SAPIEN backends drive the run's robot by joint control
-(docs/robots.md, "Execution by the arm"). Real Panda, real Bullet and PhysX contacts, no mocks: the same
+(docs/explanation/robots.md, "Execution by the arm"). Real Panda, real Bullet and PhysX contacts, no mocks: the same
 scripted moves (``tests/support/arm_checks.py``) hold both backends to the same outcomes. SAPIEN's
 cases need the optional extra and SAPIEN's renderer (its URDF loader builds visuals; ``make sapien``
 sets up a CPU Vulkan driver) and are skipped without them."""

@@ -1,4 +1,4 @@
-"""Tests of ``msmem_cnabu.losses`` that the mutation run (docs/reliability.md, "Mutation testing of the
+"""Tests of ``msmem_cnabu.losses`` that the mutation run (docs/explanation/reliability.md, "Mutation testing of the
 math") showed missing: the dtype of the KL terms, the normalisation by the total weight when it is
 below 2, and float64 weights that float32 cannot represent. References are scipy, voxel by voxel."""
 

@@ -1,4 +1,4 @@
-"""The shipped CNABU weights against held-out scenes (what docs/cnabu.md says of them).
+"""The shipped CNABU weights against held-out scenes (what docs/explanation/cnabu.md says of them).
 
 ``tests/data/cnabu_heldout/<kind>/`` holds shards made by ``msmem datagen cnabu --seed 10000`` (scene
 seeds the training data never used, see ``plugins/msmem_cnabu/weights/MODEL_CARD.md``). On them:

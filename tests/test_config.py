@@ -28,7 +28,7 @@ def test_file_overrides_preset_and_flags_override_file(tmp_path):
 
 def test_every_method_runs_under_one_set_of_rules_and_a_file_restores_mems():
     """Every preset caps the evidence a manipulation changed and stops manipulating at step 25
-    (docs/results.md, "One set of rules"); examples/mem-rules.yaml brings MEM's rules back."""
+    (docs/explanation/msas.md); examples/mem-rules.yaml brings MEM's rules back."""
     from msmem_core.config import METHODS
 
     rules = {m: load_config(m).msas for m in METHODS}

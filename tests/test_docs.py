@@ -37,16 +37,19 @@ def _same(path: Path, generated: str, command: str) -> None:
         pytest.fail(f"{path.relative_to(ROOT)} is stale: run `make docs` (or `{command}`)\n{diff}")
 
 
+REFERENCE = ROOT / "docs" / "reference"
+
+
 def test_config_reference_is_generated_from_the_models():
-    _same(ROOT / "docs" / "config-reference.md", config_reference(), "msmem docs config > docs/config-reference.md")
+    _same(REFERENCE / "config.md", config_reference(), "msmem docs config > docs/reference/config.md")
 
 
 def test_cli_reference_is_generated_from_the_commands():
-    _same(ROOT / "docs" / "cli.md", cli_reference(build_app(builtin_only=True)), "msmem docs cli > docs/cli.md")
+    _same(REFERENCE / "cli.md", cli_reference(build_app(builtin_only=True)), "msmem docs cli > docs/reference/cli.md")
 
 
 def test_api_reference_is_generated_from_the_docstrings():
-    _same(ROOT / "docs" / "api.md", api_reference(), "msmem docs api > docs/api.md")
+    _same(REFERENCE / "api.md", api_reference(), "msmem docs api > docs/reference/api.md")
 
 
 def test_results_page_is_generated_from_the_committed_result_folders():
@@ -82,7 +85,7 @@ def test_relative_links_point_at_existing_files(path):
 def test_every_name_the_api_reference_lists_under_the_testing_kit_imports_from_msmem_core_testing():
     import msmem_core.testing as kit
 
-    text = (ROOT / "docs" / "api.md").read_text()
+    text = (REFERENCE / "api.md").read_text()
     names = set()
     for section in text.split("\n## ")[1:]:
         if section.startswith("Testing kit"):

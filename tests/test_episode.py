@@ -104,8 +104,9 @@ def test_config_show_prints_the_resolved_preset():
 @pytest.mark.slow
 def test_ig_views_beat_random_views_at_step_10(tmp_path, monkeypatch):
     """Over 5 seeded scenes, IG-chosen views reach a higher occupancy IoU at step 10 than random views, with
-    the analytic update (the belief of what rays reached; docs/results.md, "Next-best view against random
-    views": with the completed belief of ``cnabu-map`` the two are level at step 10)."""
+    the analytic update (the belief of what rays reached; docs/lab/2026-12-04-results-under-earlier-defaults.md,
+    "Next-best view against random views": with the completed belief of ``cnabu-map`` the two are level at
+    step 10)."""
     monkeypatch.setenv("MSMEM_PLUGINS", "rnd=tests.support.random_term")
     pm = get_plugin_manager()
     ig_iou, rnd_iou = [], []
@@ -123,7 +124,7 @@ def test_ig_views_beat_random_views_at_step_10(tmp_path, monkeypatch):
 def test_position_change_sums_objects_still_in_the_shelf_and_a_knocked_out_one_counts_as_removed():
     """A push (the closed floating gripper, in real PyBullet) drives a soup can out of the open front and
     nudges a box inside: Position Change is the box's displacement alone, and the can counts as removed
-    (docs/concepts.md), not as the metres it travelled out of the shelf."""
+    (docs/reference/metrics.md), not as the metres it travelled out of the shelf."""
     from msmem_core.map.belief import EvidentialMap
     from msmem_core.run.metrics import position_change_m
     from msmem_core.run.runner import MetricTracker

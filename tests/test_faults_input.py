@@ -1,4 +1,4 @@
-"""Fault injection on inputs (docs/reliability.md, "Input validation"): hostile configs and scene files are
+"""Fault injection on inputs (docs/explanation/reliability.md, "Input validation"): hostile configs and scene files are
 refused with one line naming the field or the object, instead of crashing deep inside or passing.
 
 Each test reproduces a failure seen before the checks existed (a traceback, a silent wrong run).

@@ -1,4 +1,4 @@
-"""FE-UMGF fusion (plugins/msmem_grasp/fusion.py): checks added from mutation testing (docs/reliability.md,
+"""FE-UMGF fusion (plugins/msmem_grasp/fusion.py): checks added from mutation testing (docs/explanation/reliability.md,
 "Mutation testing of the math"). References are hand-computed values or brute-force loops."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The metrics on inputs their signatures allow but the main tests do not use: masks and occupancy given
 as integers, class-probability arrays at the edge of their shape check, and the messages that name
 what is wrong (gaps found by ``tests/mutation_scan.py`` on ``msmem_core/run/metrics.py``;
-docs/reliability.md)."""
+docs/explanation/reliability.md)."""
 
 from __future__ import annotations
 

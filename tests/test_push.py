@@ -657,7 +657,7 @@ def test_pushes_move_objects_by_the_commanded_length(sim) -> None:  # type: igno
 
 @pytest.mark.slow
 def test_the_default_tool_height_topples_nothing_where_mems_topples_objects(sim) -> None:  # type: ignore[no-untyped-def]
-    """The survey behind the 2 cm default (docs/push.md): 40 pushes per setting, the same seed."""
+    """The survey behind the 2 cm default (docs/explanation/push.md): 40 pushes per setting, the same seed."""
     low = commanded_pushes(sim, PushSkill(PushConfig(palm="along", tool_height_m=0.02)), n=40, seed=7)
     high = commanded_pushes(sim, PushSkill(PushConfig(palm="along", tool_height_m=0.085)), n=40, seed=7)
     assert low[1] == 0, "a push at the default height toppled an object"

@@ -1,4 +1,4 @@
-"""Robots (docs/robots.md): the plugin kind, the Panda's IK and collision checks (real pybullet, no mocks),
+"""Robots (docs/explanation/robots.md): the plugin kind, the Panda's IK and collision checks (real pybullet, no mocks),
 the reachable views and their cache, the config reference, and the view skill and IG term respecting
 what the robot reaches."""
 

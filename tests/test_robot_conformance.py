@@ -22,7 +22,7 @@ def test_the_panda_conforms_and_its_answers_are_verified_independently():
     assert report.name == "panda"
     assert report.arm
     assert report.views == 300
-    assert report.reachable_views == 265  # docs/robots.md
+    assert report.reachable_views == 265  # docs/explanation/robots.md
     assert report.checked == 6
 
 

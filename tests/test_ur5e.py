@@ -1,4 +1,4 @@
-"""The UR5e with a Robotiq 2F-85 (``msmem_robots.ur5e``, docs/robots.md "The UR5e"): its URDF joined from
+"""The UR5e with a Robotiq 2F-85 (``msmem_robots.ur5e``, docs/explanation/robots.md "The UR5e"): its URDF joined from
 airo-models' files, the robot conformance suite with an independent forward kinematics, and the arm in
 PyBullet making the same scripted moves as the Panda (``tests/support/arm_checks.py``) with its linkage
 hand. Real pybullet, no mocks."""
@@ -44,7 +44,7 @@ def test_the_joined_urdf_has_the_gripper_at_tool0_and_no_drake_tags(tmp_path, mo
 def test_the_ur5e_conforms_and_reaches_more_views_than_the_panda():
     report = robot_conformance(lambda: UR5eRobot(UR5eConfig(disk_cache=False)))
     assert (report.name, report.arm, report.views) == ("ur5e", True, 300)
-    assert report.reachable_views == 288  # docs/robots.md (the Panda: 265)
+    assert report.reachable_views == 288  # docs/explanation/robots.md (the Panda: 265)
     assert report.checked == 6
 
 

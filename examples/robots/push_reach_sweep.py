@@ -1,5 +1,4 @@
-"""Where should the Panda (or the UR5e) stand to push? A sweep of base poses (docs/robots.md, "Pushing with
-the arm").
+"""Where should the Panda (or the UR5e) stand to push? A sweep of base poses (docs/explanation/robots.md, "Limits").
 
 For each base position (shelf frame: y in front of the shelf, z below its floor) it counts
 

@@ -1,4 +1,4 @@
-"""How the UR5e's IK start configurations were chosen (docs/robots.md, "The UR5e"): greedily, from 48
+"""How the UR5e's IK start configurations were chosen (docs/explanation/robots.md, "The UR5e"): greedily, from 48
 seeded random configurations and 6 hand-made ones, by how many probe targets each adds that no chosen
 one reaches: every sixth of the 300 views and the forward push tool's start and end points at 5 x across
 the shelf, 3 heights (4.5, 8.5 and 14 cm) and 2 depths (in front of the shelf and 10 cm into it).

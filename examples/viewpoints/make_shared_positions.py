@@ -2,7 +2,7 @@
 
 MEM's reference camera set reuses about 100 camera positions for three look-at targets (left, middle,
 right of the shelf), which msmem's parametric grids (one grid of positions per target) cannot express.
-This writes such a set as a poses file (docs/viewpoints.md): the positions are the default middle
+This writes such a set as a poses file (docs/how-to/viewpoints.md): the positions are the default middle
 grid's (radius 0.55 m around the middle target, azimuth -30..30 deg, elevation -10..35 deg, 10 x 10),
 and view ``k * 100 + i`` is position ``i`` looking at target ``k``.
 

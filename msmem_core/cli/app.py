@@ -27,7 +27,7 @@ GROUPS: dict[str, str] = {  # the core's command groups (plugins add commands to
     "config": "Inspect configuration.",
     "perf": "Speed benchmarks.",
     "scene": "Generate and inspect scenes.",
-    "docs": "Generate reference documentation (docs/*.md).",
+    "docs": "Generate reference documentation (docs/reference/*.md, docs/results.md).",
     "datagen": "Generate training data for the learned models.",
     "train": "Train the learned models.",
     "eval": "Evaluate the learned models on held-out data.",
@@ -114,7 +114,7 @@ def run(
 
     The run is written into OUT.partial-XXXX beside --out and renamed to --out when complete; Ctrl-C, or a
     plugin's component that fails (exit code 3), leaves the partial folder and names it. One writer per
-    --out: another run into it is refused, or waits with --wait (docs/reliability.md)."""
+    --out: another run into it is refused, or waits with --wait (docs/explanation/reliability.md)."""
     from contextlib import ExitStack
 
     with ExitStack() as held:  # the lock of --out, from before it is checked until the run is renamed into it
@@ -231,7 +231,7 @@ def bench(
     """Run methods x scenes episodes; writes episodes/*.json, table.md, results.json and curves.png.
 
     Rerun into the same --out to resume: finished episodes are reused only if their fingerprint matches
-    (docs/reliability.md); crashed ones are retried. One writer per --out: another bench into it is
+    (docs/explanation/reliability.md); crashed ones are retried. One writer per --out: another bench into it is
     refused, or waits with --wait."""
     import os
 
@@ -272,7 +272,7 @@ def eval_ceiling(
     out: Annotated[Path | None, typer.Option("--out", help="Also write the rows and summary as JSON here.")] = None,
 ) -> None:
     """What views alone can map, and what removing occluders is worth: the paper's map metrics of N evenly
-    spaced views on each scene and its oracle variants, per observation model (docs: map prediction)."""
+    spaced views on each scene and its oracle variants, per observation model (docs/explanation/map-prediction.md)."""
     import json
 
     from msmem_core.config import load_config
@@ -362,21 +362,21 @@ def perf_step(
 
 
 def docs_config() -> None:
-    """Print the configuration reference (docs/config-reference.md), generated from the pydantic models."""
+    """Print the configuration reference (docs/reference/config.md), generated from the pydantic models."""
     from msmem_core.cli.docgen import config_reference
 
     typer.echo(config_reference(), nl=False)
 
 
 def docs_cli() -> None:
-    """Print the command-line reference (docs/cli.md), generated from the commands' help."""
+    """Print the command-line reference (docs/reference/cli.md), generated from the commands' help."""
     from msmem_core.cli.docgen import cli_reference
 
     typer.echo(cli_reference(build_app(builtin_only=True)), nl=False)
 
 
 def docs_api() -> None:
-    """Print the API reference for plugin authors (docs/api.md), generated from docstrings and signatures."""
+    """Print the API reference for plugin authors (docs/reference/api.md), generated from docstrings and signatures."""
     from msmem_core.cli.docgen import api_reference
 
     typer.echo(api_reference(), nl=False)

@@ -2,10 +2,10 @@
 and the built-in components' config models), the CLI reference (from the typer/click commands) and
 the API reference for plugin authors (from docstrings and signatures).
 
-``msmem docs config`` and ``msmem docs cli`` print them; ``docs/config-reference.md`` and
-``docs/cli.md`` are their committed output, and a test fails when they drift (``make docs``
+``msmem docs config`` and ``msmem docs cli`` print them; ``docs/reference/config.md`` and
+``docs/reference/cli.md`` are their committed output, and a test fails when they drift (``make docs``
 regenerates both). Field descriptions are the attribute docstrings of the models. The API
-reference for plugin authors (``msmem docs api``, ``docs/api.md``) is generated the same way from
+reference for plugin authors (``msmem docs api``, ``docs/reference/api.md``) is generated the same way from
 the docstrings and signatures of the types listed in ``API_SECTIONS``.
 """
 
@@ -249,7 +249,7 @@ CLI_HEADER = """# Command-line reference
      Regenerate with `make docs` (a test checks this file equals the generated output). -->
 
 User errors print one line (`msmem: error: ...`) and exit with status 2; `msmem --debug COMMAND`
-shows the traceback instead. Plugins add commands (see [plugins.md](plugins.md#add-a-command)): this page
+shows the traceback instead. Plugins add commands ([add a command](../how-to/add-a-command.md)): this page
 lists msmem's own; `msmem --help` and `msmem GROUP --help` list what is installed.
 """
 
@@ -323,9 +323,12 @@ API_HEADER = """# API reference for plugin authors
      Regenerate with `make docs` (a test checks this file equals the generated output). -->
 
 The public types a plugin works with, by where they are imported from. Guides:
-[plugins.md](plugins.md) (the hooks and spec records), [write-a-skill.md](write-a-skill.md),
-[write-an-objective-term.md](write-an-objective-term.md), [write-a-simulator.md](write-a-simulator.md),
-[robots.md](robots.md) (write a robot), [concepts.md](concepts.md) (how the pieces meet in an episode).
+[plugins](plugins.md) (the hooks and spec records), [your first plugin](../tutorials/first-plugin.md),
+the how-to pages for [a skill](../how-to/write-a-skill.md), [an effect model](../how-to/write-an-effect-model.md),
+[an observation model](../how-to/write-an-observation-model.md),
+[an objective term](../how-to/write-an-objective-term.md), [a simulator](../how-to/write-a-simulator.md) and
+[a robot](../how-to/write-a-robot.md), and [concepts](../explanation/concepts.md) (how the pieces meet in an
+episode). The [Python API](python/index.md) pages of the documentation site render the full docstrings.
 """
 
 API_SECTIONS: tuple[tuple[str, str, tuple[str, ...]], ...] = (
@@ -374,7 +377,7 @@ API_SECTIONS: tuple[tuple[str, str, tuple[str, ...]], ...] = (
         "msmem_core.testing.plugin_conformance.ConformanceError",
         "msmem_core.testing.plugin_conformance.ConformanceUsageError")),
 )
-"""(title, where to import from, dotted names of the documented objects) per section of ``docs/api.md``."""
+"""(title, where to import from, dotted names of the documented objects) per section of ``docs/reference/api.md``."""
 
 
 def _resolve(dotted: str) -> Any:

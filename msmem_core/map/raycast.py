@@ -276,7 +276,7 @@ def ig_views_batch(p, h, stop, origins, dirs, t_enter, t_exit, count, g0, s, n, 
     (uint8 [N]) marks voxels with p == 1 in every belief (walls, unmoved objects): each ray is
     traversed once, up to its first stop voxel, and the K sums run over that voxel list, each
     belief's transmission set to 0 once it is <= eps (adding exact zeros afterwards). prange over
-    views: the K beliefs share each traversal (docs/performance.md, "IG sweep").
+    views: the K beliefs share each traversal (docs/explanation/performance.md, "IG sweep").
     """
     nk = p.shape[1]
     nv = dirs.shape[0]

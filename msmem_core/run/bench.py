@@ -1,7 +1,7 @@
 """Benchmark: methods x scenes episodes on an executor, resumable, summarised as the paper's Tables I and II.
 
 One result file per (method, scene) is written atomically under ``OUT/episodes/``, with the
-fingerprint of what produced it (:func:`fingerprint`). A rerun into the same folder (docs/reliability.md):
+fingerprint of what produced it (:func:`fingerprint`). A rerun into the same folder (docs/explanation/reliability.md):
 
 - reuses a finished episode only if its fingerprint matches this run's; any mismatch stops the run
   before anything starts (:class:`FingerprintMismatch`, one line naming the file and what differs),
@@ -402,8 +402,8 @@ def table_markdown(summary: dict[str, Any]) -> str:
         lines.append(f"| {m} | {row['episodes']} | " + " | ".join(
             _fmt(tuple(row[k])) + (f" (n={counted[k]})" if counted.get(k) else "") for k, _, _ in TABLE_METRICS) + " |")
     lines += ["", "Mean ± half-width of the 95% t-interval over scenes. \"(paper)\" and ECE: the paper's own metrics",
-              "([MEM]'s `Cumulative_mIoU`; docs/concepts.md), per scene; episodes written before they existed are",
-              "left out of those columns (n=: the episodes a column counts, where fewer than all).", ""]
+              "([MEM]'s `Cumulative_mIoU`; docs/reference/metrics.md), per scene; episodes written before they existed",
+              "are left out of those columns (n=: the episodes a column counts, where fewer than all).", ""]
     lines += ["Suite-cumulative paper metrics (intersections, unions and ECE bins summed over scenes before",
               "dividing, as [MEM]):", "",
               "| method | episodes | " + " | ".join(LABELS[k] for k in PAPER_METRIC_KEYS) + " |",

@@ -12,7 +12,7 @@ its own result file atomically, so a killed run resumes by skipping finished tas
 
 Every worker applies ``configure_threads`` (the OpenMP settings, ``msmem_core.util.threads``) and limits
 torch / numba / OpenMP to ``threads`` threads before it runs a task, so results do not depend on where a
-task ran (docs/performance.md). A task that raises does not stop the others: it comes back as
+task ran (docs/explanation/performance.md). A task that raises does not stop the others: it comes back as
 a :class:`TaskFailure` (or, with ``on_error="raise"``, the first one raises).
 
 Local workers are robust: a worker process that dies (killed by the out-of-memory killer, a segfault

@@ -51,7 +51,8 @@ SKILL_SYMBOLS = ("circle", "diamond", "square", "x", "triangle-up", "cross", "st
 REPORT_FILES = ("report.html", "report_metrics.png", "report_belief.png")
 METRIC_KEYS = ("occupancy_iou", "observable_iou", "semantic_miou", "semantic_miou_bev")
 PAPER_METRIC_KEYS = ("occupancy_miou", "semantic_miou_2d")
-"""The paper's own mIoUs (docs/concepts.md), drawn dashed beside METRIC_KEYS; runs from before them lack them."""
+"""The paper's own mIoUs (docs/reference/metrics.md), drawn dashed beside METRIC_KEYS; runs from before them lack
+them."""
 PAPER_SUMMARY_KEYS = (*PAPER_METRIC_KEYS, "occupancy_ece", "semantic_ece")
 
 

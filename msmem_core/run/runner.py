@@ -291,7 +291,7 @@ class MetricTracker:
 
     Besides the IoUs and Position Change, every step reports the paper's Table II object counts
     (``metrics.object_counts``: ``correctly_found``, ``misclassified``, ``not_found``,
-    ``hallucinated``; docs/concepts.md) over the objects still in the shelf, and
+    ``hallucinated``; docs/reference/metrics.md) over the objects still in the shelf, and
     ``removed``: objects of the scene no longer in the shelf (grasped out, or pushed or fallen out so
     that none of their voxels is left in the shelf interior), which the four counts leave out.
 
@@ -356,7 +356,7 @@ def arm_record(ep: Episode, d: Decision) -> dict[str, Any] | None:
     """The arm's configuration for the step's action (a robot with an arm only): the IK answer for a
     view's camera pose, or the last configuration along a manipulation's tool path, with the points
     ``Robot.link_points`` draws the arm by; or why the robot cannot reach it. ``execution``: what the
-    simulator's arm could not do while executing it (``Simulator.robot_notes``; docs/robots.md)."""
+    simulator's arm could not do while executing it (``Simulator.robot_notes``; docs/explanation/robots.md)."""
     robot = ep.robot
     if robot is None or not robot.arm:
         return None
@@ -432,7 +432,8 @@ def _run_episode(ep: Episode, out_dir: Path | None, progress: Any, tracer: Trace
             "step": step, "skill": d.skill.name, "action": d.action.model_dump(), "objective": d.value,
             "terms": d.terms, "best_per_skill": d.best, "candidates": d.candidates,
             "funnel": d.funnel,  # per skill asked: candidates left after each stage (interfaces.Funnel)
-            # only with an arm (docs/robots.md): candidates checked against the robot, and those it cannot follow
+            # only with an arm (docs/explanation/robots.md): candidates checked against the robot, and those it
+            # cannot follow
             **({"reach_checked": d.reach_checked, "unreachable": d.unreachable} if d.reach_checked else {}),
             **({"arm": arm} if (arm := arm_record(ep, d)) is not None else {}),
             "success": outcome.success, "fell_or_left": outcome.fell_or_left, "info": outcome.info,

@@ -4,7 +4,7 @@ glibc serves allocations above its mmap threshold (128 KiB, raised up to 32 MiB 
 with fresh ``mmap`` pages that the kernel zero-fills on first touch, and trims the heap top above its
 trim threshold. A decision allocates and frees tens of MB of tensors each time (the batched CNABU
 prediction: logits, gathered rows, U-Net maps), so every decision paid those page faults again:
-about a tenth of a batched prediction's time (docs/performance.md). Raising both thresholds keeps
+about a tenth of a batched prediction's time (docs/explanation/performance.md). Raising both thresholds keeps
 the blocks for reuse; the process's resident size stays at its high-water mark instead.
 
 Called by the CLI's ``main`` and by the local executor's workers; a no-op without glibc.

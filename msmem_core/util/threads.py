@@ -6,7 +6,7 @@
   OpenMP is the layer msmem uses.
 - ``OMP_WAIT_POLICY=PASSIVE``: OpenMP worker threads (torch's and numba's) sleep at barriers instead of
   spinning. A spinning thread takes its core from the threads still working whenever the machine has
-  more runnable threads than cores (two episodes in parallel, or other jobs); see docs/performance.md,
+  more runnable threads than cores (two episodes in parallel, or other jobs); see docs/explanation/performance.md,
   "Thread settings".
 
 An OpenMP runtime reads its environment once, when it loads: with ``import torch``, or at numba's first

@@ -261,7 +261,7 @@ class MeshSpec(BaseModel):
 
 
 class ClassSpec(BaseModel):
-    """A class a scene declares beside the built-ins (docs/scenes.md): its name, its geometry (convex
+    """A class a scene declares beside the built-ins (docs/how-to/scenes.md): its name, its geometry (convex
     ``parts`` as the built-ins, or a ``mesh``), its mass, and optionally the class segmentation noise
     confuses it with and its colour in reports."""
 

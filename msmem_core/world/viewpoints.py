@@ -7,7 +7,7 @@ Each grid is a patch of a sphere of radius ``radius_m`` around one target point 
 ``g * grid**2 + i_el * grid + i_az`` (grid g in the order of ``targets_x_m``, elevation row, azimuth
 column), so neighbouring indices are neighbouring cameras.
 
-A poses file (docs/viewpoints.md) lists the views explicitly, as YAML or JSON::
+A poses file (docs/how-to/viewpoints.md) lists the views explicitly, as YAML or JSON::
 
     views:
       - {position_m: [-0.1, -0.5, 0.3], target_m: [0.0, 0.19, 0.14]}   # look-at (z up)
@@ -61,7 +61,7 @@ class ViewpointConfig(BaseModel):
     """Views per grid side (grid x grid views per target)."""
     poses_file: Path | None = None
     """A YAML, JSON or .npy file of camera poses used instead of the grids above (module docstring,
-    docs/viewpoints.md); a relative path in a config file is relative to that file."""
+    docs/how-to/viewpoints.md); a relative path in a config file is relative to that file."""
 
     @field_validator("poses_file")
     @classmethod

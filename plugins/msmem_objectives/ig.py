@@ -33,7 +33,7 @@ class IGTermConfig(BaseModel):
     screen_ray_step: int = Field(2, ge=1, le=16)
     """Screen manipulation candidates with every n-th IG ray in both image axes (1: no screening).
     The ``finalists`` best by the screened value are re-scored at full density, so the values
-    compared with the view branch are at the same density as views (docs/push.md, "Objective terms")."""
+    compared with the view branch are at the same density as views (docs/explanation/push.md, "Objective terms")."""
     finalists: int = Field(8, ge=1)
     """Candidates re-scored at full density after screening."""
 

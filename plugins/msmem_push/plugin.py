@@ -13,7 +13,7 @@ def msmem_skills() -> Iterable[SkillSpec]:
         name="push",
         factory=PushSkill,
         config_model=PushConfig,
-        effect_model="cnabu-push",  # the better held-out NLL (docs/cnabu.md, tests/test_cnabu_shipped.py)
+        effect_model="cnabu-push",  # the better held-out NLL (docs/explanation/cnabu.md, tests/test_cnabu_shipped.py)
         description="Uncertainty-informed push selection (UPS): push occluders of unseen regions, closed gripper",
     )
 

@@ -23,7 +23,7 @@ Proposal (``PushSkill.propose``), all from the belief, never from ground truth:
    ``max_length_m``], shortened to the room the tool has before a wall. Tool tip height:
    ``min(tool_height_m, low_object_fraction * object top)``, at least ``min_tool_height_m``: 2 cm by
    default (not MEM's 8.5 cm: with this downward-pointing gripper the palm, 5-8 cm above the tip,
-   would push tall objects 13.5-16.5 cm up and topple them; docs/push.md has the survey), 60 % of
+   would push tall objects 13.5-16.5 cm up and topple them; docs/explanation/push.md has the survey), 60 % of
    the believed height for low ones (a gelatin box is 2.8 cm tall) so the tool does not pass over.
 5. *Rejection*: a candidate is dropped if the tool swept along the push leaves the shelf interior
    through a side, the back or the top (the front is open; the tool *centre* may start at most
@@ -179,7 +179,7 @@ class PushConfig(BaseModel):
     pointing down; or ``"forward"``: the gripper pointing into the shelf, closing axis along x, the
     hand's back up, pushing straight in (+y, a share ``into_fraction``) or sideways (+-x); directions
     stay along the shelf's axes (``max_angle_deg`` does not apply). An arm reaches into a shelf this way
-    (docs/robots.md); raise ``tool_height_m`` and ``min_tool_height_m`` above half the hand's thickness."""
+    (docs/explanation/robots.md); raise ``tool_height_m`` and ``min_tool_height_m`` above half the hand's thickness."""
     hand_m: HandDims | None = None
     """With ``palm: forward``: the hand behind the fingers, (width along the closing axis, thickness,
     depth) in metres, e.g. the Panda's (0.204, 0.063, 0.066), optionally followed by the width and length
@@ -190,7 +190,7 @@ class PushConfig(BaseModel):
     tool_height_m: float = Field(0.02, gt=0.0, le=1.0)
     """Tool tip height above the shelf floor. MEM pushes ~8.5 cm above the board; here the
     gripper points down and its palm (5-8 cm above the tip) touches tall objects too: at 8.5 cm, 6 of
-    40 surveyed pushes toppled the object, at 2 cm none (docs/push.md)."""
+    40 surveyed pushes toppled the object, at 2 cm none (docs/explanation/push.md)."""
     low_object_fraction: float = Field(0.6, gt=0.0, le=1.0)
     """For objects lower than tool_height_m / this, the tip goes to this fraction of their top."""
     min_tool_height_m: float = Field(0.01, gt=0.0, le=0.2, validate_default=True)
@@ -222,7 +222,7 @@ class PushConfig(BaseModel):
     max_height_ratio: float | None = Field(None, gt=0.0)
     """If set, an object whose believed height exceeds this multiple of its believed footprint's
     narrowest width is not pushed (a thin, tall object turns under an oblique push and tips over its
-    thin side; measured in docs/push.md, "Falls"). None: no check."""
+    thin side; measured in docs/explanation/push.md, "Falls"). None: no check."""
     class_height_ratio: float | None = Field(4.0, gt=0.0)
     """If set, an object that stands thin and tall by the shape of its believed class (``stance_ratio``:
     the class's extent along the axis standing up, the one closest to the object's believed height, over
@@ -242,26 +242,26 @@ class PushConfig(BaseModel):
     push ends this far before the first of them reaches a wall; a candidate left shorter than
     ``min_length_m`` is dropped. Unlike ``clearance_m`` it allows pushing into other objects, only
     not a row of them into a wall. With ``max_height_ratio`` set, a chain must also not reach a thin,
-    tall object. The default since it was measured (docs/push.md, "Falls"): on ``hard25`` scenes 0-9
+    tall object. The default since it was measured (docs/explanation/push.md, "Falls"): on ``hard25`` scenes 0-9
     push-only 0 of 10 episodes with a fall against 5 of 10, as many pushes. None: no check."""
     chain_travel_m: float | None = Field(None, gt=0.0, le=0.3)
     """With ``chain_clearance_m``: an object the chain drives (pushed by another object, not by the tool)
     moves at most this far: the push is shortened to end that far after the object starts moving. The
     tool pushes 2 cm above the board, where a pushed object slides; an object pushed by another is
-    pushed wherever they touch, often high, and a long way of that tips tall objects over (docs/push.md,
+    pushed wherever they touch, often high, and a long way of that tips tall objects over (docs/explanation/push.md,
     "Falls"). None: no limit."""
     trip_height_ratio: float | None = Field(3.0, gt=1.0)
     """With ``chain_clearance_m``: a moving object (the target, or one the chain drives) whose believed
     height is more than this multiple of the believed height of an object it meets stops before that
     object instead of driving it: the push is shortened to end there. A tall object pushed low trips
-    over a much lower one in its way and falls (docs/push.md, "Falls"). The default, with
+    over a much lower one in its way and falls (docs/explanation/push.md, "Falls"). The default, with
     ``max_pushes_per_object: 1``: together they took push-only from a fall in 4 of 20 episodes
     (``hard25`` and ``mesh25`` scenes 0-9) to 0 of 20. None: no check."""
     max_pushes_per_object: int | None = Field(1, ge=1)
     """An object the skill has pushed this many times in the episode is not pushed again. It is recognised
     by its believed class and a believed footprint (with its 8 neighbours) that holds the contact point
     of an earlier push of that class, where it started or where the push left it. A tall object pushed
-    again and again ends up falling (docs/push.md, "Falls"). The default (with
+    again and again ends up falling (docs/explanation/push.md, "Falls"). The default (with
     ``trip_height_ratio: 3``). None: no limit."""
     speed_mps: float = Field(0.1, gt=0.0, le=1.0)
     travel_speed_mps: float = Field(0.25, gt=0.0, le=2.0)

@@ -1,5 +1,5 @@
 """A robot arm of a URDF in pybullet, with a wrist camera on its flange: the base class of ``panda`` and
-``ur5e`` (docs/robots.md, "Write a robot").
+``ur5e`` (docs/how-to/write-a-robot.md).
 
 Inverse kinematics is pybullet's own (``calculateInverseKinematics``, damped least squares with the
 null-space variant that pulls towards a rest pose within the joint limits), run in a DIRECT-mode client
@@ -8,7 +8,7 @@ millisecond per call here) and the same client answers the collision queries (``
 against the shelf's boards as boxes), so nothing else is installed or fetched. Its answers are not
 trusted as they are: each is clipped to the joint limits and accepted only when forward kinematics puts
 the flange within ``position_tolerance_m`` and ``orientation_tolerance_deg`` of the asked pose and no
-link comes within ``collision_margin_m`` of a board. docs/robots.md.
+link comes within ``collision_margin_m`` of a board. docs/explanation/robots.md.
 """
 
 from __future__ import annotations
@@ -147,7 +147,7 @@ class PybulletArm(Robot):
                 raise PluginError(
                     f"robot {self.name}: camera_box_m {tuple(self.config.camera_box_m)} at camera_offset_m "
                     f"{tuple(self.config.camera_offset_m)}, camera_rpy_deg {tuple(self.config.camera_rpy_deg)} "
-                    f"puts the camera into {overlap}: move it out of the hand (docs/robots.md)")
+                    f"puts the camera into {overlap}: move it out of the hand (docs/explanation/robots.md)")
         return client
 
     def _place_camera(self) -> None:

@@ -14,7 +14,8 @@ import typer
 
 from msmem_core.plugins import CommandSpec
 
-app = typer.Typer(help="The robot that carries the camera and the gripper (docs/robots.md).", no_args_is_help=True)
+app = typer.Typer(help="The robot that carries the camera and the gripper (docs/explanation/robots.md).",
+                  no_args_is_help=True)
 
 
 @app.command("reach")

@@ -23,7 +23,7 @@ class ArmConfig(BaseModel):
 
     base_position_m: Vec3 = (0.0, -0.55, -0.3)
     """Base position in the shelf frame (x along the shelf, y into it from its open front at y = 0, z up
-    from its floor): centred, 55 cm in front of the shelf, 30 cm below its floor (docs/robots.md has the
+    from its floor): centred, 55 cm in front of the shelf, 30 cm below its floor (docs/explanation/robots.md has the
     sweep this was chosen from)."""
     base_yaw_deg: float = Field(90.0, ge=-180.0, le=180.0)
     """Rotation of the base about z; 90 faces the shelf (+y)."""
@@ -56,7 +56,7 @@ class ArmConfig(BaseModel):
     ik_rounds: Int = Field(4, ge=1, le=100)
     """IK calls per start configuration, each from the previous answer (clipped to the joint limits)."""
     ik_starts: Int = Field(8, ge=1, le=8)
-    """Start configurations tried in turn (the first ones of a fixed list; docs/robots.md)."""
+    """Start configurations tried in turn (the first ones of a fixed list; docs/explanation/robots.md)."""
     path_joint_step_rad: float = Field(0.5, gt=0.0, le=6.3)
     """Along a tool path (``reach_path``), the largest change of any joint between consecutive path points
     (at most 2 cm apart); a larger one means the arm would have to jump to another configuration."""
@@ -69,11 +69,12 @@ class PandaConfig(ArmConfig):
 
 
 class UR5eConfig(ArmConfig):
-    """A UR5e with a Robotiq 2F-85 (``airo-models``' URDFs, MIT) and a wrist camera (docs/robots.md, "The UR5e")."""
+    """A UR5e with a Robotiq 2F-85 (``airo-models``' URDFs, MIT) and a wrist camera (docs/explanation/robots.md,
+    "The UR5e")."""
 
     base_position_m: Vec3 = (0.0, -0.65, -0.3)
     """Base position in the shelf frame: centred, 65 cm in front of the shelf, 30 cm below its floor (the
-    sweep in docs/robots.md)."""
+    sweep in docs/explanation/robots.md)."""
     camera_offset_m: Vec3 = (0.0, 0.06, 0.03)
     """Wrist camera position in the flange frame (``tool0``: z out of the flange, the 2F-85's fingers close
     along x): 6 cm across the gripper's thickness, on the side that is up when the hand points into the

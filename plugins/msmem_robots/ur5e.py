@@ -3,7 +3,7 @@ for the e-series arm (the UR5's successor, the same reach of 850 mm). Its descri
 ``airo-models`` package on PyPI (MIT licence; the URDFs and meshes of ``ur5e`` and ``robotiq_2f_85``):
 the two are joined at the arm's ``tool0`` into one URDF, written once into ``$MSMEM_CACHE_DIR/robots``
 (the packaged files carry Drake extensions that other URDF readers refuse; they are left out, and mesh
-paths made absolute). IK, collisions and paths are ``msmem_robots.arm.PybulletArm``'s; docs/robots.md,
+paths made absolute). IK, collisions and paths are ``msmem_robots.arm.PybulletArm``'s; docs/explanation/robots.md,
 "The UR5e".
 """
 
@@ -45,7 +45,8 @@ OPENING_SAMPLES = 17
 FINGERTIP_M = 0.15
 """From ``tool0`` along its z to the tips of the open 2F-85's pads (0.149 m; 0.163 m closed)."""
 BUILD_VERSION = 1
-STARTS: tuple[tuple[float, ...], ...] = (  # chosen greedily by examples/robots/ur5e_starts.py (docs/robots.md)
+# chosen greedily by examples/robots/ur5e_starts.py (docs/explanation/robots.md)
+STARTS: tuple[tuple[float, ...], ...] = (
     (-0.775, -1.724, 0.445, -0.498, -2.821, -0.336),
     (0.256, -1.041, 1.55, 0.264, -0.17, -1.591),
     (0.329, -1.96, 0.394, -3.08, -0.18, 1.321),

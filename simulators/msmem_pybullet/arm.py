@@ -1,4 +1,4 @@
-"""A robot's arm in the PyBullet world, driven by joint control (docs/robots.md, "Execution by the arm").
+"""A robot's arm in the PyBullet world, driven by joint control (docs/explanation/robots.md, "Execution by the arm").
 
 ``ArmDrive`` loads the robot's URDF into the simulator's own client at the robot's base pose, with a fixed
 base, and moves it the way a position-controlled arm moves: every physics step of a gripper move, the

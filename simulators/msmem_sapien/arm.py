@@ -1,4 +1,4 @@
-"""A robot's arm in the SAPIEN world, driven by its joint drives (docs/robots.md, "Execution by the arm").
+"""A robot's arm in the SAPIEN world, driven by its joint drives (docs/explanation/robots.md, "Execution by the arm").
 
 ``SapienArm`` is the SAPIEN counterpart of ``msmem_pybullet.arm.ArmDrive``, with the same behaviour:
 the robot's URDF is loaded (SAPIEN's URDF loader) at the robot's base pose with a fixed base, and it moves
