@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.msmem-installed
 TORCH := torch==2.13.0
 
-.PHONY: setup system-deps demo test test-slow lint perf docs clean sapien test-sapien test-ray mutation
+.PHONY: setup system-deps demo test test-slow lint perf docs docs-site clean sapien test-sapien test-ray mutation
 
 setup: system-deps $(STAMP)
 
@@ -84,5 +84,12 @@ docs: setup
 	$(VENV)/bin/msmem docs api > docs/reference/api.md
 	$(VENV)/bin/msmem docs results > docs/results.md
 
+# The manual as a website (mkdocs.yml; the optional `docs` extra, installed here when missing) in site/.
+# --strict fails on a broken link or anchor, and on a page in neither the nav nor `not_in_nav`.
+docs-site: setup
+	@$(VENV)/bin/python -c "import mkdocs, material, mkdocstrings_handlers.python" 2>/dev/null \
+	  || $(PY) -m pip install -q -e ".[docs]"
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir site
+
 clean:
-	rm -rf $(VENV) runs mutants .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) runs mutants site .pytest_cache .mypy_cache .ruff_cache
