@@ -5,15 +5,15 @@ of the expected categorical summed over all voxels (``EvidentialMap.total_semant
 the changed voxels contribute, so each candidate is scored on its change (``Prediction.changes``)
 alone. Weighted by [MEM]'s zeta_o = 0.2 in the presets.
 
-``clip: true`` is MEM's reference rule (docs/push.md), ``min(0, dH)``: a manipulation is penalised for
+``clip: true`` is MEM's reference rule (docs/explanation/msas.md), ``min(0, dH)``: a manipulation is penalised for
 the semantic uncertainty its predicted change adds and never rewarded for entropy the prediction
-removes. The presets keep it until the unclipped form is tuned on tune10 (docs/results.md): with
+removes. The presets keep it until the unclipped form is tuned on tune10 (docs/explanation/msas.md): with
 the learned effect models a push's predicted change *removes* about one nat per changed voxel (the
 swept space predicted free), so unclipped dH is +2,000 to +6,500 for the best pushes, larger than
 their IG, and 40 to 340 for grasps. On the completed beliefs of ``cnabu-map`` with the effect models
 fine-tuned on them it is the other way round: the predictions are less certain than the belief, dH is
 negative for the chosen candidates (-700 for a grasp on ``tune10`` scene 0) and the clip changes
-nothing (docs/results.md, the tune10 sweep).
+nothing (docs/explanation/msas.md; the tune10 sweep is in docs/lab/).
 """
 
 from __future__ import annotations
