@@ -166,13 +166,38 @@ def grasp_actions():
     return out
 
 
+def test_cnabu_grasp_believes_the_grasped_region_free_and_keeps_the_network_elsewhere(tmp_path):
+    net = tiny_net("grasp", change_bias=0.3)
+    w = tmp_path / "grasp.pt"
+    write_weights(net, w)
+    free = CNABUGraspEffect(CNABUEffectConfig(weights=w, change_threshold=0.5, batch=2))  # grasped_region: free
+    raw = CNABUGraspEffect(CNABUEffectConfig(weights=w, change_threshold=0.5, batch=2, grasped_region="network"))
+    belief = random_belief(seed=1)
+    actions = grasp_actions()
+    pred, net_pred = free.predict(belief, actions, WORKSPACE), raw.predict(belief, actions, WORKSPACE)
+    assert pred.excluded is not None
+    emptied = 0
+    for k, (b, r) in enumerate(zip(pred.beliefs, net_pred.beliefs, strict=True)):
+        region = np.asarray(pred.excluded[k])
+        emptied += len(region)
+        assert np.all(b.alpha.reshape(-1)[region] == 1.0)
+        assert np.all(b.beta.reshape(-1)[region] == 21.0)
+        assert np.all(np.argmax(b.eta.reshape(b.num_classes, -1)[:, region], axis=0) == 0)
+        rest = np.ones(GRID.size, dtype=bool)
+        rest[region] = False
+        np.testing.assert_array_equal(b.alpha.reshape(-1)[rest], r.alpha.reshape(-1)[rest])
+        c = b.num_classes
+        np.testing.assert_array_equal(b.eta.reshape(c, -1)[:, rest], r.eta.reshape(c, -1)[:, rest])
+    assert emptied > 0
+
+
 @pytest.mark.parametrize("kind", ["push", "grasp"])
 def test_effect_model_copies_the_prior_exactly_outside_the_changed_mask(tmp_path, kind):
     net = tiny_net(kind, change_bias=0.3)  # roughly half the voxels pass the threshold
     w = tmp_path / f"{kind}.pt"
     write_weights(net, w)
     cls = CNABUPushEffect if kind == "push" else CNABUGraspEffect
-    model = cls(CNABUEffectConfig(weights=w, change_threshold=0.5, batch=2))
+    model = cls(CNABUEffectConfig(weights=w, change_threshold=0.5, batch=2, grasped_region="network"))
     belief = random_belief(seed=1)
     before = belief.copy()
     actions = push_actions() if kind == "push" else grasp_actions()
@@ -199,7 +224,8 @@ def test_effect_model_copies_the_prior_exactly_outside_the_changed_mask(tmp_path
         assert pred.excluded is not None
         assert len(pred.excluded) == len(actions)
     # a high threshold: nothing changes, the prediction is the prior itself
-    none = cls(CNABUEffectConfig(weights=w, change_threshold=0.999)).predict(belief, actions, WORKSPACE)
+    none = cls(CNABUEffectConfig(weights=w, change_threshold=0.999, grasped_region="network")).predict(
+        belief, actions, WORKSPACE)
     assert not none.changed.any()
     assert all(len(d.idx) == 0 for d in none.changes)
 

@@ -548,7 +548,9 @@ def test_the_effect_removes_the_target_and_pushes_out_what_is_in_its_way() -> No
     assert np.all(np.argmax(after.eta, axis=0)[target] == 0)
     # as MEM (target: prior): its voxels return to the prior
     mem = AnalyticGraspEffect(GraspEffectConfig(target="prior")).predict(belief, [a], WORKSPACE).beliefs[0]
-    assert np.all(mem.alpha[target] == 1.0) and np.all(mem.beta[target] == 1.0) and np.all(mem.eta[:, target] == 1.0)
+    assert np.all(mem.alpha[target] == 1.0)
+    assert np.all(mem.beta[target] == 1.0)
+    assert np.all(mem.eta[:, target] == 1.0)
     assert pred.excluded is not None
     excluded = np.isin(np.arange(GRID.size), pred.excluded[0]).reshape(GRID.shape)
     assert np.array_equal(excluded, target)
@@ -602,8 +604,10 @@ def test_batched_predictions_equal_one_at_a_time_and_other_actions_are_refused()
 
 
 def test_grasp_candidates_are_scored_by_the_ig_and_entropy_terms() -> None:
-    from msmem_objectives.entropy import SemanticEntropyTerm
+    from msmem_objectives.entropy import SemanticEntropyConfig, SemanticEntropyTerm
     from msmem_objectives.ig import IGTerm, IGTermConfig
+
+    from msmem_core.map.belief import categorical_entropy
 
     belief = box_belief([TARGET, IN_THE_WAY, BYSTANDER])
     c = GRID.centers()
@@ -621,9 +625,25 @@ def test_grasp_candidates_are_scored_by_the_ig_and_entropy_terms() -> None:
     np.testing.assert_allclose(exact, full, rtol=1e-9)
     best_view = ig.view_ig(before).max()
     assert exact[0] > best_view  # the target's removal opens the unknown space behind it
-    np.testing.assert_allclose(exact[1], best_view, rtol=1e-9)  # the bystander's opens nothing new
-    dh = SemanticEntropyTerm().score(ctx(belief), batch)
-    assert np.all(dh < 0.0)  # the grasped object's voxels return to the prior: semantic entropy rises
+    # the bystander's opens nothing new (what its own voxels still had to show leaves with it)
+    assert exact[1] <= best_view * (1 + 1e-9)
+    # removal: exempt (the default): the intended removal's voxels do not count in dH; counted: they do.
+    # On a belief whose objects' classes are surer than two views of free space, removal raises entropy
+    sure = belief.copy()
+    sure.eta[1:] = 1.0 + 4.0 * (sure.eta[1:] - 1.0)
+    pred = AnalyticGraspEffect().predict(sure, actions, WORKSPACE)
+    batch = CandidateBatch("grasp", "manipulation", list(actions), prediction=pred)
+    exempt = SemanticEntropyTerm(SemanticEntropyConfig(clip=False)).score(ctx(sure), batch)
+    counted = SemanticEntropyTerm(SemanticEntropyConfig(clip=False, removal="counted")).score(ctx(sure), batch)
+    eta0 = sure.eta.reshape(sure.num_classes, -1)
+    for k, ch in enumerate(pred.changes):
+        dh = categorical_entropy(eta0[:, ch.idx]) - categorical_entropy(ch.eta)
+        gone = pred.excluded_among(k)
+        assert gone is not None
+        assert gone.any()
+        assert dh[gone].sum() < -1.0  # the removal alone raises the entropy
+        np.testing.assert_allclose(counted[k], dh.sum(), rtol=1e-9)
+        np.testing.assert_allclose(exempt[k], dh[~gone].sum(), rtol=1e-9, atol=1e-9)
 
 
 # ------------------------------------------------------------------------------ physics (PyBullet)

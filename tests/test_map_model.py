@@ -711,10 +711,9 @@ def test_the_restriction_removes_a_class_no_ray_showed_from_the_map(shard):
 def test_cnabu_map_keeps_the_ray_record_and_ups_finds_hidden_space_on_its_completed_belief(shard):
     import dataclasses
 
+    from msmem_cnabu.configs import CNABUMapConfig
     from msmem_cnabu.mapmodel import CNABUMapObservationModel
     from msmem_push.skill import PushSkill
-
-    from msmem_cnabu.configs import CNABUMapConfig
 
     seq = sequence(shard)
     # unlabelled objects as ties of the network's evidence: every voxel no ray reached is confident
