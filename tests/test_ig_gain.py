@@ -1,0 +1,103 @@
+"""IG's default voxel value: the expected drop of the entropy of the voxel's expected state (free, or
+occupied by one object class) when one more observation adds the analytic update's evidence
+(``IGConfig.gain: expected-reduction``, ``information: occupancy-and-class``)."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from test_ig import CAM, GRID, SHELF, random_belief, small_views
+
+from msmem_core.map.belief import EvidentialMap, bernoulli_entropy, categorical_entropy
+from msmem_core.map.ig import IGConfig, IGService, class_reduction, occupancy_reduction, shelf_wall_mask
+
+
+def _occupancy_by_enumeration(a: float, b: float, w: float) -> float:
+    """H(E[p]) minus the entropy after a hit (probability E[p]: alpha + w) or a miss (beta + w)."""
+    p = a / (a + b)
+    hit, miss = (a + w) / (a + b + w), a / (a + b + w)
+    return float(bernoulli_entropy(np.array(p)) - p * bernoulli_entropy(np.array(hit))
+                 - (1 - p) * bernoulli_entropy(np.array(miss)))
+
+
+def _class_by_enumeration(eta: np.ndarray, w: float) -> float:
+    q = eta / eta.sum()
+    after = 0.0
+    for c in range(len(eta)):
+        e = eta.copy()
+        e[c] += w
+        after += q[c] * float(categorical_entropy(e[:, None])[0])
+    return float(categorical_entropy(eta[:, None])[0]) - after
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(1.0, 500.0), st.floats(1.0, 500.0), st.floats(0.1, 50.0))
+def test_occupancy_reduction_is_the_expected_entropy_drop_and_never_negative(a: float, b: float, w: float) -> None:
+    got = float(occupancy_reduction(np.array([a]), np.array([b]), w)[0])
+    np.testing.assert_allclose(got, max(0.0, _occupancy_by_enumeration(a, b, w)), atol=1e-12)
+    assert 0.0 <= got <= np.log(2) + 1e-12
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(1.0, 200.0), min_size=2, max_size=15), st.floats(0.1, 50.0))
+def test_class_reduction_is_the_expected_entropy_drop_and_never_negative(eta: list[float], w: float) -> None:
+    e = np.array(eta)
+    got = float(class_reduction(e[:, None], w)[0])
+    np.testing.assert_allclose(got, max(0.0, _class_by_enumeration(e, w)), atol=1e-10)
+    assert 0.0 <= got <= np.log(len(eta)) + 1e-12
+
+
+def test_what_one_more_view_can_still_resolve() -> None:
+    w = 10.0
+    prior, seen_free_once, split, split_often = occupancy_reduction(
+        np.array([1.0, 1.0, 11.0, 51.0]), np.array([1.0, 11.0, 11.0, 51.0]), w)
+    assert prior > 0.4  # never observed: one view resolves most of it
+    assert seen_free_once < 0.25 * prior  # seen free once: little left to learn
+    assert split < 0.15 * prior
+    assert split_often < 0.1 * split
+    vague, sure = class_reduction(np.stack([np.ones(14), np.r_[101.0, np.ones(13)]], axis=1), w)
+    assert vague > 0.5
+    assert sure < 0.02
+
+
+def test_the_default_field_counts_the_class_an_unlabelled_object_would_show() -> None:
+    """Two beliefs alike in occupancy: an object seen with its class and one at the prior (an unlabelled
+    object, ``unknown_evidence: prior``). The default field credits only the second, MEM's alike."""
+    svc = IGService(GRID, CAM, small_views(), SHELF, IGConfig())
+    mem = IGService(GRID, CAM, small_views(), SHELF, IGConfig(gain="entropy", information="occupancy"))
+    known = EvidentialMap.empty(GRID, 15)
+    c = GRID.centers()
+    box = (np.abs(c[..., 0]) < 0.05) & (np.abs(c[..., 1] - 0.15) < 0.05) & (c[..., 2] < 0.1)
+    known.alpha[box], known.beta[box] = 30.0, 1.0
+    known.alpha[~box], known.beta[~box] = 1.0, 30.0
+    known.eta[3, box] = 60.0
+    unknown = known.copy()
+    unknown.eta[:, box] = 1.0
+    f_known, f_unknown = svc.prepare(known), svc.prepare(unknown)
+    inner = box.ravel() & ~shelf_wall_mask(GRID, SHELF).ravel()
+    assert inner.sum() > 100
+    assert f_unknown.H[inner].min() > 0.5
+    assert f_known.H[inner].max() < 0.05
+    np.testing.assert_array_equal(mem.prepare(known).H, mem.prepare(unknown).H)
+    assert svc.view_ig(f_unknown).max() > 5 * svc.view_ig(f_known).max()
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_the_default_field_of_a_sparse_change_equals_a_full_rescore(seed: int) -> None:
+    from msmem_core.map.belief import BeliefDelta
+
+    svc = IGService(GRID, CAM, small_views(), SHELF, IGConfig())
+    b = random_belief(seed)
+    rng = np.random.default_rng(seed)
+    idx = np.unique(rng.integers(0, GRID.size, 400))
+    f32 = np.float32
+    d = BeliefDelta(idx, rng.uniform(1, 30, len(idx)).astype(f32), rng.uniform(1, 30, len(idx)).astype(f32),
+                    rng.uniform(1, 30, (b.num_classes, len(idx))).astype(f32))
+    base = svc.prepare(b)
+    sparse = svc.belief_delta(base, d).apply(base)
+    full = svc.prepare(d.apply(b), before=base)
+    np.testing.assert_allclose(sparse.H, full.H, rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(sparse.p, full.p)
+    assert (full.H >= 0).all()
