@@ -747,7 +747,7 @@ def test_a_grasp_only_episode_executes_a_grasp(tmp_path) -> None:  # type: ignor
     from msmem_core.run.runner import build_episode, run_episode
 
     # the analytic models, and MEM's IG for predictions (the entropy a grasp's prediction adds counts): a
-    # grasp wins within 8 steps here; under the defaults this scene's grasps lose to views (docs/grasp.md)
+    # grasp wins within 8 steps here; under the defaults this scene's grasps lose to views (docs/explanation/grasp.md)
     cfg = load_config("grasp-only", overrides={
         "steps": 8, "scene": {"seed": 1}, "ig": {"predicted_entropy": "as-predicted"},
         "observation_model": {"name": "analytic-observation"},

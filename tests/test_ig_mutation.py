@@ -1,7 +1,7 @@
 """IG's helpers checked against brute force on their edges: the shelf masks at voxel centres that lie
 exactly on the interior's faces, the deduplication of candidate changes, a change applied to a field,
 and the service's coarse rays (tests that catch the planted bugs mutmut makes in
-``msmem_core/map/ig.py``; docs/reliability.md)."""
+``msmem_core/map/ig.py``; docs/explanation/reliability.md)."""
 
 from __future__ import annotations
 

@@ -49,7 +49,7 @@ class IGConfig(BaseModel):
     confident completion counts as known). ``prior``: the prior's ln 2, whatever the belief predicts
     there (the predicted occupancy still decides how far rays get); with the learned push model, whose
     predictions rewrite thousands of never-reached voxels, pushes then win on space the prediction made
-    transparent and cost the map (docs/map-prediction.md). A belief without a ray record (the analytic
+    transparent and cost the map (docs/explanation/map-prediction.md). A belief without a ray record (the analytic
     update) holds the prior in never-reached voxels anyway."""
     information: Literal["occupancy", "occupancy-and-class"] = "occupancy-and-class"
     """What a voxel's state is. ``occupancy``: free or occupied (MEM, the paper). ``occupancy-and-class``:

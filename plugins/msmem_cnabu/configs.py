@@ -44,10 +44,10 @@ class CNABUEffectConfig(BaseModel):
     """Of those voxels, keep only the ones whose expected occupancy or an expected class probability
     moves by more than this (0: every voxel whose evidence differs). With a low ``change_threshold``
     the prediction is nearly dense but stays sparse: only moves of at most epsilon are dropped
-    (docs/cnabu.md, "The change threshold")."""
+    (docs/explanation/cnabu.md, "The change threshold")."""
     batch: int = Field(80, ge=1, le=1000)
     """Candidates per forward pass (80: all of a push skill's samples in one; larger batches are
-    faster per candidate and need more working memory: docs/cnabu.md)."""
+    faster per candidate and need more working memory: docs/explanation/cnabu.md)."""
     threads: int | None = Field(None, ge=1)
     """torch threads while predicting (None: leave the process's setting)."""
     grasped_region: Literal["free", "network"] = "free"
@@ -62,7 +62,7 @@ class CNABUEffectConfig(BaseModel):
     scene's order, to a distinct class the weights know, as ``cnabu-map``'s ``class_map`` (a run
     config's top-level ``class_map`` gives one map to every learned model). The network sees and
     predicts the mapped classes; the evidence of trained classes no scene class maps to is dropped.
-    None: the scene's classes must be the trained ones (docs/cnabu.md)."""
+    None: the scene's classes must be the trained ones (docs/explanation/cnabu.md)."""
 
 
 class CNABUMapConfig(BaseModel):
@@ -104,7 +104,7 @@ class CNABUMapConfig(BaseModel):
     default), so that a hidden object's guessed class does not enter the maps. With
     ``unknown`` the network's own map stays its next input, through a manipulation too where the effect
     model's prediction left the returned belief unchanged (as with ``restrict_state: false``;
-    docs/map-prediction.md)."""
+    docs/explanation/map-prediction.md)."""
     unknown_evidence: Literal["prior", "tie"] = "prior"
     """``unlabelled_objects: unknown``: the evidence of such an object's voxels. ``prior``: the prior
     (occupancy 1/2, no class evidence): nothing is known of it, so IG with ``gain: expected-reduction``
@@ -115,7 +115,7 @@ class CNABUMapConfig(BaseModel):
     """For scenes whose classes the weights were not trained on: each object class of the scene, in the
     scene's order, to a distinct class the weights know (e.g. ``{cereal: cracker_box, ...}``). The
     network then sees and predicts the mapped classes; the evidence of trained classes no scene class
-    maps to is dropped. None: the scene's classes must be the trained ones (docs/map-prediction.md)."""
+    maps to is dropped. None: the scene's classes must be the trained ones (docs/explanation/map-prediction.md)."""
     observed_voxels: Literal["rays", "network"] = "rays"
     """What the returned belief says of a voxel a ray of the episode has reached. ``rays``: the ray
     evidence is authoritative there (the analytic update's record of the episode, kept beside the
@@ -123,7 +123,7 @@ class CNABUMapConfig(BaseModel):
     and its occupancy evidence wherever that is confident (``ray_confidence``); the network predicts
     only what no ray reached, and a voxel an effect model's prediction rewrote (a push or grasp moved
     what was there) is the network's again until a ray reaches it. ``network``: the network's
-    prediction everywhere (docs/map-prediction.md)."""
+    prediction everywhere (docs/explanation/map-prediction.md)."""
     ray_confidence: float = Field(0.5, ge=0.5, lt=1.0)
     """With ``observed_voxels: rays``: the ray record's occupancy is used where its expected occupancy is
     above this or below 1 minus this (0.5: wherever the rays lean either way; 0.9 would leave voxels

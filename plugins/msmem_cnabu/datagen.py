@@ -80,7 +80,7 @@ class CNABUDataConfig(BaseModel):
     voxel_m: float = Field(0.01, gt=0.001, le=0.05)
     margin_voxels: int = Field(1, ge=1, le=10)
     require_hard: bool = False
-    """Hard scenes instead of random 30-45 % occupancy shelves (slower to generate: docs/cnabu.md)."""
+    """Hard scenes instead of random 30-45 % occupancy shelves (slower to generate: docs/explanation/cnabu.md)."""
     generator: SceneGenConfig | None = None
     """The scene generator's settings (``msmem scene generate --generator``: e.g. scenes of mesh classes
     only); None: the built-in classes. ``require_hard`` above replaces the file's. The shard records

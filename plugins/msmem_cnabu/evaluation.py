@@ -464,7 +464,7 @@ def threshold_agreement(
     simulator: str | ComponentRef = "pybullet",
     epsilon: float = 0.0,
 ) -> dict[str, Any]:
-    """How often ``change_threshold`` changes the chosen action (docs/cnabu.md, "The change threshold").
+    """How often ``change_threshold`` changes the chosen action (docs/explanation/cnabu.md, "The change threshold").
 
     On ``beliefs`` mid-episode beliefs (``msmem perf step``'s: generated scene ``scene_seed``, the
     start view plus ``views - 1`` seeded random views, seeds 0, 1, ...), method ``ours`` with the

@@ -54,7 +54,7 @@ class CNABULossConfig(BaseModel):
     anneal_epochs: float = Field(5.0, gt=0.0)
     """KL weight kl_max * min(1, epoch / anneal_epochs)."""
     kl_max: float = Field(0.1, ge=0.0)
-    """Final KL weight. On a tiny overfit run (one push scene, 150 steps, docs/cnabu.md) 1.0 made the
+    """Final KL weight. On a tiny overfit run (one push scene, 150 steps, docs/explanation/cnabu.md) 1.0 made the
     semantic NLL of the affected region worse than "no change" (2.51 vs 2.43: the KL pulls the
     15-class evidence towards uniform), 0.1 better (1.79); the occupancy NLL was about the same."""
 
@@ -84,7 +84,7 @@ def evidential_dirichlet_loss(eta: Tensor, y: Tensor, kl_weight: float) -> tuple
 
 
 def blend(old: Tensor, pred: Tensor, p: Tensor) -> Tensor:
-    """old * (1 - p) + pred * p (docs/cnabu.md, "The networks"): stays >= 1 when both are."""
+    """old * (1 - p) + pred * p (docs/explanation/cnabu.md, "The networks"): stays >= 1 when both are."""
     return old * (1.0 - p) + pred * p
 
 

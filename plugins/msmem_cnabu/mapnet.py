@@ -1,5 +1,5 @@
 """The whole-map observation network (``cnabu-map``): previous belief + one view -> the next belief over
-every voxel (docs/map-prediction.md).
+every voxel (docs/explanation/map-prediction.md).
 
 One step, for a belief ``B`` (alpha, beta, eta) and a view's ray masks (free, occ [X, Y, Z], seen
 [C, X, Y, Z], ``AnalyticObservationModel.masks``):

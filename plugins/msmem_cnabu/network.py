@@ -1,4 +1,4 @@
-"""The CNABU network: a 2.5-D U-Net with the height bins as channels (docs/cnabu.md, "The networks").
+"""The CNABU network: a 2.5-D U-Net with the height bins as channels (docs/explanation/cnabu.md, "The networks").
 
 Input, per voxel: the belief features (``features.belief_features``: expected occupancy, occupancy
 uncertainty 2/S, semantic vacuity, expected class probabilities) and the action's voxel channels

@@ -18,14 +18,14 @@ front), from the belief alone:
   voxels this corridor (the object swept along the lift and the retreat, plus the closed gripper's
   boxes swept the same way) meets is pushed ahead of it and, since the retreat ends beyond the
   opening, out of the shelf: in PyBullet an object in the way is pushed off the shelf's front edge
-  (docs/grasp.md). A pushed object's own way out can meet further objects (a chain, ``max_chain``
+  (docs/explanation/grasp.md). A pushed object's own way out can meet further objects (a chain, ``max_chain``
   deep). A pushed object is its component's voxels within ``max_object_radius_m`` of where it is
   first met.
 - *Evidence*: the voxels a pushed object left are believed free (``free_evidence`` of free and
   background-class evidence, the weight of two views, so they are confident): each confident voxel
   of a neighbour's class becomes confident background, which is what a CDC term counts (a reset to
   the prior would hide the damage from it: CDC counts only voxels confident afterwards). Nothing
-  else in the corridor changes. Objects merely touching the grasped one stay (docs/grasp.md);
+  else in the corridor changes. Objects merely touching the grasped one stay (docs/explanation/grasp.md);
   ``touch_shift_m`` > 0 shifts them along the retreat instead.
 - Not modelled: toppling, rotation, the grasp failing (the prediction is the successful grasp), and
   the unseen parts of other objects (only believed-occupied voxels move).

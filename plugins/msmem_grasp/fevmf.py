@@ -22,7 +22,7 @@ from msmem_grasp.backbone import PointTransformer
 
 
 class FEVMFConfig(BaseModel):
-    """Architecture of FE-vMF (defaults: a small PTv3 backbone, ~0.25 M parameters; docs/grasp.md)."""
+    """Architecture of FE-vMF (defaults: a small PTv3 backbone, ~0.25 M parameters; docs/explanation/grasp.md)."""
 
     model_config = ConfigDict(extra="forbid")
 

@@ -13,7 +13,7 @@ def msmem_skills() -> Iterable[SkillSpec]:
         name="grasp",
         factory=GraspSkill,
         config_model=GraspConfig,
-        effect_model="cnabu-grasp",  # the better held-out NLL (docs/cnabu.md, tests/test_cnabu_shipped.py)
+        effect_model="cnabu-grasp",  # the better held-out NLL (docs/explanation/cnabu.md, tests/test_cnabu_shipped.py)
         description="Uncertainty-informed grasp selection (UGS): FE-vMF grasps fused over steps (FE-UMGF), "
                     "collision-free from the open front, lift and retreat out of the shelf",
     )

@@ -206,7 +206,7 @@ class GraspConfig(BaseModel):
     after_manipulation: Literal["clear", "confirm"] = "clear"
     """What a manipulation does to the FE-UMGF buffer. clear: it is emptied (grasps fused on the
     geometry before it are no evidence about the scene now). confirm: the first update after it keeps
-    only the grasps its view's predictions match (the paper's fusion; docs/grasp.md)."""
+    only the grasps its view's predictions match (the paper's fusion; docs/explanation/grasp.md)."""
     geometric: GeometricConfig = GeometricConfig()
     min_affordance: float = Field(0.5, ge=0.0, le=1.0)
     """Grasps with a lower fused E[q] are not executed."""
@@ -235,13 +235,13 @@ class GraspConfig(BaseModel):
     exit_margin_m: float = Field(0.02, ge=0.0, le=0.1)
     """The grasped object's own component (``planning.Objects``), at any height in the columns within this
     of the footprint of the part the fingers hold (its region), is carried out with it: it must fit under
-    the shelf top and does not stop it on its way out (``GraspSkill._carried``; docs/grasp.md, "Where grasp
+    the shelf top and does not stop it on its way out (``GraspSkill._carried``; docs/explanation/grasp.md, "Where grasp
     candidates go")."""
     blocked_exit: Literal["lift_m", "skip"] = "skip"
     """When no lift up to ``max_lift_m`` carries the grasped object out of the front without meeting a
     believed-occupied voxel of another object: ``skip`` (the default, chosen on ``tune10``) does not
     propose the grasp; ``lift_m`` proposes it anyway, at the minimum lift (what it drags along is the
-    effect model's prediction). docs/grasp.md, "Grasps that drag a
+    effect model's prediction). docs/explanation/grasp.md, "Grasps that drag a
     neighbour out"."""
     retreat_y_m: float = Field(-0.30, lt=0.0, ge=-2.0)
     """The gripper retreats to this y: the largest object (16 cm) is then past the opening."""
@@ -275,7 +275,7 @@ class GraspConfig(BaseModel):
     max_approach_deg: float = Field(180.0, gt=0.0, le=180.0)
     """Largest angle between a grasp's approach and straight into the shelf (+y); 180: any approach the
     open front allows (step 3). An arm whose hand cannot come from above in the shelf needs a small
-    one (docs/robots.md)."""
+    one (docs/explanation/robots.md)."""
     roll: Literal["as-predicted", "back-up", "both"] = "as-predicted"
     """``back-up``: a grasp whose gripper y axis (approach x closing axis) points down is turned 180 deg
     about its approach (the same grasp: the fingers swap), so the hand's back, where an arm's wrist

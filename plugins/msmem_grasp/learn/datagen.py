@@ -46,7 +46,7 @@ class GraspDataConfig(BaseModel):
     """Each scene is observed from a uniform number of random viewpoints in [min_views, max_views]."""
     voxel_m: float = Field(0.01, gt=0.001, le=0.05)
     require_hard: bool = False
-    """Hard scenes (> 3 objects hidden from all views; slower to generate: docs/grasp.md) instead of
+    """Hard scenes (> 3 objects hidden from all views; slower to generate: docs/explanation/grasp.md) instead of
     the paper's training scenes, plain random arrangements with 30-45 % floor occupancy."""
     label_radius_m: float | None = Field(None, gt=0.0)
     """A point is positive within this distance of a GT contact (None: max(2 mm, half a voxel))."""
