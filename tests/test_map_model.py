@@ -901,7 +901,8 @@ def test_unlabelled_objects_unknown_abstains_in_the_output_and_keeps_the_network
     assert changed.any(), "the guessing network predicts objects no ray labelled"
     assert np.all(p_drop[changed] == 0.5)
     # the default unknown_evidence: the prior there (nothing known of it); tie: the network's evidence split
-    assert np.all(b_drop.alpha[changed] == 1.0) and np.all(b_drop.beta[changed] == 1.0)
+    assert np.all(b_drop.alpha[changed] == 1.0)
+    assert np.all(b_drop.beta[changed] == 1.0)
     assert np.all(b_drop.eta[:, changed] == 1.0)
     np.testing.assert_array_equal(b_tie.expected_occupancy(), p_drop)
     assert np.allclose((b_tie.alpha + b_tie.beta), (b_plain.alpha + b_plain.beta), rtol=1e-5)

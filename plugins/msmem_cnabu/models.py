@@ -255,7 +255,8 @@ class _CNABUEffect(EffectModel):
         if self.kind == "grasp" and cfg.grasped_region == "free" and regions is not None:
             from msmem_grasp.effect import emptied
 
-            deltas = [emptied(belief, d, r, cfg.free_evidence).against(belief) for d, r in zip(deltas, regions, strict=True)]
+            deltas = [emptied(belief, d, r, cfg.free_evidence).against(belief)
+                      for d, r in zip(deltas, regions, strict=True)]
         return Prediction(belief, deltas, excluded=regions)
 
     def _check_actions(self, actions: Sequence[Action]) -> None:
