@@ -18,10 +18,12 @@ import argparse
 
 import numpy as np
 import torch
-from msmem_cnabu.datagen import list_shards, load_shard
+from msmem_cnabu.learn.datagen import list_shards, load_shard
+from msmem_cnabu.learn.maptrain import empty_evidence
+from msmem_cnabu.learn.rollouts import sequence
 from msmem_cnabu.mapmodel import SHIPPED
 from msmem_cnabu.mapnet import analytic_update, bounded_evidence
-from msmem_cnabu.maptrain import empty_evidence, load_map_net, sequence
+from msmem_cnabu.weights import load_map_net
 from scipy import ndimage
 
 from msmem_core.run.metrics import class_iou_counts, miou_from_counts, top_view_classes

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from msmem_cnabu.classmap import mapped_classes, onto_slots
 from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
+from msmem_cnabu.learn.training import write_weights
 from msmem_cnabu.models import CNABUGraspEffect, CNABUObservationModel, CNABUPushEffect
-from msmem_cnabu.training import write_weights
 
 from msmem_core.config import load_config
 from msmem_core.errors import PluginError, UserError

@@ -15,12 +15,12 @@ import torch
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
-from msmem_cnabu.datagen import CNABUDataConfig, ShardError, generate_dataset, load_shard, shard_path
 from msmem_cnabu.features import belief_features, grid_interior, prior_evidence, wall_mask
-from msmem_cnabu.losses import CNABULossConfig, cnabu_loss, dirichlet_kl_uniform
+from msmem_cnabu.learn.datagen import CNABUDataConfig, ShardError, generate_dataset, load_shard, shard_path
+from msmem_cnabu.learn.losses import CNABULossConfig, cnabu_loss, dirichlet_kl_uniform
+from msmem_cnabu.learn.training import TrainConfig, sha256_file, train, write_weights
 from msmem_cnabu.models import CNABUGraspEffect, CNABUObservationModel, CNABUPushEffect
 from msmem_cnabu.network import CNABUNet, CNABUNetConfig, flat_nonzero, parameter_bytes
-from msmem_cnabu.training import TrainConfig, sha256_file, train, write_weights
 from msmem_cnabu.weights import WeightsError, load_cnabu
 from pydantic import ValidationError
 from typer.testing import CliRunner
@@ -481,7 +481,7 @@ def test_fine_tuning_starts_from_the_init_weights(push_data, tmp_path):
 
 
 def test_train_and_eval_observe(observe_data, tmp_path):
-    from msmem_cnabu.evaluation import evaluate
+    from msmem_cnabu.learn.evaluation import evaluate
 
     out = tmp_path / "cnabu_observe.pt"
     side = train("observe", observe_data, out, TrainConfig(epochs=1, val_fraction=0.5, threads=1, width=8),
@@ -573,7 +573,7 @@ def test_dirichlet_kl_uniform_against_scipy_at_large_evidence_in_float32():
     """KL(Dir(eta) || Dir(1)) = -H(Dir(eta)) - log Gamma(C) (the uniform Dirichlet's density is Gamma(C))."""
     import math
 
-    from msmem_cnabu.losses import dirichlet_kl_uniform
+    from msmem_cnabu.learn.losses import dirichlet_kl_uniform
     from scipy import stats
 
     for eta in ([2.0, 3.0, 4.0], [1e4, 2e4, 5.0], [7e4, 1.0, 1.0, 3e3]):
@@ -605,7 +605,7 @@ def test_dirichlet_expected_ce_against_monte_carlo_and_the_misleading_evidence_k
     """psi(S) - psi(eta_y) is E[-log q_y] under Dir(eta) (scipy samples); the misleading-evidence KL
     is the KL of eta with the true class's evidence set to 1, on a [B, C, X] batch."""
     import scipy.stats
-    from msmem_cnabu.losses import blend, dirichlet_expected_ce, evidential_dirichlet_loss
+    from msmem_cnabu.learn.losses import blend, dirichlet_expected_ce, evidential_dirichlet_loss
 
     rng = np.random.default_rng(0)
     eta = np.array([[2.0, 5.0, 1.5], [1.0, 1.0, 9.0]])  # [B=2, C=3]

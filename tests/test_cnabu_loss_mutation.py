@@ -1,6 +1,7 @@
-"""Tests of ``msmem_cnabu.losses`` that the mutation run (docs/explanation/reliability.md, "Mutation testing of the
-math") showed missing: the dtype of the KL terms, the normalisation by the total weight when it is
-below 2, and float64 weights that float32 cannot represent. References are scipy, voxel by voxel."""
+"""Tests of ``msmem_cnabu.learn.losses`` that the mutation run (docs/explanation/reliability.md, "Mutation
+testing of the math") showed missing: the dtype of the KL terms, the normalisation by the total weight
+when it is below 2, and float64 weights that float32 cannot represent. References are scipy, voxel by
+voxel."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pytest
 import scipy.special as sp
 import scipy.stats
 import torch
-from msmem_cnabu.losses import CNABULossConfig, cnabu_loss, dirichlet_kl_uniform, evidential_dirichlet_loss
+from msmem_cnabu.learn.losses import CNABULossConfig, cnabu_loss, dirichlet_kl_uniform, evidential_dirichlet_loss
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from msmem_cnabu.evaluation import evaluate
+from msmem_cnabu.learn.evaluation import evaluate
 from msmem_cnabu.weights import load_cnabu, shipped_weights
 
 from msmem_core.config import RunConfig
@@ -84,7 +84,7 @@ def test_default_model_per_role_is_the_one_with_better_heldout_nll(kind):
 
 @pytest.mark.slow
 def test_threshold_check_decides_twice_per_belief_and_a_lower_threshold_changes_more():
-    from msmem_cnabu.evaluation import threshold_agreement
+    from msmem_cnabu.learn.evaluation import threshold_agreement
 
     r = threshold_agreement("push", None, (0.85, 0.05), beliefs=1, views=4, threads=1, log=lambda _: None)
     assert r["decisions"] == 1

@@ -178,7 +178,7 @@ def test_datagen_cnabu_simulates_in_the_named_backend(recording, tmp_path):
     assert json.loads((out / "dataset.json").read_text())["config"]["simulator"] == {"name": "recording", "params": {}}
     # the up-front check, then the scene's simulator: seeded by the scene, the data config's label noise
     assert [(c["seed"], c["label_noise"]) for c in built(recording)] == [(0, 0.05), (4, 0.05)]
-    from msmem_cnabu.datagen import load_shard
+    from msmem_cnabu.learn.datagen import load_shard
 
     shard = load_shard(out / "scene_000004.npz")
     assert shard.info["config"]["simulator"]["name"] == "recording"

@@ -1,5 +1,5 @@
 """Map-prediction data of other classes than the built-ins: ``msmem datagen cnabu --generator`` and
-training through a class map (``maptrain.sequence``, ``--class-map``).
+training through a class map (``rollouts.sequence``, ``--class-map``).
 
 One real shard of a ``mesh25``-style scene (the suite's generator file, a non-hard scene so that it is
 quick: about 5 s)."""
@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset, load_shard
-from msmem_cnabu.maptrain import MapTrainConfig, _sequence, sequence, train_map
+from msmem_cnabu.learn.datagen import CNABUDataConfig, generate_dataset, load_shard
+from msmem_cnabu.learn.maptrain import MapTrainConfig, train_map
+from msmem_cnabu.learn.rollouts import _sequence, sequence
 
 from msmem_core.config import load_generator_config
 from msmem_core.errors import UserError
@@ -101,8 +102,8 @@ mesh-tuned weights were trained on seeds 600000 and up, below 690000; their mode
 @pytest.fixture(scope="module")
 def mesh_heldout():
     import torch
-    from msmem_cnabu.mapeval import evaluate_rollouts
-    from msmem_cnabu.maptrain import load_map_net
+    from msmem_cnabu.learn.mapeval import evaluate_rollouts
+    from msmem_cnabu.weights import load_map_net
 
     torch.set_num_threads(1)
     tuned, _ = load_map_net(MESH_WEIGHTS)
@@ -114,7 +115,7 @@ def mesh_heldout():
 
 
 def test_the_mesh_tuned_weights_load_as_plain_tensors_stay_small_and_record_their_class_map():
-    from msmem_cnabu.maptrain import load_map_net
+    from msmem_cnabu.weights import load_map_net
 
     net, meta = load_map_net(MESH_WEIGHTS)
     assert not net.training
@@ -133,7 +134,7 @@ def test_the_mesh_tuned_weights_beat_the_analytic_update_and_the_untuned_weights
 
 
 def test_the_class_map_also_moves_a_manipulations_target_class(mesh_shard):
-    from msmem_cnabu.maptrain import remap_classes
+    from msmem_cnabu.learn.rollouts import remap_classes
     from msmem_push.skill import PushAction
 
     raw = _sequence(mesh_shard)

@@ -18,10 +18,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from msmem_analytic.columnfill import ColumnFillObservationModel
 from msmem_analytic.observation import AnalyticObservationModel
-from msmem_cnabu.datagen import load_shard
-from msmem_cnabu.mapeval import evaluate_rollouts
+from msmem_cnabu.learn.datagen import load_shard
+from msmem_cnabu.learn.mapeval import evaluate_rollouts
+from msmem_cnabu.learn.maptrain import MapTrainConfig, rollout_loss, train_map
+from msmem_cnabu.learn.rollouts import sequence, start_masks
 from msmem_cnabu.mapnet import MapNet, MapNetConfig, analytic_update, bounded_evidence
-from msmem_cnabu.maptrain import MapTrainConfig, load_map_net, rollout_loss, sequence, start_masks, train_map
+from msmem_cnabu.weights import load_map_net
 
 from msmem_core.map.belief import BeliefDelta, EvidentialMap
 from msmem_core.world.grid import GridSpec
@@ -146,7 +148,7 @@ def test_rollout_training_lowers_the_loss_on_its_scene(shard, tmp_path):
     torch.manual_seed(0)
     seq = sequence(shard)
     net = MapNet(MapNetConfig(grid_shape=seq.gt_occ.shape, width=16, embed=4, context=4, hidden=16))
-    from msmem_cnabu.maptrain import _batch
+    from msmem_cnabu.learn.maptrain import _batch
 
     batch = _batch([seq], [False])
     valid = torch.from_numpy(seq.valid)
@@ -279,7 +281,7 @@ def test_the_object_class_head_ties_the_free_class_to_the_occupancy():
 
 
 def test_the_object_head_class_loss_ignores_free_voxels():
-    from msmem_cnabu.mapnet import map_loss
+    from msmem_cnabu.learn.maploss import map_loss
 
     occ = torch.zeros(1, 4, 1, 1, dtype=bool)
     occ[0, :2] = True
@@ -325,7 +327,7 @@ def _top_view_nll_by_enumeration(p, q, gt_cls, valid):
 def test_top_view_loss_is_the_nll_of_the_top_view_class_map(seed, head):
     """``top_view_loss`` equals the brute-force probability, over every occupancy configuration of
     each column, that its highest occupied interior voxel has the ground truth's top class."""
-    from msmem_cnabu.mapnet import top_view_loss
+    from msmem_cnabu.learn.maploss import top_view_loss
 
     g = torch.Generator().manual_seed(seed)
     o = torch.randn(1, 3, 2, 4, generator=g) * 3
@@ -344,7 +346,7 @@ def test_top_view_loss_is_the_nll_of_the_top_view_class_map(seed, head):
 def test_top_view_loss_charges_an_occupied_voxel_above_the_object():
     """A confident false voxel of another class above the true top takes the column's top view: the
     loss rises, though the per-voxel NLL of the true surface is unchanged."""
-    from msmem_cnabu.mapnet import top_view_loss
+    from msmem_cnabu.learn.maploss import top_view_loss
 
     valid = torch.ones(1, 1, 4, dtype=bool)
     gt = torch.tensor([[[[2, 2, 0, 0]]]])
@@ -362,7 +364,7 @@ def test_top_view_loss_charges_an_occupied_voxel_above_the_object():
 def test_a_widened_network_starts_as_the_old_one():
     """--init from weights without the nearest-class features: the new inputs get zero weights, so
     the widened network computes what the old one did."""
-    from msmem_cnabu.maptrain import load_widened
+    from msmem_cnabu.learn.maptrain import load_widened
 
     torch.manual_seed(1)
     old = MapNet(_small()).eval()
@@ -390,7 +392,7 @@ POSTMANIP = dict(kind="observe", min_views=0, max_views=0, observe_samples=4, ma
 
 @pytest.fixture(scope="module")
 def postmanip_dir(tmp_path_factory):
-    from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset
+    from msmem_cnabu.learn.datagen import CNABUDataConfig, generate_dataset
 
     out = tmp_path_factory.mktemp("postmanip")
     summary = generate_dataset(out, [900000], CNABUDataConfig(**POSTMANIP), progress=False, log=lambda _: None)
@@ -424,7 +426,7 @@ def test_a_post_manipulation_shard_records_a_real_push_that_moved_objects(postma
 
 
 def test_post_manipulation_shards_are_deterministic_and_resumable(postmanip_dir, postmanip):
-    from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset, make_shard
+    from msmem_cnabu.learn.datagen import CNABUDataConfig, generate_dataset, make_shard
 
     again = make_shard(900000, CNABUDataConfig(**POSTMANIP)).arrays()
     for key, value in postmanip.arrays().items():
@@ -439,7 +441,7 @@ def test_post_manipulation_shards_are_deterministic_and_resumable(postmanip_dir,
 
 
 def test_manipulate_after_must_leave_views_to_follow():
-    from msmem_cnabu.datagen import CNABUDataConfig
+    from msmem_cnabu.learn.datagen import CNABUDataConfig
     from pydantic import ValidationError
 
     with pytest.raises(ValidationError, match="views must follow"):
@@ -466,9 +468,10 @@ def test_a_rollout_applies_the_push_and_scores_later_views_against_the_moved_wor
     """The loss after each view is against the ground truth after that view: after the push the
     post-push truth (with the pre-push truth the losses would differ), and at the push the network's
     belief becomes the push-analytic prediction of its own output, bounded, without gradient."""
-    from msmem_cnabu.datagen import predicted_belief
-    from msmem_cnabu.mapnet import map_loss
-    from msmem_cnabu.maptrain import Effects, _batch, bounded_map
+    from msmem_cnabu.learn.datagen import predicted_belief
+    from msmem_cnabu.learn.maploss import map_loss
+    from msmem_cnabu.learn.maptrain import _batch
+    from msmem_cnabu.learn.rollouts import Effects, bounded_map
     from msmem_push.effect import AnalyticPushEffect
 
     torch.manual_seed(0)
@@ -518,7 +521,7 @@ def test_a_rollout_applies_the_push_and_scores_later_views_against_the_moved_wor
 
 
 def test_bounded_map_keeps_the_networks_form_and_bounds_anything_else():
-    from msmem_cnabu.maptrain import bounded_map
+    from msmem_cnabu.learn.rollouts import bounded_map
 
     grid = _grid()
     a, b, e, _, _ = bounded_evidence(torch.randn(1, *grid.shape) * 5, torch.randn(1, 15, *grid.shape) * 5, 100.0, 300.0)
@@ -542,8 +545,8 @@ def test_bounded_map_keeps_the_networks_form_and_bounds_anything_else():
 def test_the_twins_go_through_the_same_push_with_the_same_effect_model(postmanip_dir, postmanip):
     """Every model's belief before the view after the push is the push-analytic prediction of its belief
     after the view before it; the learned model and both twins are scored."""
-    from msmem_cnabu.datagen import predicted_belief
-    from msmem_cnabu.mapeval import twins
+    from msmem_cnabu.learn.datagen import predicted_belief
+    from msmem_cnabu.learn.mapeval import twins
     from msmem_push.effect import AnalyticPushEffect
 
     calls: dict[str, list] = {}
@@ -608,7 +611,7 @@ def test_the_shipped_network_settings_file_is_valid():
 def test_the_object_head_class_loss_hardly_depends_on_the_occupancy():
     """Its class NLL is that of the object class given occupied: raising p on an occupied voxel
     barely changes it (only through the floors), where -log q_y would fall by log(p' / p)."""
-    from msmem_cnabu.mapnet import map_loss
+    from msmem_cnabu.learn.maploss import map_loss
 
     occ = torch.ones(1, 2, 1, 1, dtype=bool)
     cls = torch.full((1, 2, 1, 1), 3).long()

@@ -1,7 +1,8 @@
-"""The ``msmem datagen cnabu``, ``msmem train cnabu`` and ``msmem eval belief-models`` commands
-(registered by ``plugin.msmem_commands``).
+"""The ``msmem datagen cnabu``, ``msmem train cnabu``, ``msmem train cnabu-map``, ``msmem eval belief-models``
+and ``msmem eval map`` commands (registered by ``plugin.msmem_commands``).
 
-Importing this module is cheap (typer only); everything heavy is imported inside the command bodies.
+Importing this module is cheap (typer only); the bodies import ``msmem_cnabu.learn`` (and everything
+heavy) on use.
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ def datagen_cnabu(
     One writer per --out: another datagen into it is refused, or waits with --wait."""
     from pydantic import ValidationError
 
-    from msmem_cnabu.datagen import CNABUDataConfig, generate_dataset
+    from msmem_cnabu.learn.datagen import CNABUDataConfig, generate_dataset
     from msmem_core.config import load_generator_config
     from msmem_core.learn.datagen import data_folder_lock, seed_range
     from msmem_core.plugins import ComponentRef
@@ -116,7 +117,7 @@ def train_cnabu(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
 ) -> None:
     """Train a CNABU network (AdamW, validation per epoch); keeps the best weights + a JSON sidecar (sha256)."""
-    from msmem_cnabu.training import TrainConfig, train
+    from msmem_cnabu.learn.training import TrainConfig, train
 
     kind = _kind(kind)
     cfg = TrainConfig(epochs=epochs, val_fraction=val_fraction, seed=seed, lr=lr, batch_size=batch_size,
@@ -156,7 +157,7 @@ def eval_belief_models(
                                                    "simulate-and-remap timing and the episodes.")] = "pybullet",
 ) -> None:
     """NLL, Brier, ECE of learned vs analytic vs no-change beliefs against the real ground truth; speed."""
-    from msmem_cnabu.evaluation import evaluate, format_table, threshold_agreement
+    from msmem_cnabu.learn.evaluation import evaluate, format_table, threshold_agreement
 
     kind = _kind(kind)
     if threshold_check > 0:  # fail before the metrics, not after them
@@ -222,7 +223,7 @@ def train_cnabu_map(
     class_map: Annotated[Path | None, typer.Option("--class-map", help=CLASS_MAP_HELP)] = None,
 ) -> None:
     """Train the whole-map observation network (cnabu-map) through rollouts of recorded views."""
-    from msmem_cnabu.maptrain import MapTrainConfig, train_map
+    from msmem_cnabu.learn.maptrain import MapTrainConfig, train_map
     from msmem_core.config import read_config_file
 
     cfg = MapTrainConfig(epochs=epochs, batches=batches, batch=batch, lr=lr, seed=seed, threads=threads,
@@ -249,9 +250,9 @@ def eval_map(
     """Rollouts of recorded views: cnabu-map against analytic-observation and column-fill (paper metrics, NLL, ECE)."""
     import torch
 
-    from msmem_cnabu.mapeval import evaluate_rollouts
+    from msmem_cnabu.learn.mapeval import evaluate_rollouts
     from msmem_cnabu.mapmodel import SHIPPED
-    from msmem_cnabu.maptrain import load_map_net
+    from msmem_cnabu.weights import load_map_net
 
     torch.set_num_threads(threads)
     net, meta = load_map_net(weights or SHIPPED)

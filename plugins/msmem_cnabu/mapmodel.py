@@ -11,9 +11,10 @@ import torch
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from msmem_cnabu.classmap import mapped_classes, onto_slots
 from msmem_cnabu.configs import CNABUMapConfig
 from msmem_cnabu.features import grid_interior, wall_mask
-from msmem_cnabu.weights import resolve_weights
+from msmem_cnabu.weights import load_map_net, resolve_weights
 from msmem_core.errors import UserError
 from msmem_core.interfaces import Observation, ObservationModel
 from msmem_core.map.belief import EvidentialMap
@@ -27,8 +28,6 @@ class CNABUMapObservationModel(ObservationModel):
 
     def __init__(self, config: CNABUMapConfig | None = None) -> None:
         from msmem_analytic.observation import AnalyticObservationConfig, AnalyticObservationModel
-
-        from msmem_cnabu.maptrain import load_map_net
 
         self.config = cfg = config or CNABUMapConfig()
         path = resolve_weights(cfg.weights) if cfg.weights is not None else SHIPPED
@@ -224,7 +223,3 @@ def unlabelled_objects(occupied: NDArray[np.bool_], eta: NDArray[np.floating], l
         good = np.unique(lab[labelled[c] & (lab > 0)])
         out |= (lab > 0) & ~np.isin(lab, good)
     return out
-
-
-# the class map, shared by the learned models (cnabu-map, cnabu-push, cnabu-grasp)
-from msmem_cnabu.classmap import mapped_classes, onto_slots  # noqa: E402

@@ -79,7 +79,8 @@ def msmem_belief_models() -> Iterable[BeliefModelSpec]:
 
 @hookimpl
 def msmem_commands() -> Iterable[CommandSpec]:
-    """``msmem datagen cnabu, train cnabu and eval belief-models`` (bodies import what they need on use)."""
+    """``msmem datagen cnabu``, ``train cnabu``, ``train cnabu-map``, ``eval belief-models``, ``eval map`` (bodies
+    import ``msmem_cnabu.learn`` on use)."""
     from msmem_cnabu.commands import COMMANDS
 
     yield from COMMANDS

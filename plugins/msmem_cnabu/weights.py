@@ -1,5 +1,6 @@
 """Loading CNABU weights: a plain state dict (``torch.load(weights_only=True)``) checked against the
-sha256, the kind and the architecture recorded in its JSON sidecar (written by ``msmem train cnabu``).
+sha256, the kind and the architecture recorded in its JSON sidecar (written by ``msmem train cnabu``;
+the whole-map network's, ``load_map_net``, by ``msmem train cnabu-map``). Nothing of training.
 
 Shipped weights live in ``msmem_cnabu/weights/cnabu_<kind>.pt`` with ``cnabu_<kind>.json`` beside them.
 """
@@ -9,11 +10,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from msmem_cnabu.mapnet import MapNet, MapNetConfig
 from msmem_cnabu.network import KINDS, CNABUNet, CNABUNetConfig
-from msmem_cnabu.training import WEIGHTS_FORMAT
 from msmem_core.errors import UserError
 from msmem_core.util import artifacts
 
+WEIGHTS_FORMAT = "msmem-cnabu"
+"""The ``format`` of a CNABU weights sidecar (``msmem_cnabu.learn.training`` writes it)."""
+WEIGHTS_VERSION = 1
+MAP_WEIGHTS_FORMAT = "msmem-cnabu-map"
+"""The ``format`` of a ``cnabu-map`` weights sidecar (``msmem_cnabu.learn.maptrain`` writes it)."""
+MAP_WEIGHTS_VERSION = 1
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 
 
@@ -72,3 +79,17 @@ def load_cnabu(kind: str, path: str | Path | None = None, verify: bool = True) -
     model: CNABUNet = artifacts.load_weights(path, meta, lambda m: CNABUNet(CNABUNetConfig.model_validate(m)), verify,
                                              how_to_make(kind, path), WeightsError)
     return model, meta
+
+
+def load_map_net(path: str | Path, verify: bool = True) -> tuple[MapNet, dict[str, Any]]:
+    """(network in eval mode, sidecar) of map weights (``torch.load(weights_only=True)``)."""
+    path = Path(path)
+    remedy = ("make them with `msmem datagen cnabu --kind observe --min-views 0 --max-views 0 --samples 12 ...` and "
+              "`msmem train cnabu-map`")
+    if not path.exists():
+        raise WeightsError(f"cnabu-map: weights file {path} does not exist; {remedy}")
+    meta = artifacts.read_sidecar(path, MAP_WEIGHTS_FORMAT, "a cnabu-map", "the sha256 and the architecture",
+                                  "msmem train cnabu-map", WeightsError)
+    net: MapNet = artifacts.load_weights(path, meta, lambda m: MapNet(MapNetConfig.model_validate(m)), verify,
+                                         remedy, WeightsError)
+    return net, meta

@@ -40,8 +40,8 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard
 from msmem_cnabu.features import dilate, grid_interior, wall_mask
+from msmem_cnabu.learn.datagen import CNABUShard, list_shards, load_shard
 from msmem_core.errors import UserError
 from msmem_core.plugins import ComponentRef
 
@@ -366,7 +366,7 @@ def simulate_and_remap(kind: str, shard: CNABUShard, state: int, actions: list[A
 
     from msmem_analytic.observation import AnalyticObservationModel
 
-    from msmem_cnabu.datagen import _skill
+    from msmem_cnabu.learn.datagen import _skill
     from msmem_core.sim.build import build_simulator
     from msmem_core.world.scenegen import SceneGenConfig, generate_scene
     from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints

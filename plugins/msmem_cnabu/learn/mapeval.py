@@ -3,7 +3,7 @@
 Every model integrates a scene's start view and recorded views in order, each on its own output,
 from the empty map, exactly as in a view-only episode with those views. In a post-manipulation
 sequence every model's belief goes through the same recorded push with the same effect model
-(``maptrain.Effects``; ``cnabu-map``'s bounded like its output, ``maptrain.manipulate``) before the
+(``rollouts.Effects``; ``cnabu-map``'s bounded like its output, ``rollouts.manipulate``) before the
 view that follows it, and a belief is scored against the ground truth after its last view. The final beliefs are scored
 against the ground truth on every voxel but the shelf's boards, pooled over scenes:
 
@@ -24,9 +24,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from msmem_cnabu.datagen import list_shards, load_shard
-from msmem_cnabu.evaluation import Calibration
-from msmem_cnabu.maptrain import Effects, manipulate, sequence
+from msmem_cnabu.learn.datagen import list_shards, load_shard
+from msmem_cnabu.learn.evaluation import Calibration
+from msmem_cnabu.learn.rollouts import Effects, manipulate, sequence
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.run.metrics import class_iou_counts, miou_from_counts, occupancy_iou_counts, top_view_classes
 
@@ -90,7 +90,7 @@ def evaluate_rollouts(net: Any, data_dir: str | Path, models: dict[str, Callable
     every held-out sequence; the scores of the final beliefs (and of the beliefs after ``steps`` views).
     ``effects``: the effect models of post-manipulation sequences (default ``Effects()``, built when a
     sequence needs it); ``unseen_class_weight``: ``cnabu-map``'s (``MapNet.step``); ``class_map``: for
-    shards of other classes (``maptrain.sequence``)."""
+    shards of other classes (``rollouts.sequence``)."""
     import torch
 
     paths = list_shards(data_dir, "observe")[:max_scenes]

@@ -22,19 +22,18 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_cnabu.datagen import CNABUShard, list_shards, load_shard
 from msmem_cnabu.features import belief_features, dilate, prior_evidence, wall_mask
-from msmem_cnabu.losses import CNABULossConfig, blend, cnabu_loss
+from msmem_cnabu.learn.datagen import CNABUShard, list_shards, load_shard
+from msmem_cnabu.learn.losses import CNABULossConfig, blend, cnabu_loss
 from msmem_cnabu.network import CNABUNet, CNABUNetConfig, parameter_bytes
+from msmem_cnabu.weights import WEIGHTS_FORMAT as WEIGHTS_FORMAT  # re-exported: the format this module writes
+from msmem_cnabu.weights import WEIGHTS_VERSION, load_cnabu
 from msmem_core.errors import UserError
 from msmem_core.learn.datagen import read_manifest
 from msmem_core.learn.training import TrainingRun, optimizer_step, split_scenes, training_record, warmup_cosine
 from msmem_core.util.artifacts import atomic_save, write_sidecar
 from msmem_core.util.artifacts import sha256_file as sha256_file  # re-exported: callers import it from here
 from msmem_core.world.scene import model_classes
-
-WEIGHTS_FORMAT = "msmem-cnabu"
-WEIGHTS_VERSION = 1
 
 
 class TrainConfig(BaseModel):
@@ -281,8 +280,6 @@ def train(
 def initial_network(kind: str, path: str | Path, data_cfg: CNABUNetConfig) -> CNABUNet:
     """The network of the ``kind`` weights at ``path`` in training mode, refused in one line when its
     grid or class count is not the data's (``data_cfg``)."""
-    from msmem_cnabu.weights import load_cnabu
-
     net, _ = load_cnabu(kind, path)
     have, want = net.config, data_cfg
     if tuple(have.grid_shape) != tuple(want.grid_shape) or have.num_classes != want.num_classes:
