@@ -3,7 +3,9 @@
 - ``msmem_core`` imports no plugin and no backend;
 - a core module imports only from its own layer or the layers below it (listed bottom-up in
   ``LAYERS``), and there is no import cycle between core modules;
-- plugins never build a backend directly: they reach physics through the plugin manager.
+- plugins never build a backend directly: they reach physics through the plugin manager;
+- a plugin's run time never imports its ``learn`` subpackage (data generation, training, evaluation):
+  only its ``commands`` module does, inside the command bodies; and a plugin package has no import cycle.
 """
 
 from __future__ import annotations
@@ -34,8 +36,8 @@ RANK = {name: i for i, names in enumerate(LAYERS) for name in names}
 PLUGIN_PACKAGES = sorted(p.name for d in ("plugins", "simulators") for p in (ROOT / d).glob("msmem_*") if p.is_dir())
 
 
-def _module(path: Path) -> str:
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+def _module(path: Path, root: Path = ROOT) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts = parts[:-1]
     return ".".join(parts)
@@ -43,13 +45,24 @@ def _module(path: Path) -> str:
 
 def _imports(path: Path) -> set[str]:
     """Every module named by an import statement in the file (including function-level imports)."""
+    return _imports_in([ast.parse(path.read_text(), str(path))])
+
+
+def _module_level_imports(path: Path) -> set[str]:
+    """The modules imported at the top of the file (not inside a function or class body)."""
+    tree = ast.parse(path.read_text(), str(path))
+    return _imports_in([n for n in tree.body if isinstance(n, ast.Import | ast.ImportFrom | ast.If | ast.Try)])
+
+
+def _imports_in(nodes: list[ast.AST]) -> set[str]:
     out: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            out.update(a.name for a in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            out.add(node.module)
-            out.update(f"{node.module}.{a.name}" for a in node.names)
+    for top in nodes:
+        for node in ast.walk(top):
+            if isinstance(node, ast.Import):
+                out.update(a.name for a in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                out.add(node.module)
+                out.update(f"{node.module}.{a.name}" for a in node.names)
     return out
 
 
@@ -78,8 +91,9 @@ def test_core_imports_no_plugin_and_nothing_above_it(path: Path) -> None:
         assert RANK[other] <= RANK[me], f"{path.relative_to(ROOT)} (layer {me}) imports {name} (layer {other})"
 
 
-def test_no_import_cycle_between_core_modules() -> None:
-    modules = {_module(f): f for f in CORE_FILES}
+def _assert_no_import_cycle(files: list[Path], root: Path = ROOT) -> None:
+    """No cycle among the modules of ``files`` (named relative to ``root``), function-level imports included."""
+    modules = {_module(f, root): f for f in files}
     graph = {m: {n for n in _imports(f) if n in modules and n != m} for m, f in modules.items()}
     # parents import their subpackages' names: only module -> module edges of distinct files count
     state: dict[str, int] = {}
@@ -99,6 +113,10 @@ def test_no_import_cycle_between_core_modules() -> None:
             visit(m, [m])
 
 
+def test_no_import_cycle_between_core_modules() -> None:
+    _assert_no_import_cycle(CORE_FILES)
+
+
 @pytest.mark.parametrize("path", sorted((ROOT / "plugins").rglob("*.py")), ids=lambda p: str(p.relative_to(ROOT)))
 def test_plugins_do_not_build_backends(path: Path) -> None:
     text = path.read_text()
@@ -112,3 +130,80 @@ def test_core_text_names_no_plugin_package(path: Path) -> None:
     text = path.read_text()
     for name in ("msmem_grasp", "msmem_push", "msmem_cnabu"):
         assert name not in text, f"{path.relative_to(ROOT)} names the plugin package {name}"
+
+
+# plugins whose learning code lives in a ``learn`` subpackage, apart from what an episode imports
+LEARNING_PLUGINS = ("msmem_grasp", "msmem_cnabu")
+
+
+def _runtime_files(package: str) -> list[Path]:
+    folder = ROOT / "plugins" / package
+    return sorted(f for f in folder.rglob("*.py") if "learn" not in f.relative_to(folder).parts)
+
+
+def test_learning_plugins_have_a_learn_subpackage() -> None:
+    for package in LEARNING_PLUGINS:
+        assert (ROOT / "plugins" / package / "learn" / "__init__.py").is_file(), f"{package} has no learn/"
+
+
+@pytest.mark.parametrize("path", [f for p in LEARNING_PLUGINS for f in _runtime_files(p)],
+                         ids=lambda p: str(p.relative_to(ROOT)))
+def test_plugin_run_time_does_not_import_its_learn_subpackage(path: Path) -> None:
+    """What an episode imports never pulls in training code; ``commands`` (the CLI's door into
+    learning) may import ``learn`` inside its command bodies only, so importing it stays cheap."""
+    package = path.relative_to(ROOT / "plugins").parts[0]
+    learn = f"{package}.learn"
+    names = _module_level_imports(path) if path.name == "commands.py" else _imports(path)
+    bad = sorted(n for n in names if n == learn or n.startswith(learn + "."))
+    assert not bad, f"{path.relative_to(ROOT)} imports {', '.join(bad)}: run time never imports {learn}"
+
+
+@pytest.mark.parametrize("package", LEARNING_PLUGINS)
+def test_no_import_cycle_in_a_learning_plugin(package: str) -> None:
+    _assert_no_import_cycle(sorted((ROOT / "plugins" / package).rglob("*.py")), ROOT / "plugins")
+
+
+BUILT_IN_SKILLS = ("view", "push", "grasp")
+NOT_A_SKILL_NAME = "not a skill name"
+"""The comment that marks a line whose string equal to a skill name means something else (a field, a label)."""
+SKILL_NEUTRAL_FILES = [f for f in CORE_FILES if f.relative_to(CORE).parts[0] not in ("presets", "testing")]
+
+
+def skill_names_in_code(source: str, names: tuple[str, ...] = BUILT_IN_SKILLS) -> list[tuple[int, str]]:
+    """(line, name) of every string literal of ``source`` equal to one of ``names``, docstrings left out,
+    and lines marked ``# ... not a skill name`` too."""
+    tree = ast.parse(source)
+    docstrings = {id(n.value) for n in ast.walk(tree) if isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant)}
+    lines = source.splitlines()
+    return sorted((n.lineno, n.value) for n in ast.walk(tree)
+                  if isinstance(n, ast.Constant) and n.value in names and id(n) not in docstrings
+                  and NOT_A_SKILL_NAME not in lines[n.lineno - 1])
+
+
+def test_the_built_in_skill_names_are_the_registered_ones() -> None:
+    from msmem_core.plugins import get_plugin_manager
+
+    assert set(BUILT_IN_SKILLS) <= set(get_plugin_manager().skills())
+
+
+def test_the_skill_name_check_finds_names_in_code_only() -> None:
+    source = '''"""Pushes and grasps: "push" in a docstring is fine."""
+def f(kinds, skill):
+    """Counts "view"."""
+    n = kinds.count("view")
+    m = skill == "push"
+    action.get("view")  # the field, not a skill name
+    return {"grasps": n, "grasp": m}
+'''
+    assert skill_names_in_code(source) == [(4, "view"), (5, "push"), (7, "grasp")]
+
+
+@pytest.mark.parametrize("path", SKILL_NEUTRAL_FILES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_core_code_names_no_built_in_skill(path: Path) -> None:
+    """Core counts and branches on a skill's ``category`` or the names in the run's config, never on a
+    plugin's skill name, so an outside skill is treated as the built-in ones are. The defaults that
+    name built-in skills live in ``msmem_core/presets``; a string that equals a skill name but means
+    something else is marked on its line with the comment ``not a skill name``."""
+    found = skill_names_in_code(path.read_text())
+    assert not found, f"{path.relative_to(ROOT)} names built-in skills in code at " + ", ".join(
+        f"line {line} ({name!r})" for line, name in found)
