@@ -15,7 +15,7 @@ import argparse
 import json
 from pathlib import Path
 
-from msmem_core.run.bench import grasps_held, mean_ci, read_bench_folder
+from msmem_core.run.bench import mean_ci, read_bench_folder, successes
 
 METHODS = ("ours", "no-cdc", "push-only", "grasp-only", "view-only")
 PAPER = {"ours": (0.899, 0.767, 0.707), "no-cdc": (0.905, 0.791, 1.231), "push-only": (0.887, 0.756, 1.571),
@@ -50,7 +50,7 @@ def main(folder: Path) -> None:
         occ = ci([e[i]["occupancy_miou"] for i in s]) + (f" ({cum['occupancy_miou']:.3f})" if cum else "")
         sem = ci([e[i]["semantic_miou_2d"] for i in s]) + (f" ({cum['semantic_miou_2d']:.3f})" if cum else "")
         n_grasp = sum(e[i]["grasps"] for i in s)
-        ok = sum(grasps_held(e[i]) for i in s)
+        ok = sum(successes(e[i], "grasp") for i in s)
         paper = " / ".join(f"{v:.3f}" for v in PAPER[m]) if m in PAPER else ""
         print(f"| {m} | {len(s)} | {occ} | {sem} | {ci([e[i]['position_change_m'] for i in s])} | "
               f"{sum(e[i]['pushes'] for i in s) / len(s):.1f} / {n_grasp / len(s):.2f} | "

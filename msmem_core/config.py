@@ -133,7 +133,8 @@ class RunConfig(_Strict):
     observation_model: ComponentRef = Field(
         default_factory=lambda: ComponentRef.model_validate(library_defaults()["observation_model"]))
     """sigma_o, the observation update (default ``cnabu-map``: ``msmem_core/presets/defaults.yaml``)."""
-    skills: list[SkillRef] = Field(default_factory=lambda: [SkillRef(name="view")], min_length=1)
+    skills: list[SkillRef] = Field(
+        default_factory=lambda: [SkillRef.model_validate(s) for s in library_defaults()["skills"]], min_length=1)
     effect_models: dict[str, ComponentRef] = Field(
         default_factory=lambda: {k: ComponentRef.model_validate(v)
                                  for k, v in library_defaults().get("effect_models", {}).items()})

@@ -16,10 +16,14 @@ from msmem_core.run.bench import (
     TABLE_METRICS,
     BenchTask,
     candidate_counts,
+    count_column,
     cumulative_difference,
     parse_range,
+    read_bench_folder,
     run_bench,
     run_bench_task,
+    success_column,
+    successes,
     suite_scenes,
     summarise,
     table_markdown,
@@ -67,6 +71,42 @@ def _result(method: str, scene: int, counts: tuple[int, ...] | None) -> dict:
         metrics.update(zip(("correctly_found", "misclassified", "not_found", "hallucinated", "removed"), counts,
                            strict=True))
     return {"method": method, "scene_index": scene, "status": "ok", "metrics": metrics}
+
+
+def _skill_result(method: str, scene: int, skills: dict[str, tuple[int, float | None]]) -> dict:
+    """A result whose method has ``skills``: name -> (actions, success share; None for a perception skill)."""
+    r = _result(method, scene, (1, 0, 0, 0, 0))
+    for k in ("views", "pushes", "grasps", "grasp_success"):
+        del r["metrics"][k]
+    r["metrics"].update({count_column(s): n for s, (n, _) in skills.items()})
+    r["metrics"].update({success_column(s): v for s, (_, v) in skills.items() if v is not None})
+    return r
+
+
+def test_the_table_has_a_count_column_per_skill_and_a_success_column_per_manipulation_skill(tmp_path):
+    """Columns come from the skills the episodes' methods have, whatever their names: an outside skill
+    is counted as the built-in ones; a method without a skill did 0 of its actions, its success is '-'."""
+    assert [count_column(s) for s in ("view", "push", "grasp", "nudge", "touch", "box")] == [
+        "views", "pushes", "grasps", "nudges", "touches", "boxes"]
+    results = [_skill_result("look", 0, {"view": (4, None)}),
+               _skill_result("nudging", 0, {"view": (3, None), "nudge": (1, 1.0)}),
+               _skill_result("nudging", 1, {"view": (2, None), "nudge": (2, 0.5)})]
+    summary = summarise(results, ["look", "nudging"])
+    assert summary["skill_columns"] == [("views", "views"), ("nudges", "nudges"), ("nudge_success", "nudge success")]
+    look, nudging = summary["table"]["look"], summary["table"]["nudging"]
+    assert (look["nudges"][0], nudging["nudges"][0], nudging["nudge_success"][0]) == (0, 1.5, 0.75)
+    assert math.isnan(look["nudge_success"][0])
+    header = table_markdown(summary).splitlines()[0]
+    assert "| semantic NLL | views | nudges | nudge success | falls |" in header
+    assert "| look | 1 |" in table_markdown(summary).splitlines()[2]
+    assert table_markdown(summary).splitlines()[2].endswith("| 4.000 | 0.000 | - | - | - |")
+    assert successes(results[2]["metrics"], "nudge") == 1
+    (tmp_path / "episodes").mkdir()
+    for r in results:
+        (tmp_path / "episodes" / f"{r['method']}__scene{r['scene_index']:02d}.json").write_text(json.dumps(r))
+    read = read_bench_folder(tmp_path)
+    assert (read[("look", 0)]["nudges"], read[("look", 0)]["nudge_success"]) == (0, None)  # every column, filled
+    assert read[("nudging", 1)]["nudge_success"] == 0.5
 
 
 def test_table_ii_sums_the_object_counts_over_scenes():

@@ -204,8 +204,8 @@ def test_results_are_strict_json_with_null_for_nan(finished):
 
     results = json.loads((finished / "results.json").read_text(), parse_constant=refuse)
     episode = json.loads((finished / EPISODE).read_text(), parse_constant=refuse)
-    assert episode["metrics"]["grasp_success"] is None  # no grasps: NaN in memory, null on disk
-    assert results["summary"]["table"]["view-only"]["grasp_success"] == [None, None]
+    assert episode["metrics"]["fell"] is None  # never manipulated: NaN in memory, null on disk
+    assert results["summary"]["table"]["view-only"]["fell"] == [None, None]
 
 
 def test_a_planned_episode_without_a_result_is_an_error_naming_it(bench_copy, monkeypatch):

@@ -270,11 +270,14 @@ def test_an_episode_counts_its_falls_and_the_bench_table_reads_them(tmp_path):
     final = run_episode(ep, tmp_path)
     assert [r["skill"] for r in ep.records] == ["topple", "view", "view"]
     assert final["falls"] == 1
-    m = episode_metrics(final, ep.records)
-    assert (m["falls"], m["fell"], m["pushes"], m["views"]) == (1, 1.0, 0, 2)
+    skills = {b.name: b.skill.category for b in ep.skills}
+    m = episode_metrics(final, ep.records, skills)
+    assert (m["falls"], m["fell"], m["topples"], m["views"], m["topple_success"]) == (1, 1.0, 1, 2, 1.0)
+    assert "pushes" not in m  # a column per skill of the method, whatever its name
+    assert "view_success" not in m  # success shares of manipulation skills only
     viewing = [{**r, "skill": "view", "fell_or_left": []} for r in ep.records]
-    assert np.isnan(episode_metrics({**final, "falls": 0}, viewing)["fell"])  # never manipulated
-    assert episode_metrics({**final, "falls": 0}, ep.records)["fell"] == 0.0
+    assert np.isnan(episode_metrics({**final, "falls": 0}, viewing, skills)["fell"])  # never manipulated
+    assert episode_metrics({**final, "falls": 0}, ep.records, skills)["fell"] == 0.0
 
 
 class _Fixed(Term):

@@ -62,7 +62,12 @@ def test_references_and_approximation_check_are_reported(small):
     assert a["beliefs"] == 1
     assert 0 <= a["same_as_unscreened"] <= 1
     assert 0 <= a["same_as_exact"] <= 1
-    assert any("approximations" in line for line in lines)
+    for skill in ("push", "grasp"):  # every manipulation skill of the method, by its config name
+        assert 0 <= a[f"{skill}_best_differs"] <= a[f"{skill}_batches"] <= 1
+    assert "view_batches" not in a
+    line = next(line for line in lines if "approximations" in line)
+    assert f"push in {a['push_best_differs']}/{a['push_batches']}" in line
+    assert f"grasp in {a['grasp_best_differs']}/{a['grasp_batches']}" in line
 
 
 def test_the_observation_update_is_timed_and_reported(small):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from msmem_core.run.tracking import spearman, step_rows, tracking_summary
+from msmem_core.run.tracking import skill_categories, spearman, step_rows, tracking_summary
 
 
 def _episode() -> dict:
@@ -33,3 +33,14 @@ def test_rank_correlation_and_summary() -> None:
     assert s["all"]["decisions"] == 3
     assert s["view"]["decisions"] == 2
     assert math.isclose(s["all"]["rho_semantic_miou_2d"], 1.0)  # ig 5, 7, 4 and gains .10, .12, -.02 rank alike
+
+
+def test_the_kind_of_a_step_is_its_skills_category_whatever_its_name() -> None:
+    """An episode file names each skill's category (``skill_categories``): an outside perception skill's
+    steps are views, an outside manipulation skill's are manipulations; a file without them takes the
+    categories the registered skills declare."""
+    ep = {**_episode(), "skills": ["look", "look", "nudge", "look", "look"],
+          "skill_categories": {"look": "perception", "nudge": "manipulation"}}
+    assert [(r["step"], r["kind"], r["skill"]) for r in step_rows(ep)] == [
+        (1, "view", "look"), (2, "manipulation", "nudge"), (4, "view", "look")]
+    assert skill_categories(_episode()) == {"view": "perception", "grasp": "manipulation"}

@@ -14,7 +14,7 @@ import argparse
 import json
 from pathlib import Path
 
-from msmem_core.run.bench import grasps_held, mean_ci, read_bench_folder
+from msmem_core.run.bench import mean_ci, read_bench_folder, successes
 
 
 def fmt(values: list[float], star: bool = False, sign: bool = False) -> str:
@@ -45,7 +45,7 @@ def main(folders: list[str]) -> None:
         pushes = sum(eps[s]["pushes"] for s in scenes) / len(scenes)
         grasps = sum(eps[s]["grasps"] for s in scenes) / len(scenes)
         n_grasp = sum(eps[s]["grasps"] for s in scenes)
-        ok_grasp = sum(grasps_held(eps[s]) for s in scenes)
+        ok_grasp = sum(successes(eps[s], "grasp") for s in scenes)
         falls = sum(1 for s in scenes if eps[s].get("fell"))
         cum_txt = (f" ({cum['occupancy_miou']:.3f})", f" ({cum['semantic_miou_2d']:.3f})") if cum else ("", "")
         print(f"| {name} | {len(scenes)} | {fmt(occ)}{cum_txt[0]} | {fmt(sem)}{cum_txt[1]} | {paired} | "

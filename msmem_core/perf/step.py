@@ -251,7 +251,7 @@ def perf_step(
             f"{res['reference/decide_cpu_s']:.2f} s CPU = {res['reference/decide_cpu_s'] / total_cpu:.1f}x the median; "
             f"same decision: {res['reference/same_decision']}"
         )
-    for skill in ("push", "grasp"):
+    for skill in (b.name for b in ep.skills):
         if f"reference/{skill}_ig_max_abs_diff" in res:
             diff, rel = res[f"reference/{skill}_ig_max_abs_diff"], res[f"reference/{skill}_ig_max_rel_diff"]
             report(f"  {skill}: incremental IG (full density) vs the full re-score: max abs diff {diff:.2e} "
@@ -259,12 +259,14 @@ def perf_step(
     if "agreement" in res:
         a = res["agreement"]
         n = a["beliefs"]
+        within = ", ".join(f"{skill} in {a[f'{skill}_best_differs']}/{a[f'{skill}_batches']}"
+                           for skill in manipulation_skills(ep))
         report(
             f"  approximations, over {n} belief{'s' if n != 1 else ''} (view seeds {view_seed}..{view_seed + n - 1}): "
             f"the chosen action "
             f"differs from exact scoring (no screening) in {n - a['same_as_unscreened']}/{n}, from fully exact scoring "
-            f"(no screening, no early exit) in {n - a['same_as_exact']}/{n}; within a skill, the screened best push "
-            f"differs from the exact best push in {a['push_best_differs']}/{a['push_batches']}"
+            f"(no screening, no early exit) in {n - a['same_as_exact']}/{n}"
+            + (f"; within a skill, the screened best candidate differs from the exact best: {within}" if within else "")
         )
     return res
 
@@ -340,7 +342,9 @@ def _agreement(ep: Episode, state: EpisodeState, beliefs: int, views: int, seed:
     unscreened = objective_with(ep, screen_ray_step=1)
     exact_ig = IGService(ep.ig.grid, ep.cfg.camera, ep.viewpoints, ep.scene.shelf,
                          ep.cfg.ig.model_copy(update={"early_exit": 0.0}))
-    counts = {"beliefs": 0, "same_as_unscreened": 0, "same_as_exact": 0, "push_batches": 0, "push_best_differs": 0}
+    skills = manipulation_skills(ep)
+    counts = {"beliefs": 0, "same_as_unscreened": 0, "same_as_exact": 0,
+              **{f"{skill}_{k}": 0 for skill in skills for k in ("batches", "best_differs")}}
     for b in range(beliefs):
         if b == 0:
             st, (d, probe) = state, first
@@ -352,13 +356,20 @@ def _agreement(ep: Episode, state: EpisodeState, beliefs: int, views: int, seed:
         counts["beliefs"] += 1
         counts["same_as_unscreened"] += _same(d, d_uns)
         counts["same_as_exact"] += _same(d, d_exact)
-        if "push" in probe.batches:
-            _, batch = probe.batches["push"]
+        for skill in skills:
+            if skill not in probe.batches:
+                continue
+            _, batch = probe.batches[skill]
             i_exact = unscreened.best(decision_context(ep, st.belief, st.visited, st.step), batch)[0]
             i_screened = ep.objective.best(decision_context(ep, st.belief, st.visited, st.step), batch)[0]
-            counts["push_batches"] += 1
-            counts["push_best_differs"] += int(i_exact != i_screened)
+            counts[f"{skill}_batches"] += 1
+            counts[f"{skill}_best_differs"] += int(i_exact != i_screened)
     return counts
+
+
+def manipulation_skills(ep: Episode) -> list[str]:
+    """The config names of the episode's manipulation skills, in config order."""
+    return [b.name for b in ep.skills if b.skill.category == "manipulation"]
 
 
 def is_valid_action(action: Action, num_views: int) -> bool:

@@ -22,6 +22,7 @@ import json
 import math
 import os
 import sys
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -39,6 +40,7 @@ from msmem_core.world.viewpoints import read_poses_file
 
 if TYPE_CHECKING:
     from msmem_core.config import RunConfig
+    from msmem_core.interfaces import Category
 
 SUITES = ("hard25", "tune10", "mesh25")
 """hard25: the benchmark (seeds 25000-25024); tune10: for tuning defaults (seeds 30000-30009), never hard25;
@@ -55,13 +57,12 @@ TABLE_METRICS = (
     ("semantic_ece", "semantic ECE", "lower"),
     ("occupancy_nll", "occupancy NLL", "lower"),
     ("semantic_nll", "semantic NLL", "lower"),
-    ("views", "views", None),
-    ("pushes", "pushes", None),
-    ("grasps", "grasps", None),
-    ("grasp_success", "grasp success", None),
     ("falls", "falls", "lower"),
     ("fell", "episodes with a fall", "lower"),
 )
+"""The columns of Table I every episode records. Between ``semantic_nll`` and ``falls`` the table shows
+its skills' columns (:func:`skill_columns`): how often each skill acted and, for manipulation skills,
+the share of their actions that succeeded."""
 COUNT_METRICS = (
     ("correctly_found", "correctly found"),
     ("misclassified", "misclassified but found"),
@@ -70,6 +71,8 @@ COUNT_METRICS = (
     ("removed", "removed"),
 )
 """Table II: final object counts (``metrics.object_counts``) plus objects no longer in the shelf."""
+_FIXED = {k for k, _, _ in TABLE_METRICS} | {k for k, _ in COUNT_METRICS}
+"""The metrics every episode records that are not its skills' columns."""
 PAIRED_METRICS = ("occupancy_iou", "semantic_miou", "position_change_m", "observable_iou", "semantic_miou_bev",
                   "occupancy_miou", "semantic_miou_2d", "occupancy_nll", "semantic_nll")
 """The metrics whose per-scene differences between methods ``table.md`` reports."""
@@ -212,14 +215,31 @@ def _finished_records(folder: Path) -> list[dict[str, Any]]:
 
 
 def read_bench_folder(folder: Path) -> dict[tuple[str, int], dict[str, Any]]:
-    """The finished episodes of a bench folder, as {(method, scene index): metrics}. For scripts that
-    compare folders (``examples/paired_benches.py``, ``examples/table1.py``)."""
-    return {(r["method"], r["scene_index"]): r["metrics"] for r in _finished_records(folder)}
+    """The finished episodes of a bench folder, as {(method, scene index): metrics}, each with every
+    skill column of the folder (:func:`skill_columns`; a skill its method lacks: 0 actions, success
+    None). For scripts that compare folders (``examples/paired_benches.py``, ``examples/table1.py``)."""
+    records = _finished_records(folder)
+    columns = skill_columns(records)
+    return {(r["method"], r["scene_index"]): {**{k: _metric(r, k) for k, _ in columns}, **r["metrics"]}
+            for r in records}
 
 
-def grasps_held(metrics: dict[str, Any]) -> int:
-    """Grasps of an episode that held their object (``grasp_success`` is their share)."""
-    return round(metrics["grasp_success"] * metrics["grasps"]) if metrics.get("grasps") else 0
+def count_column(skill: str) -> str:
+    """The metric counting an episode's actions of ``skill`` (its config name): the name in the plural
+    (``view`` -> ``views``, ``push`` -> ``pushes``)."""
+    return skill + ("es" if skill.endswith(("s", "sh", "ch", "x", "z")) else "s")
+
+
+def success_column(skill: str) -> str:
+    """The metric holding the share of a manipulation skill's actions that succeeded (``Outcome.success``)."""
+    return f"{skill}_success"
+
+
+def successes(metrics: dict[str, Any], skill: str) -> int:
+    """Actions of ``skill`` in an episode that succeeded (for a grasp skill: held their object);
+    ``success_column(skill)`` is their share."""
+    n = metrics.get(count_column(skill))
+    return round(metrics[success_column(skill)] * n) if n else 0
 
 
 def crash_record(task: BenchTask, error: str, trace: str, seconds: float | None = None) -> dict[str, Any]:
@@ -246,9 +266,11 @@ def run_bench_task(task: BenchTask) -> dict[str, Any]:
         final = run_episode(ep, None)
         curves = {k: [r["metrics"][k] for r in ep.records] for k in CURVE_METRICS}
         kinds = [r["skill"] for r in ep.records]
+        categories = {b.name: b.skill.category for b in ep.skills}
         record.update({
-            "scene": ep.scene.name, "status": "ok", "metrics": episode_metrics(final, ep.records),
+            "scene": ep.scene.name, "status": "ok", "metrics": episode_metrics(final, ep.records, categories),
             "paper_counts": final["paper_counts"], "curves": curves, "skills": kinds,
+            "skill_categories": categories,  # per skill of the method: perception or manipulation
             "terms": [r["terms"] for r in ep.records],  # the chosen action's objective terms, per step
             "candidates": candidate_counts(ep.records), "funnel": funnel_counts(ep.records),
             "seconds": time.perf_counter() - t0,
@@ -275,22 +297,51 @@ def candidate_counts(records: list[dict[str, Any]]) -> dict[str, dict[str, int]]
     return out
 
 
-def episode_metrics(final: dict[str, Any], records: list[dict[str, Any]]) -> dict[str, Any]:
-    """An episode's table metrics from ``run_episode``'s final metrics and its step records. ``falls``:
+def episode_metrics(final: dict[str, Any], records: list[dict[str, Any]],
+                    skills: Mapping[str, Category]) -> dict[str, Any]:
+    """An episode's table metrics from ``run_episode``'s final metrics, its step records and its
+    method's skills (config name -> ``Skill.category``; a skill the records name beyond them takes its
+    actions' category). Per skill, ``count_column``: how often it acted; per manipulation skill,
+    ``success_column``: the share of its actions that succeeded (NaN if it never acted). ``falls``:
     manipulations after which an object fell or left the shelf; ``fell``: 1 if one did, 0 if not, NaN
     for an episode that never manipulated (so a column's mean is the share of manipulating episodes
-    with a fall); ``grasp_success``: NaN without grasps."""
+    with a fall)."""
     kinds = [r["skill"] for r in records]
-    grasp_ok = [r["success"] for r in records if r["skill"] == "grasp"]
+    category = {**{r["skill"]: r["action"]["category"] for r in records}, **skills}
+    names = list(dict.fromkeys([*skills, *kinds]))
+    outcomes = {s: [r["success"] for r in records if r["skill"] == s] for s in names}
     return {
         **{k: final[k] for k in ("occupancy_iou", "semantic_miou", "observable_iou", "semantic_miou_bev",
                                  "position_change_m", "occupancy_nll", "semantic_nll", *PAPER_METRIC_KEYS)},
         **{k: int(final[k]) for k, _ in COUNT_METRICS},
-        "views": kinds.count("view"), "pushes": kinds.count("push"), "grasps": kinds.count("grasp"),
-        "grasp_success": float(np.mean(grasp_ok)) if grasp_ok else float("nan"),
+        **{count_column(s): len(outcomes[s]) for s in names},
+        **{success_column(s): float(np.mean(outcomes[s])) if outcomes[s] else float("nan")
+           for s in names if category[s] == "manipulation"},
         "falls": int(final["falls"]),
-        "fell": float(final["falls"] > 0) if len(kinds) > kinds.count("view") else float("nan"),
+        "fell": (float(final["falls"] > 0) if any(category[k] == "manipulation" for k in kinds)
+                 else float("nan")),
     }
+
+
+def skill_columns(results: Iterable[dict[str, Any]]) -> list[tuple[str, str]]:
+    """(metric, label) of the skills' columns of Table I, from what the finished episodes recorded: every
+    metric of theirs outside ``TABLE_METRICS`` and ``COUNT_METRICS`` is one (``episode_metrics``), the
+    action counts first, in the order the episodes name them, then the success shares."""
+    keys = dict.fromkeys(k for r in results if r.get("status") == "ok" for k in r["metrics"] if k not in _FIXED)
+    counts = [(k, k) for k in keys if not _is_success(k)]
+    shares = [(k, k.removesuffix("_success") + " success") for k in keys if _is_success(k)]
+    return counts + shares
+
+
+def _is_success(metric: str) -> bool:
+    return metric.endswith("_success")
+
+
+def table_columns(skills: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """(metric, label) of every column of Table I: ``TABLE_METRICS`` with the skills' columns before ``falls``."""
+    fixed = [(k, label) for k, label, _ in TABLE_METRICS]
+    at = next(i for i, (k, _) in enumerate(fixed) if k == "falls")
+    return [*fixed[:at], *skills, *fixed[at:]]
 
 
 def _counts(v: Any) -> bool:
@@ -351,13 +402,16 @@ def summarise(results: list[dict[str, Any]], methods: list[str]) -> dict[str, An
     before it existed, are left out of its column), Table II counts, and the suite-cumulative paper metrics;
     plus paired differences against the first method."""
     ok = [r for r in results if r.get("status") == "ok"]
+    skills = skill_columns(ok)
+    columns = [k for k, _ in table_columns(skills)]
     table: dict[str, dict[str, Any]] = {}
     for m in methods:
         rows = [r for r in ok if r["method"] == m]
-        table[m] = {k: mean_ci([r["metrics"][k] for r in rows if k in r["metrics"]]) for k, _, _ in TABLE_METRICS}
+        values = {k: [v for r in rows if (v := _metric(r, k)) is not None] for k in columns}
+        table[m] = {k: mean_ci(values[k]) for k in columns}
         table[m]["episodes"] = len(rows)
-        table[m]["counted"] = {k: n for k, _, _ in TABLE_METRICS  # columns some episodes lack (older files) or
-                               if (n := sum(_counts(r["metrics"].get(k)) for r in rows)) < len(rows)}  # leave NaN
+        table[m]["counted"] = {k: n for k in columns  # columns some episodes lack (older files) or
+                               if (n := sum(_counts(v) for v in values[k])) < len(rows)}  # leave NaN
         table[m]["cumulative"] = cumulative(rows)
         table[m]["funnel"] = sum_funnels(r["funnel"] for r in rows if "funnel" in r)  # older files lack it
         counted = [r for r in rows if all(k in r["metrics"] for k, _ in COUNT_METRICS)]  # older files lack them
@@ -380,7 +434,16 @@ def summarise(results: list[dict[str, Any]], methods: list[str]) -> dict[str, An
         paired[f"{base} - {m}"] = pair
     errors = [{"method": r["method"], "scene_index": r["scene_index"], "error": r["error"]}
               for r in results if r.get("status") == "error"]
-    return {"methods": methods, "table": table, "paired": paired, "errors": errors}
+    return {"methods": methods, "table": table, "paired": paired, "errors": errors, "skill_columns": skills}
+
+
+def _metric(record: dict[str, Any], key: str) -> Any:
+    """An episode's value of a Table I column; None if it lacks it (written before it existed), except an
+    action count of a skill its method does not have, which is 0."""
+    metrics = record["metrics"]
+    if key in metrics:
+        return metrics[key]
+    return None if key in _FIXED or _is_success(key) else 0
 
 
 def _fmt(mc: tuple[float, float]) -> str:
@@ -394,13 +457,14 @@ LABELS = {k: label for k, label, _ in TABLE_METRICS}
 
 
 def table_markdown(summary: dict[str, Any]) -> str:
-    lines = ["| method | episodes | " + " | ".join(label for _, label, _ in TABLE_METRICS) + " |",
-             "|---|---|" + "---|" * len(TABLE_METRICS)]
+    columns = table_columns([(k, label) for k, label in summary.get("skill_columns", [])])
+    lines = ["| method | episodes | " + " | ".join(label for _, label in columns) + " |",
+             "|---|---|" + "---|" * len(columns)]
     for m in summary["methods"]:
         row = summary["table"][m]
         counted = row.get("counted", {})
         lines.append(f"| {m} | {row['episodes']} | " + " | ".join(
-            _fmt(tuple(row[k])) + (f" (n={counted[k]})" if counted.get(k) else "") for k, _, _ in TABLE_METRICS) + " |")
+            _fmt(tuple(row[k])) + (f" (n={counted[k]})" if counted.get(k) else "") for k, _ in columns) + " |")
     lines += ["", "Mean ± half-width of the 95% t-interval over scenes. \"(paper)\" and ECE: the paper's own metrics",
               "([MEM]'s `Cumulative_mIoU`; docs/reference/metrics.md), per scene; episodes written before they existed",
               "are left out of those columns (n=: the episodes a column counts, where fewer than all).", ""]

@@ -111,7 +111,7 @@ def camera_path(run: RunData, upto: int) -> list[tuple[str, NDArray[np.float64]]
     start = cfg.msas.start_view if cfg.msas.start_view is not None else default_start_view(cfg.viewpoints)
     out = [("start", views[start])]
     for rec in run.steps:
-        v = rec["action"].get("view")
+        v = rec["action"].get("view")  # PerceptionAction.view, the viewpoint's index: not a skill name
         if rec["step"] <= upto and isinstance(v, int) and 0 <= v < len(views):
             out.append((str(rec["step"]), views[v]))
     return out
@@ -336,7 +336,7 @@ def figure_3d(run: RunData) -> Any:
             if grasps:
                 segs = _polyline([s for _, _, t, w in grasps for s in gripper_segments(t, cfg.gripper, w)])
                 fig.add_trace(go.Scatter3d(
-                    x=segs[0], y=segs[1], z=segs[2], mode="lines", name="grasp",
+                    x=segs[0], y=segs[1], z=segs[2], mode="lines", name="grasp",  # glyph legend, not a skill name
                     line={"color": "#9467bd", "width": 4}, visible=first, showlegend=col == 1,
                     hoverinfo="skip"), row=1, col=col)
                 idx.append(len(fig.data) - 1)

@@ -23,7 +23,16 @@ import numpy as np
 
 from msmem_core.config import RunConfig
 from msmem_core.errors import Interrupted, PluginError, UserError
-from msmem_core.interfaces import BeliefModel, EffectModel, ObservationModel, Outcome, Robot, Simulator, Workspace
+from msmem_core.interfaces import (
+    BeliefModel,
+    EffectModel,
+    ObservationModel,
+    Outcome,
+    PerceptionAction,
+    Robot,
+    Simulator,
+    Workspace,
+)
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.map.ig import IGService, shelf_interior_mask, shelf_wall_mask
 from msmem_core.msas import BoundSkill, Decision, Objective, run_msas
@@ -368,12 +377,10 @@ def arm_record(ep: Episode, d: Decision) -> dict[str, Any] | None:
 
 def _arm_configuration(robot: Robot, ep: Episode, d: Decision) -> dict[str, Any] | None:
     """``arm_record`` without the execution notes: None when the action names no camera pose or tool path."""
-    action = d.action.model_dump()
     if d.skill.skill.category == "perception":
-        view = action.get("view")
-        if not isinstance(view, int):
+        if not isinstance(d.action, PerceptionAction):
             return None
-        reach = robot.reach_camera(ep.viewpoints[view], ep.scene.shelf)
+        reach = robot.reach_camera(ep.viewpoints[d.action.view], ep.scene.shelf)
     else:
         path = d.skill.skill.tool_path(d.action, ep.workspace)
         if path is None:

@@ -15,23 +15,42 @@ from pathlib import Path
 from typing import Any
 
 METRICS = ("occupancy_miou", "semantic_miou_2d")
+VIEW = "view"  # the kind of a perception skill's decision rows, not a skill name
+MANIPULATION = "manipulation"
+KINDS = (VIEW, MANIPULATION)
+
+
+def skill_categories(episode: dict[str, Any]) -> dict[str, str]:
+    """Category (``Skill.category``) of each skill of an episode file, by its config name: as the file
+    records them (``skill_categories``), or, in a file written before it did, as the registered skill
+    of that name declares."""
+    recorded = episode.get("skill_categories")
+    if isinstance(recorded, dict):
+        return recorded
+    from msmem_core.plugins import get_plugin_manager
+
+    specs = get_plugin_manager().skills()
+    return {name: category for name in dict.fromkeys(episode.get("skills") or [])
+            if name in specs and (category := getattr(specs[name].factory, "category", None)) is not None}
 
 
 def step_rows(episode: dict[str, Any]) -> list[dict[str, Any]]:
-    """One row per decision of an episode file: step, kind (view or manipulation), predicted IG and the
-    realised change of each metric. Steps without terms (files written before they were kept) give none."""
+    """One row per decision of an episode file: step, kind (view or manipulation: its skill's category
+    is perception or not), predicted IG and the realised change of each metric. Steps without terms
+    (files written before they were kept) give none."""
     terms, skills, curves = episode.get("terms"), episode.get("skills"), episode.get("curves", {})
     if not terms or not skills or any(k not in curves for k in METRICS):
         return []
+    categories = skill_categories(episode)
     rows = []
     t = 1  # step 0 has no metric before it in the curves
     while t < len(skills):
         ig = (terms[t] or {}).get("ig")
-        manip = skills[t] != "view"
+        manip = categories.get(skills[t]) != "perception"
         end = t + 1 if manip and t + 1 < len(skills) else t
         if ig is not None and all(math.isfinite(curves[k][end]) and math.isfinite(curves[k][t - 1]) for k in METRICS):
             rows.append({"method": episode["method"], "scene": episode["scene_index"], "step": t,
-                         "kind": "manipulation" if manip else "view", "skill": skills[t], "ig": float(ig),
+                         "kind": MANIPULATION if manip else VIEW, "skill": skills[t], "ig": float(ig),
                          **{f"d_{k}": float(curves[k][end] - curves[k][t - 1]) for k in METRICS}})
         t = end + 1
     return rows
@@ -53,7 +72,7 @@ def tracking_summary(rows: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
     rows = list(rows)
     out = []
     for method in dict.fromkeys(r["method"] for r in rows):
-        for kind in ("all", "view", "manipulation"):
+        for kind in ("all", *KINDS):
             sel = [r for r in rows if r["method"] == method and kind in ("all", r["kind"])]
             if not sel:
                 continue
@@ -87,7 +106,7 @@ def per_step_figure(rows: Sequence[dict[str, Any]], out: Path) -> None:
 
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), constrained_layout=True)
     for ax, k, label in zip(axes, METRICS, ("occupancy mIoU", "2-D semantic mIoU"), strict=True):
-        for kind, marker in (("view", "."), ("manipulation", "x")):
+        for kind, marker in zip(KINDS, (".", "x"), strict=True):
             sel = [r for r in rows if r["kind"] == kind]
             if sel:
                 ax.scatter([r["ig"] for r in sel], [r[f"d_{k}"] for r in sel], s=10, marker=marker, label=kind,
