@@ -26,7 +26,6 @@ from msmem_core.interfaces import (
     ObservationModel,
     Outcome,
     PerceptionAction,
-    Robot,
     Simulator,
     Skill,
     Term,
@@ -176,8 +175,8 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
     With a robot that has an arm, a manipulation candidate must have a tool path the robot can follow
     (``Robot.reach_path``). Only the candidates that could win are checked, best first: the skill's
     exactly scored argmax, if it beats the best value so far, is checked; one the robot cannot follow
-    is left out and the next taken (``Objective.best``'s ``admissible``). A skill's best value that
-    cannot win is reported unchecked.
+    is left out and the next taken (``Objective.best``'s ``admissible``, given by a ``ReachFilter``). A
+    skill's best value that cannot win is reported unchecked.
 
     Every skill asked to propose has its candidate funnel in ``Decision.funnel`` (``ctx.funnel``: the
     skill's own stages, then ``proposed``, with an arm ``reach_checked`` and ``reachable``, and ``chosen``).
@@ -193,7 +192,7 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
         values: dict[str, float] = {}
         unreachable: dict[str, int] = {}
         checked: dict[str, int] = {}
-        obstacles_set: list[bool] = []
+        obstacles = BeliefObstacles(ctx)
         for bound in skills:
             with span("track", bound.name, ctx=ctx):
                 bound.skill.track(ctx)  # every step, also when the skill may not act (e.g. FE-UMGF's buffer)
@@ -208,34 +207,17 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
             counts[bound.name] = len(actions)
             if not actions:
                 continue
-            admissible: Callable[[int], bool] | None = None
-            robot = ctx.workspace.robot
-            if robot is not None and robot.arm and bound.skill.category == "manipulation":
-                name, skill, acts = bound.name, bound.skill, actions
-                checked[name] = unreachable[name] = 0
-
-                def follows(i: int, name: str = name, skill: Skill = skill, acts: list[Action] = acts,
-                            bot: Robot = robot) -> bool:
-                    if not obstacles_set:  # the belief's occupied space, once per decision, when first needed
-                        belief = ctx.belief
-                        bot.use_obstacles(belief.grid.column_boxes(belief.expected_occupancy() > 0.5))
-                        obstacles_set.append(True)
-                    with span("reach", name, ctx=ctx):
-                        ok = bool(reachable_actions(skill, [acts[i]], ctx.workspace))
-                    checked[name] += 1
-                    unreachable[name] += not ok
-                    return ok
-
-                admissible = follows
-
+            reach = ReachFilter.of(bound, actions, ctx, obstacles)
             batch = bound.batch(ctx, actions)
             with span("score", bound.name, ctx=ctx, batch=batch) as s:
-                scored = objective.best(ctx, batch, admissible, None if best is None else best.value)
+                scored = objective.best(ctx, batch, None if reach is None else reach.admissible,
+                                        None if best is None else best.value)
                 if s:
                     s.result = scored
-            if admissible is not None:
-                ctx.funnel.count("reach_checked", checked[bound.name])
-                ctx.funnel.count("reachable", checked[bound.name] - unreachable[bound.name])
+            if reach is not None:
+                checked[bound.name], unreachable[bound.name] = reach.checked, reach.unreachable
+                ctx.funnel.count("reach_checked", reach.checked)
+                ctx.funnel.count("reachable", reach.checked - reach.unreachable)
             if scored is None:  # the robot can follow none of them
                 continue
             i, value, terms, _ = scored
@@ -252,6 +234,62 @@ def decide(ctx: DecisionContext, skills: list[BoundSkill], objective: Objective,
         if top:
             top.result = best
         return best
+
+
+class BeliefObstacles:
+    """Gives the run's robot the belief's occupied space as obstacles (``Robot.use_obstacles`` with the
+    ``GridSpec.column_boxes`` of expected occupancy > 0.5): once per decision, when first needed."""
+
+    def __init__(self, ctx: DecisionContext) -> None:
+        self.ctx = ctx
+        self.given = False
+
+    def give(self) -> None:
+        """Set the obstacles up, unless this decision already did."""
+        robot = self.ctx.workspace.robot
+        if self.given or robot is None:
+            return
+        belief = self.ctx.belief
+        robot.use_obstacles(belief.grid.column_boxes(belief.expected_occupancy() > 0.5))
+        self.given = True
+
+
+@dataclass
+class ReachFilter:
+    """Whether the run's robot can follow the tool path of each of one skill's candidates at one
+    decision (``reachable_actions``), asked candidate by candidate as ``Objective.best``'s
+    ``admissible``, so that only candidates that could win are checked (span ``reach`` each)."""
+
+    name: str
+    """The skill's name in config."""
+    skill: Skill
+    actions: list[Action]
+    ctx: DecisionContext
+    obstacles: BeliefObstacles
+    """The decision's obstacle set-up, given to the robot before the first check."""
+    checked: int = 0
+    """Candidates checked so far."""
+    unreachable: int = 0
+    """Checked candidates the robot cannot follow."""
+
+    @classmethod
+    def of(cls, bound: BoundSkill, actions: list[Action], ctx: DecisionContext,
+           obstacles: BeliefObstacles) -> ReachFilter | None:
+        """The filter of a skill's candidates; None when they are not checked (no robot with an arm, or
+        a perception skill: its views are the skill's to check)."""
+        robot = ctx.workspace.robot
+        if robot is None or not robot.arm or bound.skill.category != "manipulation":
+            return None
+        return cls(bound.name, bound.skill, actions, ctx, obstacles)
+
+    def admissible(self, i: int) -> bool:
+        """Whether the robot can follow candidate ``i``'s tool path (a candidate without one is admissible)."""
+        self.obstacles.give()
+        with span("reach", self.name, ctx=self.ctx):
+            ok = bool(reachable_actions(self.skill, [self.actions[i]], self.ctx.workspace))
+        self.checked += 1
+        self.unreachable += not ok
+        return ok
 
 
 def reachable_actions(skill: Skill, actions: list[Action], workspace: Workspace) -> list[Action]:
