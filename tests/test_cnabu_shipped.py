@@ -101,7 +101,7 @@ def test_threshold_check_decides_twice_per_belief_and_a_lower_threshold_changes_
 
 
 # The effect models fine-tuned on the completed beliefs of ``cnabu-map`` (MODEL_CARD_push_map.md,
-# MODEL_CARD_grasp_map.md), used by examples/observe/cnabu-map-effects-map.yaml: on held-out actions from
+# MODEL_CARD_grasp_map.md), the library defaults' (msmem_core/presets/defaults.yaml): on held-out actions from
 # completed beliefs each must beat "no change", the analytic twin and the shipped model of its kind,
 # which was trained on analytic beliefs.
 ON_MAP = {"push": "msmem_cnabu/weights/cnabu_push_map.pt", "grasp": "msmem_cnabu/weights/cnabu_grasp_map.pt"}

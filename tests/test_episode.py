@@ -104,7 +104,7 @@ def test_config_show_prints_the_resolved_preset():
 @pytest.mark.slow
 def test_ig_views_beat_random_views_at_step_10(tmp_path, monkeypatch):
     """Over 5 seeded scenes, IG-chosen views reach a higher occupancy IoU at step 10 than random views, with
-    the analytic update (the belief of what rays reached; docs/lab/2026-12-04-results-under-earlier-defaults.md,
+    the analytic update (the belief of what rays reached; docs/lab/2026-12-04-results-under-earlier-defaults/README.md,
     "Next-best view against random views": with the completed belief of ``cnabu-map`` the two are level at
     step 10)."""
     monkeypatch.setenv("MSMEM_PLUGINS", "rnd=tests.support.random_term")

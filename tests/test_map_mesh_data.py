@@ -22,8 +22,7 @@ from msmem_core.world.scene import CLASS_NAMES
 
 ROOT = Path(__file__).parents[1]
 GENERATOR = ROOT / "examples" / "suites" / "mesh25.generator.yaml"
-CLASS_MAP = yaml.safe_load((ROOT / "examples" / "scenes" / "mesh25-cnabu-map.yaml").read_text())[
-    "observation_model"]["params"]["class_map"]
+CLASS_MAP = yaml.safe_load((ROOT / "examples" / "scenes" / "mesh25-defaults.yaml").read_text())["class_map"]
 SEED = 690100
 
 

@@ -248,13 +248,13 @@ def test_one_effect_models_file_serves_every_method_without_changing_its_skills(
 
 
 def test_one_skill_params_file_sets_a_skills_parameters_for_every_method() -> None:
-    """``skill_params`` (examples/push/clearance.yaml) merges parameters into the skills a method has,
-    without adding skills to a method that lacks them; a misspelt skill is refused."""
-    view, ours, refuse = _both_methods(Path(__file__).parents[1] / "examples" / "push" / "clearance-known-free.yaml",
+    """``skill_params`` (examples/push/without-fall-rules.yaml) merges parameters into the skills a method
+    has, without adding skills to a method that lacks them; a misspelt skill is refused."""
+    view, ours, refuse = _both_methods(Path(__file__).parents[1] / "examples" / "push" / "without-fall-rules.yaml",
                                        "hard25")
     assert [s.name for s in view.skills] == ["view"]
     push = next(s.skill for s in ours.skills if s.name == "push")
-    assert (push.config.clearance_m, push.config.clear_into_unknown) == (0.01, False)
+    assert (push.config.max_pushes_per_object, push.config.trip_height_ratio) == (None, None)
     assert [s.name for s in ours.skills] == ["view", "push", "grasp"]
     over = {"skills": [{"name": "view"}, {"name": "push", "params": {"max_samples": 7, "clearance_m": 0.05}}],
             "skill_params": {"push": {"clearance_m": 0.02}}}
