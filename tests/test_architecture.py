@@ -207,3 +207,43 @@ def test_core_code_names_no_built_in_skill(path: Path) -> None:
     found = skill_names_in_code(path.read_text())
     assert not found, f"{path.relative_to(ROOT)} names built-in skills in code at " + ", ".join(
         f"line {line} ({name!r})" for line, name in found)
+
+
+HOOKS = ("propose", "track", "execute", "score", "refine")
+"""The methods of ``Skill`` and ``Term`` that MSAS calls with the step's ``DecisionContext``."""
+HOOK_FILES = sorted(f for d in (CORE, ROOT / "plugins", ROOT / "examples" / "msmem-nudge" / "msmem_nudge")
+                    for f in d.rglob("*.py") if not f.is_relative_to(CORE / "cli"))  # the CLI's ctx: a click context
+
+
+def _ctx_annotations(source: str) -> list[tuple[int, str, str]]:
+    """(line, function, annotation) of every parameter named ``ctx`` of a hook method or annotated ``Any``."""
+    out = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            for arg in node.args.args + node.args.kwonlyargs:
+                text = ast.unparse(arg.annotation) if arg.annotation is not None else ""
+                if arg.arg == "ctx" and (node.name in HOOKS or text == "Any"):
+                    out.append((node.lineno, node.name, text))
+    return sorted(out)
+
+
+@pytest.mark.parametrize("path", HOOK_FILES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_hooks_type_their_context(path: Path) -> None:
+    """Skills' and terms' hooks (and the helpers they hand the context to) take a ``DecisionContext``, not
+    ``Any``: the type checker sees what a plugin reads of it."""
+    wrong = [(line, name, text) for line, name, text in _ctx_annotations(path.read_text())
+             if text != "DecisionContext"]
+    assert not wrong, f"{path.relative_to(ROOT)}: " + ", ".join(
+        f"{name} (line {line}) takes ctx: {text or 'unannotated'}" for line, name, text in wrong)
+
+
+def test_the_context_check_finds_untyped_hooks_and_helpers() -> None:
+    source = '''class S:
+    def propose(self, ctx: Any) -> list: ...
+    def track(self, ctx) -> None: ...
+    def score(self, ctx: DecisionContext, batch) -> None: ...
+def helper(ctx: Any) -> None: ...
+def other(ctx: Tensor) -> None: ...
+'''
+    assert _ctx_annotations(source) == [(2, "propose", "Any"), (3, "track", ""), (4, "score", "DecisionContext"),
+                                        (5, "helper", "Any")]

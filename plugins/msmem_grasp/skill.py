@@ -70,7 +70,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from scipy import ndimage
 
-from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill, Workspace
+from msmem_core.interfaces import Action, Category, DecisionContext, Outcome, Simulator, Skill, Workspace
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.util.trace import span
 from msmem_core.world.camera import CameraConfig
@@ -364,11 +364,11 @@ class GraspSkill(Skill):
         with span("FE-vMF inference"):
             return GraspHypotheses.from_prediction(cloud.points, predict_cloud(self._model, cloud))
 
-    def track(self, ctx: Any) -> None:
+    def track(self, ctx: DecisionContext) -> None:
         """FE-UMGF step: fuse this step's predictions into the buffer (once per step)."""
         if self._tracked is not None and self._tracked[0] == ctx.step and self._tracked[1] is ctx.belief:
             return
-        manipulated = int(getattr(ctx, "last_manipulation", -1))
+        manipulated = ctx.last_manipulation
         if ctx.step == 0 or (self._tracked is not None and ctx.step < self._tracked[0]):
             self.buffer.clear()  # a new episode
             self._manipulated = -1
@@ -397,16 +397,14 @@ class GraspSkill(Skill):
             self._confirm = False
 
     # -------------------------------------------------------------------------------- proposal
-    def propose(self, ctx: Any) -> list[Action]:
+    def propose(self, ctx: DecisionContext) -> list[Action]:
         self.track(ctx)
         if not ctx.manipulation_allowed:
             return []
         stages: dict[str, int] = {}
         out = self.executable(ctx.belief, ctx.shelf, stages, ctx.workspace.classes)
-        funnel = getattr(ctx, "funnel", None)
-        if funnel is not None:  # the step record's candidate funnel: every stage, 0 after the one that left none
-            for stage in FUNNEL_STAGES:
-                funnel.count(stage, stages.get(stage, 0))
+        for stage in FUNNEL_STAGES:  # the step record's candidate funnel: every stage, 0 after the one that left none
+            ctx.funnel.count(stage, stages.get(stage, 0))
         return list(out)
 
     def candidates(self, belief: EvidentialMap, shelf: ShelfSpec,
@@ -664,7 +662,7 @@ class GraspSkill(Skill):
         a = action if isinstance(action, GraspAction) else GraspAction.model_validate(action.model_dump())
         return np.stack([a.at(p) for p in a.approach_m] + [a.matrix] + [a.at(p) for p in a.retreat_m])
 
-    def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
+    def execute(self, sim: Simulator, action: Action, ctx: DecisionContext) -> Outcome:
         cfg = self.config
         a = action if isinstance(action, GraspAction) else GraspAction.model_validate(action.model_dump())
         grasp = a.matrix

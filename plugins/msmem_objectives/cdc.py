@@ -14,13 +14,13 @@ those are compared.
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.interfaces import CandidateBatch, Category, Term
+from msmem_core.interfaces import CandidateBatch, Category, DecisionContext, Term
 
 
 class CDCConfig(BaseModel):
@@ -53,7 +53,7 @@ class CDCTerm(Term):
     def __init__(self, config: CDCConfig | None = None) -> None:
         self.config = config or CDCConfig()
 
-    def score(self, ctx: Any, batch: CandidateBatch) -> NDArray[np.float64]:
+    def score(self, ctx: DecisionContext, batch: CandidateBatch) -> NDArray[np.float64]:
         pred = batch.prediction
         assert pred is not None
         tau = self.config.tau_chi if self.config.tau_chi is not None else ctx.tau_chi

@@ -18,13 +18,13 @@ nothing (docs/explanation/msas.md; the tune10 sweep is in docs/lab/).
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
-from msmem_core.interfaces import CandidateBatch, Category, Term
+from msmem_core.interfaces import CandidateBatch, Category, DecisionContext, Term
 from msmem_core.map.belief import categorical_entropy
 
 
@@ -48,7 +48,7 @@ class SemanticEntropyTerm(Term):
     def __init__(self, config: SemanticEntropyConfig | None = None) -> None:
         self.config = config or SemanticEntropyConfig()
 
-    def score(self, ctx: Any, batch: CandidateBatch) -> NDArray[np.float64]:
+    def score(self, ctx: DecisionContext, batch: CandidateBatch) -> NDArray[np.float64]:
         pred = batch.prediction
         assert pred is not None
         eta0 = pred.base.eta.reshape(pred.base.num_classes, -1)

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.interfaces import CandidateBatch, Term
+from msmem_core.interfaces import CandidateBatch, DecisionContext, Term
 from msmem_core.map.ig import IGDelta
 
 
@@ -38,9 +38,9 @@ class IGTermConfig(BaseModel):
     """Candidates re-scored at full density after screening."""
 
 
-def reachable_mask(ctx: Any) -> NDArray[np.bool_] | None:
+def reachable_mask(ctx: DecisionContext) -> NDArray[np.bool_] | None:
     """[V] the views the run's robot reaches (cached by the robot); None when it reaches them all."""
-    robot = getattr(getattr(ctx, "workspace", None), "robot", None)
+    robot = ctx.workspace.robot
     if robot is None:
         return None
     mask = np.asarray(robot.reachable_views(ctx.viewpoints, ctx.shelf), dtype=bool)
@@ -54,13 +54,13 @@ def best_view(values: NDArray[np.float64], mask: NDArray[np.bool_] | None) -> ND
     return values[:, mask].max(axis=1)
 
 
-def ig_deltas(ctx: Any, batch: CandidateBatch) -> list[IGDelta]:
+def ig_deltas(ctx: DecisionContext, batch: CandidateBatch) -> list[IGDelta]:
     """The IG-field change of each manipulation candidate (from its ``Prediction.changes``)."""
     assert batch.prediction is not None
     return [ctx.ig.belief_delta(ctx.field, d) for d in batch.prediction.changes]
 
 
-def _manipulation_state(ctx: Any, batch: CandidateBatch, cfg: IGTermConfig) -> dict[str, Any]:
+def _manipulation_state(ctx: DecisionContext, batch: CandidateBatch, cfg: IGTermConfig) -> dict[str, Any]:
     """Per-batch cache: the candidates' values, which of them are exact, and their IG deltas."""
     assert batch.prediction is not None
     key = ("manipulation_ig", id(batch.prediction), cfg.incremental, cfg.screen_ray_step, cfg.finalists)
@@ -91,7 +91,8 @@ def _manipulation_state(ctx: Any, batch: CandidateBatch, cfg: IGTermConfig) -> d
     return state
 
 
-def manipulation_ig(ctx: Any, batch: CandidateBatch, config: IGTermConfig | None = None) -> NDArray[np.float64]:
+def manipulation_ig(ctx: DecisionContext, batch: CandidateBatch,
+                    config: IGTermConfig | None = None) -> NDArray[np.float64]:
     """``max_v IG(v | predicted belief)`` per manipulation candidate [K] (cached per batch in ``ctx.cache``).
 
     With screening (``screen_ray_step > 1`` and more than ``finalists`` candidates), the finalists
@@ -108,7 +109,7 @@ class IGTerm(Term):
     def __init__(self, config: IGTermConfig | None = None) -> None:
         self.config = config or IGTermConfig()
 
-    def score(self, ctx: Any, batch: CandidateBatch) -> NDArray[np.float64]:
+    def score(self, ctx: DecisionContext, batch: CandidateBatch) -> NDArray[np.float64]:
         if batch.category == "perception":
             assert batch.view_indices is not None
             if "view_ig" not in ctx.cache:  # one sweep per step, shared with other terms; ig.sweep keeps
@@ -126,7 +127,8 @@ class IGTerm(Term):
             return np.zeros(0)
         return manipulation_ig(ctx, batch, self.config)
 
-    def refine(self, ctx: Any, batch: CandidateBatch, indices: NDArray[np.int64]) -> NDArray[np.float64] | None:
+    def refine(self, ctx: DecisionContext, batch: CandidateBatch,
+               indices: NDArray[np.int64]) -> NDArray[np.float64] | None:
         """Exact (full-density) values of screened manipulation candidates; None when all are exact."""
         if batch.category != "manipulation":
             return None

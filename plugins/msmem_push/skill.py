@@ -62,7 +62,7 @@ from pydantic import (
 )
 from scipy import ndimage
 
-from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill, Workspace
+from msmem_core.interfaces import Action, Category, DecisionContext, Outcome, Simulator, Skill, Workspace
 from msmem_core.map.ig import shelf_wall_mask
 from msmem_core.world.gripper import GripperSpec, HandDims
 from msmem_core.world.meshes import stance_ratio
@@ -363,7 +363,7 @@ class PushSkill(Skill):
             return self.tool
         return tool_boxes(self.config.gripper, "forward", self.config.hand_m, u)
 
-    def track(self, ctx: Any) -> None:
+    def track(self, ctx: DecisionContext) -> None:
         """A new episode (step 0, or a step before the last one seen) forgets the pushes of the last one
         (``max_pushes_per_object``), so that one skill can serve several episodes."""
         if ctx.step == 0 or ctx.step < self._last_step:
@@ -379,15 +379,13 @@ class PushSkill(Skill):
             self._grid_cache = {key: (interior, shelf_wall_mask(grid, shelf).ravel())}
         return self._grid_cache[key]
 
-    def propose(self, ctx: Any) -> list[Action]:
+    def propose(self, ctx: DecisionContext) -> list[Action]:
         if not ctx.manipulation_allowed:
             return []
         stages: dict[str, int] = {}
         out = self.sample(ctx.belief, ctx.shelf, ctx.rng, ctx.workspace.classes, stages)
-        funnel = getattr(ctx, "funnel", None)
-        if funnel is not None:  # the step record's candidate funnel (0 for stages never reached)
-            for stage in FUNNEL_STAGES:
-                funnel.count(stage, stages.get(stage, 0))
+        for stage in FUNNEL_STAGES:  # the step record's candidate funnel (0 for stages never reached)
+            ctx.funnel.count(stage, stages.get(stage, 0))
         return list(out)
 
     def sample(self, belief: Any, shelf: ShelfSpec, rng: np.random.Generator,
@@ -729,7 +727,7 @@ class PushSkill(Skill):
     def tool_path(self, action: Action, workspace: Workspace) -> NDArray[np.float64]:
         return self.waypoints(action)
 
-    def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
+    def execute(self, sim: Simulator, action: Action, ctx: DecisionContext) -> Outcome:
         cfg = self.config
         a = action if isinstance(action, PushAction) else PushAction.model_validate(action.model_dump())
         a.check_start(ctx.shelf.interior_box)

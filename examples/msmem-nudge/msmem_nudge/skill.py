@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy import ndimage
 
-from msmem_core.interfaces import Action, Category, Outcome, Simulator, Skill, Workspace
+from msmem_core.interfaces import Action, Category, DecisionContext, Outcome, Simulator, Skill, Workspace
 from msmem_core.world.gripper import GripperSpec
 
 Box = tuple[float, float, float, float, float, float]
@@ -230,7 +230,7 @@ class NudgeSkill(Skill):
         self.tool = tool_of(self.config.gripper)
 
     # ----------------------------------------------------------------------------------- proposal
-    def propose(self, ctx: Any) -> list[Action]:
+    def propose(self, ctx: DecisionContext) -> list[Action]:
         if not ctx.manipulation_allowed:
             return []
         return list(self.sample(ctx.belief, ctx.shelf, ctx.rng))
@@ -287,7 +287,7 @@ class NudgeSkill(Skill):
         return not (moved & others).any()
 
     # ----------------------------------------------------------------------------------- execution
-    def execute(self, sim: Simulator, action: Action, ctx: Any) -> Outcome:
+    def execute(self, sim: Simulator, action: Action, ctx: DecisionContext) -> Outcome:
         cfg = self.config
         a = NudgeAction.model_validate(action.model_dump())
         x0, y, zt = a.start_m

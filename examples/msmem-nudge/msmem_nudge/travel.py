@@ -14,13 +14,11 @@ for one second.
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from msmem_core.interfaces import CandidateBatch, Term
+from msmem_core.interfaces import CandidateBatch, DecisionContext, Term
 
 FRONT_M = (0.0, -0.1)
 """Where the gripper enters the shelf (x, y), for the path estimate."""
@@ -52,7 +50,7 @@ class TravelCost(Term):
             self._last_view = max(new)
         self._seen = set(visited)
 
-    def score(self, ctx: Any, batch: CandidateBatch) -> NDArray[np.float64]:
+    def score(self, ctx: DecisionContext, batch: CandidateBatch) -> NDArray[np.float64]:
         cfg = self.config
         self._track(ctx.visited)
         kinds = [a.kind for a in batch.actions]
