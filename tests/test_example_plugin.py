@@ -77,7 +77,7 @@ def test_msas_proposes_scores_and_executes_the_nudge(nudge_package, tmp_path):
     assert first["terms"]["travel-cost"] < -8.0
     if first["step"] + 1 < len(steps):
         assert steps[first["step"] + 1]["skill"] == "view", "a manipulation is followed by its associated view"
-    assert steps[-1]["metrics"]["position_change_m"] > 0.01, "the nudged object moved"
+    assert steps[-1]["metrics"]["position_change_m"] > 0.005, "the nudged object moved"
 
 
 def test_the_example_package_own_tests_pass(nudge_package):

@@ -81,15 +81,17 @@ def _source(folder: Path) -> str:
     return f"Folder `docs/results/{folder.name}`, made at commit `{p['commit']}` by:\n\n```bash\n{p['command']}\n```\n"
 
 
-def table_one(folder: Path, root: Path) -> str:
-    """Table I and II, paired differences against view-only, the issue's claims, IG tracking, funnel."""
+def table_one(folder: Path, root: Path,
+              title: str = "## Table I: the five methods on `hard25`, 40 steps", full: bool = True) -> str:
+    """Table I and paired differences against view-only; ``full``: also the claims, Table II, IG
+    tracking and the candidate funnel."""
     eps = read_bench_folder(folder)
     methods = [m for m in METHODS if any(k[0] == m for k in eps)]
     # the scenes every method finished: a table over one set of scenes
     common = sorted(set.intersection(*({s for (mm, s) in eps if mm == m} for m in methods))) if methods else []
     per = {m: {s: eps[(m, s)] for s in common} for m in methods}
     counts = {m: {s: c for s, c in read_paper_counts(folder, m).items() if s in common} for m in methods}
-    out = ["## Table I: the five methods on `hard25`, 40 steps", "", _source(folder),
+    out = [title, "", _source(folder),
            f"Scenes {_ranges(common)} ({len(common)} of 25), every method on each.", ""]
     out += ["| method | scenes | occupancy mIoU pooled | per scene | 2-D semantic mIoU pooled | per scene | "
             "Position Change (m) | pushes | grasps (held) | paper: occupancy / semantics / Position Change | "
@@ -127,8 +129,9 @@ def table_one(folder: Path, root: Path) -> str:
                 diff, lo, hi = cumulative_difference(counts[m], counts["view-only"], k)
                 cells.append(f"{diff:+.3f} [{lo:+.3f}, {hi:+.3f}]{_star(lo, hi)}")
             out.append(f"| {m} | " + " | ".join(cells) + " |")
-    out += ["", claims(per, counts), "", table_two(folder, methods), "", tracking_section(folder),
-            "", funnel_section(folder)]
+    if full:
+        out += ["", claims(per, counts), "", table_two(folder, methods), "", tracking_section(folder),
+                "", funnel_section(folder)]
     return "\n".join(out)
 
 
@@ -248,6 +251,9 @@ def results_page(root: Path) -> str:
     parts = [HEADER]
     if (root / "table1").is_dir():
         parts.append(table_one(root / "table1", root))
+    if (root / "table1-ur5e").is_dir():
+        parts.append(table_one(root / "table1-ur5e", root, full=False, title=(
+            "## With the UR5e arm (`examples/robots/ur5e.yaml`): reach-checked pushes and grasps from the front")))
     if (root / "ceiling").is_dir():
         parts.append(ceiling_section(root / "ceiling", root))
     if (root / "mesh25-view-only").is_dir():
