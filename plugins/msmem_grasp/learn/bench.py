@@ -113,7 +113,7 @@ def run_scene(task: tuple[int, GraspBenchConfig]) -> list[dict[str, Any]]:
                 belief = observe.update(belief, sim.observe(viewpoints[v]))
                 visited.add(v)
                 ctx = SimpleNamespace(step=step, belief=belief, visited=set(visited), viewpoints=viewpoints,
-                                      shelf=scene.shelf, manipulation_allowed=True)
+                                      shelf=scene.shelf, manipulation_allowed=True, last_manipulation=-1)
                 skill.track(ctx)
             cands = skill.executable(belief, scene.shelf)
             res = TrialResult(seed, trial, len(cands), False, False, None, None, 0.0, 0.0, 0, skill.predictor, 0.0)
