@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.msmem-installed
 TORCH := torch==2.13.0
 
-.PHONY: setup system-deps demo test test-slow lint perf docs docs-site clean sapien test-sapien test-ray mutation
+.PHONY: setup system-deps demo test test-unit test-slow lint perf docs docs-site clean sapien test-sapien test-ray mutation
 
 setup: system-deps $(STAMP)
 
@@ -47,6 +47,10 @@ demo: setup
 # Two workers (pytest-xdist), a test file per worker: each file's module fixtures are built once.
 test: setup
 	$(PY) -m pytest -q -m "not slow" -n 2 --dist loadfile
+
+# The fast tier: the math, the core's loop and data types (tests/conftest.py, UNIT_MODULES).
+test-unit: setup
+	$(PY) -m pytest -q -m "unit and not slow" -n 2 --dist loadfile
 
 test-slow: setup
 	$(PY) -m pytest -q -m slow -n 2 --dist loadfile

@@ -29,3 +29,24 @@ def one_torch_thread() -> Iterator[None]:
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+UNIT_MODULES = frozenset({
+    "test_architecture", "test_backbone", "test_belief", "test_ceiling", "test_class_map",
+    "test_cnabu_loss_mutation", "test_config", "test_conformance", "test_doig", "test_fpp", "test_funnel",
+    "test_fusion", "test_fusion_mutation", "test_geometry", "test_grasp_exit", "test_grasp_losses",
+    "test_grasp_losses_mutation", "test_groundtruth", "test_ig", "test_ig_gain", "test_ig_incremental",
+    "test_ig_information", "test_ig_mutation", "test_malloc", "test_mesh_objects", "test_metrics",
+    "test_metrics_mutation", "test_msas_loop", "test_no_history_words", "test_object_counts",
+    "test_plugin_classes", "test_plugin_isolation", "test_pybullet_sim", "test_reach_filter",
+    "test_robot_conformance", "test_runfolder", "test_scene_classes", "test_tiers", "test_tracking", "test_vmf",
+})
+"""The fast tier (``make test-unit``, marker ``unit``): the modules whose tests took at most about 10 s
+in all on a loaded 2-core machine (pytest's junit times of a full ``make test``): the math, the core's
+loop and data types, one-component physics. Episodes, training, CLI runs and the docs are left out."""
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in UNIT_MODULES:
+            item.add_marker(pytest.mark.unit)
