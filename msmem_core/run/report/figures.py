@@ -1,40 +1,38 @@
-"""Run reports: an interactive, self-contained ``report.html`` and PNG snapshots of a run folder.
+"""The run report's figures, drawn from :mod:`msmem_core.run.report.data`.
 
-``write_report(run_dir)`` reads what the runner wrote (``config.json``, ``scene.json``,
-``steps.jsonl``, ``metrics.json``, ``belief_step{N}.npz``, ``belief_final.npz``, ``gt_final.npz``)
-and writes:
+- plotly (``report.html``): :func:`figure_3d`, the belief at every snapshot step beside the ground truth
+  with the camera path, manipulations and arm, a step toggle and a colouring menu (argmax class, semantic
+  vacuity, occupancy entropy); :func:`figure_metrics`, IoU, Position Change, objective terms and the best
+  value of every skill per step.
+- matplotlib (Agg, PNG): :func:`png_metrics` and :func:`png_belief`, the same curves and the final belief
+  against the ground truth, for papers and terminals.
 
-- ``report.html``: plotly with plotly.js inline (opens offline). A 3-D view of the belief at the
-  snapshot steps (voxels with expected occupancy > 0.5, coloured by argmax class, or by semantic
-  vacuity or occupancy entropy: a toggle) beside the ground truth at the same step, the camera path
-  (chosen viewpoints with step numbers) and the executed manipulations, drawn generically from
-  ``steps.jsonl``: an action with ``start_m`` + ``direction`` + ``length_m`` is an arrow (pushes,
-  nudges), one with a 4x4 ``pose`` or ``grasp_pose`` a gripper glyph (grasps). Below it: IoU,
-  Position Change, objective terms and the best value of every skill per step, with the chosen
-  action kind marked, and a table of the steps.
-- ``report_metrics.png`` and ``report_belief.png``: the same curves and a 3-D scatter of the final
-  belief against the ground truth (matplotlib, Agg), for papers and terminals.
-
-Only surface voxels (an occupied voxel with a free 6-neighbour) are drawn: the picture is the same and
-the file several times smaller. The shelf boards (outside the interior) are not drawn as voxels; the
-interior is outlined. This module is numpy-only at import; plotly and matplotlib load lazily.
+plotly and matplotlib load inside the functions: importing this module needs numpy only.
 """
 
 from __future__ import annotations
 
-import html
 import json
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from msmem_core.map.belief import EvidentialMap
-from msmem_core.run.runfolder import RunData, load_run
-from msmem_core.world.grid import GridSpec
+from msmem_core.run.report.data import (
+    METRIC_KEYS,
+    PAPER_METRIC_KEYS,
+    VoxelLayer,
+    arm_at,
+    belief_layer,
+    camera_path,
+    gripper_segments,
+    gt_layer,
+    manipulations,
+    shelf_edges,
+)
+from msmem_core.run.runfolder import RunData
 from msmem_core.world.scene import SceneSpec
 
 CLASS_COLORS: tuple[str, ...] = (
@@ -48,163 +46,10 @@ EXTRA_COLORS: tuple[str, ...] = ("#393b79", "#637939", "#8c6d31", "#843c39", "#7
 UNKNOWN_COLOR = "#202020"
 """Colour of occupied voxels whose class is unknown (vacuity >= tau_chi)."""
 SKILL_SYMBOLS = ("circle", "diamond", "square", "x", "triangle-up", "cross", "star")
-REPORT_FILES = ("report.html", "report_metrics.png", "report_belief.png")
-METRIC_KEYS = ("occupancy_iou", "observable_iou", "semantic_miou", "semantic_miou_bev")
-PAPER_METRIC_KEYS = ("occupancy_miou", "semantic_miou_2d")
-"""The paper's own mIoUs (docs/reference/metrics.md), drawn dashed beside METRIC_KEYS; runs from before them lack
-them."""
-PAPER_SUMMARY_KEYS = (*PAPER_METRIC_KEYS, "occupancy_ece", "semantic_ece")
-
-
-# --------------------------------------------------------------------------------------- geometry
-def _interior(shelf: Any, grid: GridSpec) -> NDArray[np.bool_]:
-    """Voxels inside the shelf interior or in front of it (everything but the boards)."""
-    c = grid.centers()
-    lo, hi = shelf.interior_lower, shelf.interior_upper
-    return np.all((c > lo) & (c < hi), axis=-1) | ((c[..., 1] < lo[1]) & np.all(c[..., [0, 2]] > lo[[0, 2]], axis=-1)
-                                                    & np.all(c[..., [0, 2]] < hi[[0, 2]], axis=-1))
-
-
-def surface(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """Voxels of ``mask`` with at least one 6-neighbour outside it."""
-    m = np.pad(mask, 1)
-    inner = m[1:-1, 1:-1, 1:-1].copy()
-    for ax in range(3):
-        for sh in (-1, 1):
-            inner &= np.roll(m, sh, axis=ax)[1:-1, 1:-1, 1:-1]
-    return mask & ~inner
-
-
-@dataclass
-class VoxelLayer:
-    """Points to draw for one belief or ground truth: centres, class ids and per-point values."""
-
-    xyz: NDArray[np.float32]
-    cls: NDArray[np.int16]
-    values: dict[str, NDArray[np.float32]] = field(default_factory=dict)
-
-
-def belief_layer(belief: EvidentialMap, shelf: Any, tau_chi: float) -> VoxelLayer:
-    """Surface voxels with expected occupancy > 0.5 (boards excluded), argmax class (-1 unknown),
-    occupancy probability, semantic vacuity and occupancy entropy (nats)."""
-    p = belief.expected_occupancy()
-    keep = surface((p > 0.5) & _interior(shelf, belief.grid))
-    c = belief.grid.centers()[keep].astype(np.float32)
-    return VoxelLayer(c, belief.argmax_class(tau_chi)[keep].astype(np.int16), {
-        "occupancy": p[keep].astype(np.float32),
-        "vacuity": belief.vacuity()[keep].astype(np.float32),
-        "occupancy entropy": belief.occupancy_entropy()[keep].astype(np.float32),
-    })
-
-
-def gt_layer(grid: GridSpec, occ: NDArray[np.bool_], cls: NDArray[np.integer]) -> VoxelLayer:
-    keep = surface(np.asarray(occ, dtype=bool))
-    return VoxelLayer(grid.centers()[keep].astype(np.float32), np.asarray(cls)[keep].astype(np.int16))
-
-
-def camera_path(run: RunData, upto: int) -> list[tuple[str, NDArray[np.float64]]]:
-    """(label, camera-to-world pose) of the start view and every view chosen at steps <= ``upto``."""
-    from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
-
-    cfg = run.config
-    views = generate_viewpoints(cfg.viewpoints, run.scene.shelf)
-    start = cfg.msas.start_view if cfg.msas.start_view is not None else default_start_view(cfg.viewpoints)
-    out = [("start", views[start])]
-    for rec in run.steps:
-        v = rec["action"].get("view")  # PerceptionAction.view, the viewpoint's index: not a skill name
-        if rec["step"] <= upto and isinstance(v, int) and 0 <= v < len(views):
-            out.append((str(rec["step"]), views[v]))
-    return out
-
-
-def arm_at(run: RunData, upto: int) -> tuple[int, NDArray[np.float64]] | None:
-    """(step, [L, 3] points) of the arm in the last step <= ``upto`` whose record has its configuration
-    (``arm.points``: runs with a robot that has an arm); None when there is none."""
-    found = None
-    for rec in run.steps:
-        arm = rec.get("arm") or {}
-        if rec["step"] <= upto and arm.get("points"):
-            found = (int(rec["step"]), np.asarray(arm["points"], dtype=np.float64))
-    return found
-
-
-@dataclass
-class Arrow:
-    step: int
-    kind: str
-    start: NDArray[np.float64]
-    end: NDArray[np.float64]
-
-
-def arrow_of(action: dict[str, Any]) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
-    """Start and end (3-D) of an action with ``start_m``, ``direction`` and ``length_m``; a 2-D start
-    is lifted to ``height_m`` (or 5 cm)."""
-    if not all(k in action for k in ("start_m", "direction", "length_m")):
-        return None
-    try:
-        s = np.asarray(action["start_m"], dtype=np.float64).ravel()
-        u = np.asarray(action["direction"], dtype=np.float64).ravel()
-        length = float(action["length_m"])
-    except (TypeError, ValueError):
-        return None
-    z = float(action.get("height_m", 0.05)) if len(s) == 2 else None
-    s3 = np.array([*s[:2], z]) if z is not None else s[:3]
-    u3 = np.array([*u[:2], 0.0]) if len(u) == 2 else u[:3]
-    n = float(np.linalg.norm(u3))
-    if len(s3) != 3 or len(u3) != 3 or n < 1e-12 or not math.isfinite(length):
-        return None
-    return s3, s3 + length * u3 / n
-
-
-def pose_of(action: dict[str, Any]) -> NDArray[np.float64] | None:
-    """A 4x4 ``pose`` or ``grasp_pose`` of an action."""
-    for key in ("grasp_pose", "pose"):
-        if key in action:
-            try:
-                t = np.asarray(action[key], dtype=np.float64)
-            except (TypeError, ValueError):
-                continue
-            if t.shape == (4, 4) and np.all(np.isfinite(t)):
-                return t
-    return None
-
-
-def gripper_segments(pose: NDArray[np.float64], gripper: Any, opening_m: float) -> list[NDArray[np.float64]]:
-    """Edges (pairs of world points) of the gripper's finger and palm boxes at ``pose``."""
-    segs = []
-    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=np.float64)
-    edges = [(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
-    for centre, half in gripper.boxes(opening_m):
-        local = centre + corners * half
-        world = local @ pose[:3, :3].T + pose[:3, 3]
-        segs += [np.stack([world[i], world[j]]) for i, j in edges]
-    return segs
-
-
-def manipulations(run: RunData, upto: int) -> tuple[list[Arrow], list[tuple[int, str, NDArray[np.float64], float]]]:
-    """Arrows and gripper poses (step, kind, pose, opening) of the actions executed at steps <= ``upto``."""
-    arrows, grasps = [], []
-    for rec in run.steps:
-        if rec["step"] > upto:
-            continue
-        a = rec["action"]
-        ar = arrow_of(a)
-        if ar is not None:
-            arrows.append(Arrow(rec["step"], str(a.get("kind", rec["skill"])), *ar))
-        t = pose_of(a)
-        if t is not None:
-            opening = a.get("width_m", a.get("opening_m", run.config.gripper.max_opening_m))
-            grasps.append((rec["step"], str(a.get("kind", rec["skill"])), t, float(opening)))
-    return arrows, grasps
-
-
-def shelf_edges(shelf: Any) -> list[NDArray[np.float64]]:
-    lo, hi = shelf.interior_lower, shelf.interior_upper
-    pts = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    return [np.stack([pts[i], pts[j]]) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
 
 
 def _polyline(segs: list[NDArray[np.float64]]) -> tuple[list[float | None], ...]:
+    """Segments as the x, y, z lists of one plotly line trace (None between segments, 4 decimals)."""
     xs: list[float | None] = []
     ys: list[float | None] = []
     zs: list[float | None] = []
@@ -452,116 +297,6 @@ def figure_metrics(run: RunData) -> Any:
     return fig
 
 
-# ------------------------------------------------------------------------------------------- HTML page
-_ERROR_HOOK = """<script>
-window.msmemErrors = [];
-window.addEventListener('error', function (e) { window.msmemErrors.push(String(e.message)); });
-(function () { var orig = console.error; console.error = function () {
-  window.msmemErrors.push(Array.prototype.join.call(arguments, ' ')); return orig.apply(console, arguments); }; })();
-</script>"""
-
-_DONE_SCRIPT = """<script>
-function msmemPlotDone() {
-  var el = document.getElementById('msmem-status');
-  var plots = document.querySelectorAll('.js-plotly-plot');
-  var drawn = 0;
-  plots.forEach(function (p) {  // a 3-D scene without WebGL shows plotly's .no-webgl notice instead
-    if (p._fullLayout && p.dataset.msmemRendered === '1' && !p.querySelector('.no-webgl')) { drawn += 1; }
-  });
-  el.dataset.plots = String(drawn);
-  el.dataset.errors = String(window.msmemErrors.length);
-  el.textContent = drawn + ' of ' + el.dataset.expected + ' plots drawn, ' + window.msmemErrors.length + ' errors'
-    + (window.msmemErrors.length ? ': ' + window.msmemErrors.join(' | ') : '');
-  document.title = 'msmem report: ' + el.dataset.steps + ' steps, ' + drawn + ' plots';
-}
-window.addEventListener('load', function () { msmemPlotDone(); setTimeout(msmemPlotDone, 1000); });
-</script>"""
-
-_SYNC_CAMERAS = """
-var gd = document.getElementById('{plot_id}');
-gd.dataset.msmemRendered = '1';
-var syncing = false;
-gd.on('plotly_relayout', function (ev) {
-  if (syncing) { return; }
-  var out = {};
-  if (ev['scene.camera']) { out['scene2.camera'] = ev['scene.camera']; }
-  if (ev['scene2.camera']) { out['scene.camera'] = ev['scene2.camera']; }
-  if (Object.keys(out).length) { syncing = true; Plotly.relayout(gd, out).then(function () { syncing = false; }); }
-});
-msmemPlotDone();
-"""
-
-_STYLE = """<style>
-body { font-family: system-ui, sans-serif; margin: 1.5em; color: #222; }
-table { border-collapse: collapse; font-size: 0.85em; }
-td, th { border: 1px solid #ccc; padding: 2px 6px; text-align: right; }
-th { background: #f3f3f3; } td.l, th.l { text-align: left; }
-.summary td { text-align: left; }
-#msmem-status { color: #888; font-size: 0.8em; }
-</style>"""
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    return html.escape(str(v))
-
-
-def _summary_table(run: RunData) -> str:
-    cfg, m = run.config, run.metrics
-    hidden = run.scene.hidden_objects
-    rows = [
-        ("run folder", str(run.run_dir)), ("method", cfg.method), ("scene", run.scene.name),
-        ("objects (hidden from all views)", f"{len(run.scene.objects)} ({'?' if hidden is None else hidden})"),
-        ("simulator", cfg.simulator.name), ("skills", ", ".join(s.name for s in cfg.skills)),
-        ("objective", " + ".join(f"{t.weight:g} * {t.name}" for t in cfg.objective)),
-        ("steps", str(len(run.steps))), ("actions", json.dumps(m.get("actions", {}))),
-    ]
-    rows += [(k, f"{m[k]:.4g}") for k in (*METRIC_KEYS, "position_change_m", "seconds_per_step") if k in m]
-    rows += [(f"{k} (paper)", f"{m[k]:.4g}") for k in PAPER_SUMMARY_KEYS if k in m]
-    return "<table class='summary'>" + "".join(
-        f"<tr><th class='l'>{html.escape(k)}</th><td>{html.escape(v)}</td></tr>"
-        for k, v in rows) + "</table>"
-
-
-def _steps_table(run: RunData) -> str:
-    head = ["step", "skill", "objective", "candidates", *METRIC_KEYS, "position_change_m", "seconds", "action"]
-    out = ["<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>"]
-    for r in run.steps:
-        a = {k: v for k, v in r["action"].items() if k not in ("kind", "category", "tool", "interior_m")}
-        cells = [r["step"], r["skill"], r["objective"], json.dumps(r.get("candidates", {})),
-                 *(r["metrics"].get(k, "") for k in (*METRIC_KEYS, "position_change_m")), r.get("seconds", "")]
-        out.append("<tr>" + "".join(f"<td>{_fmt(c)}</td>" for c in cells)
-                   + f"<td class='l'><code>{html.escape(json.dumps(a)[:160])}</code></td></tr>")
-    return "".join(out) + "</table>"
-
-
-def render_html(run: RunData) -> str:
-    """The report page (plotly.js inline: no network needed)."""
-    f3d, fm = figure_3d(run), figure_metrics(run)
-    post = _SYNC_CAMERAS
-    div3d = f3d.to_html(full_html=False, include_plotlyjs=True, post_script=post, config={"responsive": True})
-    divm = fm.to_html(full_html=False, include_plotlyjs=False,
-                      post_script="document.getElementById('{plot_id}').dataset.msmemRendered = '1'; msmemPlotDone();")
-    title = f"msmem report: {run.config.method}, {run.scene.name}, {len(run.steps)} steps"
-    snaps = ",".join(str(s.step) for s in run.snapshots)
-    return "\n".join([
-        "<!DOCTYPE html>", "<html lang='en'><head><meta charset='utf-8'>", f"<title>{html.escape(title)}</title>",
-        _ERROR_HOOK, _STYLE, _DONE_SCRIPT, "</head><body>",
-        f"<h1>{html.escape(title)}</h1>",
-        f"<p id='msmem-status' data-steps='{len(run.steps)}' data-snapshots='{snaps}' data-expected='2'"
-        " data-plots='0' data-errors='0'>rendering...</p>",
-        _summary_table(run),
-        "<h2>Belief and ground truth</h2>",
-        "<p>Voxels with expected occupancy &gt; 0.5 (surface voxels; the shelf boards are outlined, not drawn). "
-        "Buttons: the step whose belief is shown (the camera path and manipulations up to it); menu: colour by "
-        "argmax class (unknown where vacuity &ge; tau_chi), semantic vacuity or occupancy entropy. "
-        "Red: camera path (labels are step numbers); black arrows: pushes and nudges; purple: grasps.</p>",
-        div3d, "<h2>Metrics per step</h2>", "<p>Shaded: steps whose chosen action was a manipulation.</p>", divm,
-        "<h2>Steps</h2>", _steps_table(run), "</body></html>",
-    ])
-
-
 # --------------------------------------------------------------------------------------------- PNGs
 def _hex_rgb(c: str) -> tuple[float, float, float]:
     return tuple(int(c[i : i + 2], 16) / 255 for i in (1, 3, 5))  # type: ignore[return-value]
@@ -664,16 +399,3 @@ def png_belief(run: RunData, path: Path) -> None:
     fig.suptitle(f"{run.config.method}, {run.scene.name}: final belief vs ground truth "
                  f"(occupancy IoU {run.metrics.get('occupancy_iou', float('nan')):.3f})", fontsize=11)
     fig.savefig(path)
-
-
-# ------------------------------------------------------------------------------------------- entry
-def write_report(run_dir: str | Path, png: bool = True) -> list[Path]:
-    """Write ``report.html`` (and, with ``png``, the two PNGs) into the run folder; returns the paths."""
-    run = load_run(run_dir)
-    out = [run.run_dir / "report.html"]
-    out[0].write_text(render_html(run), encoding="utf-8")
-    if png:
-        out += [run.run_dir / "report_metrics.png", run.run_dir / "report_belief.png"]
-        png_metrics(run, out[1])
-        png_belief(run, out[2])
-    return out
