@@ -34,7 +34,7 @@ def one_torch_thread() -> Iterator[None]:
 UNIT_MODULES = frozenset({
     "test_architecture", "test_backbone", "test_belief", "test_ceiling", "test_class_map",
     "test_cnabu_loss_mutation", "test_config", "test_conformance", "test_doig", "test_fpp", "test_funnel",
-    "test_fusion", "test_fusion_mutation", "test_geometry", "test_grasp_exit", "test_grasp_losses",
+    "test_docs_imports", "test_fusion", "test_fusion_mutation", "test_geometry", "test_grasp_exit", "test_grasp_losses",
     "test_grasp_losses_mutation", "test_groundtruth", "test_ig", "test_ig_gain", "test_ig_incremental",
     "test_ig_information", "test_ig_mutation", "test_malloc", "test_mesh_objects", "test_metrics",
     "test_metrics_mutation", "test_msas_loop", "test_no_history_words", "test_object_counts",
