@@ -256,6 +256,7 @@ def results_page(root: Path) -> str:
             "## With the UR5e arm (`examples/robots/ur5e.yaml`): reach-checked pushes and grasps from the front")))
     if (root / "ceiling").is_dir():
         parts.append(ceiling_section(root / "ceiling", root))
-    if (root / "mesh25-view-only").is_dir():
-        parts.append(mesh25_section(root / "mesh25-view-only", root / "mesh25-all"))
+    if (root / "mesh25-view-only").is_dir():  # paired with the analytic update under the same IG when measured
+        analytic = root / "mesh25-analytic-view-only"
+        parts.append(mesh25_section(root / "mesh25-view-only", analytic if analytic.is_dir() else root / "mesh25-all"))
     return "\n\n".join(p.strip() for p in parts if p.strip()) + "\n"
