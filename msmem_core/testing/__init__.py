@@ -7,8 +7,9 @@
   ``belief_of_scene``, ``small_ig``, ``decision_context`` and ``one_decision`` (one MSAS decision
   with your skills, in a unit test).
 - Conformance suites (``msmem_core.testing.conformance``): ``simulator_conformance(factory)``,
-  ``skill_conformance(factory, name)`` and ``effect_model_conformance(factory, actions_for)``: what
-  a backend, a skill or an effect model runs to prove it follows its interface and its conventions;
+  ``skill_conformance(factory, name)``, ``effect_model_conformance(factory, actions_for)`` and
+  ``observation_model_conformance(factory)``: what a backend, a skill, an effect model or an
+  observation model runs to prove it follows its interface and its conventions;
   ``robot_conformance(factory)`` (``msmem_core.testing.robot_conformance``) the same for a robot, its
   answers verified by an independent forward kinematics of its URDF.
 """
@@ -36,7 +37,9 @@ from msmem_core.testing.plugin_conformance import (
     check_outcome,
     check_prediction,
     check_reproducible,
+    check_updated_belief,
     effect_model_conformance,
+    observation_model_conformance,
     skill_conformance,
 )
 from msmem_core.testing.robot_conformance import RobotReport, check_answer, robot_conformance
@@ -56,11 +59,13 @@ __all__ = [
     "check_outcome",
     "check_prediction",
     "check_reproducible",
+    "check_updated_belief",
     "conformance_scene",
     "decision_context",
     "default_objective",
     "default_workspace",
     "effect_model_conformance",
+    "observation_model_conformance",
     "one_decision",
     "robot_conformance",
     "simulator_conformance",

@@ -7,7 +7,8 @@ Usage, inside a pytest test of the backend::
     def test_my_backend_conforms():
         simulator_conformance(lambda: MySimulator(label_noise=0.0), noise_free=True)
 
-The suites for skills and effect models (``skill_conformance``, ``effect_model_conformance``) live in
+The suites for skills, effect models and observation models (``skill_conformance``,
+``effect_model_conformance``, ``observation_model_conformance``) live in
 ``msmem_core.testing.plugin_conformance`` and are importable from here too. Every suite checks its
 argument first: handing it anything but a factory of what it tests raises ``ConformanceUsageError``
 in one line naming what it expected and what it got.
@@ -33,6 +34,7 @@ from msmem_core.testing.plugin_conformance import (
     ConformanceUsageError,
     built,
     effect_model_conformance,
+    observation_model_conformance,
     skill_conformance,
 )
 from msmem_core.world.camera import CameraConfig, Observation
@@ -399,6 +401,7 @@ __all__ = [
     "effect_model_conformance",
     "front_view",
     "gripper_pose",
+    "observation_model_conformance",
     "push_along_y",
     "simulator_conformance",
     "single_object_scene",

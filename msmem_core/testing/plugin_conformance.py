@@ -51,6 +51,7 @@ from msmem_core.testing.builders import (
 )
 from msmem_core.util.jsonable import jsonable
 from msmem_core.world.camera import CameraConfig, Observation
+from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import SceneSpec
 
 SimulatorChoice = Callable[[], Simulator] | Literal["pybullet", "fake"] | None
@@ -451,6 +452,106 @@ def effect_model_conformance(
     return prediction
 
 
+def _check_evidence(out: EvidentialMap, label: str) -> None:
+    for what, arr in (("alpha", out.alpha), ("beta", out.beta), ("eta", out.eta)):
+        if not np.all(np.isfinite(arr)):
+            _fail(f"{label}: {what} has non-finite values")
+        if float(arr.min()) < 1.0 - 1e-6:
+            _fail(f"{label}: {what} goes below the prior's 1 (min {float(arr.min()):.4g}); evidence is at least 1")
+
+
+def check_updated_belief(out: object, belief: EvidentialMap, label: str) -> EvidentialMap:
+    """``update``'s result is a new ``EvidentialMap`` on the same grid and classes, evidence finite and
+    at least 1, sharing no array with its input, with a ray record (``observed``) that is None or a
+    boolean grid that keeps every voxel the input's record had."""
+    if not isinstance(out, EvidentialMap):
+        _fail(f"{label}: update must return an EvidentialMap, got {describe(out)}")
+    assert isinstance(out, EvidentialMap)
+    if out.grid != belief.grid:
+        _fail(f"{label}: update returned a belief on another grid ({out.grid} for {belief.grid})")
+    if out.num_classes != belief.num_classes:
+        _fail(f"{label}: update returned {out.num_classes} classes for {belief.num_classes}")
+    if any(np.shares_memory(a, b) for a in (out.alpha, out.beta, out.eta) for b in (belief.alpha, belief.beta,
+                                                                                     belief.eta)):
+        _fail(f"{label}: update returned arrays shared with its input; return a new map (MSAS and the terms keep "
+              "references to earlier beliefs)")
+    _check_evidence(out, label)
+    if out.observed is not None:
+        obs = np.asarray(out.observed)
+        if obs.dtype != np.bool_ or obs.shape != tuple(belief.grid.shape):
+            _fail(f"{label}: observed must be a boolean array of the grid's shape {tuple(belief.grid.shape)}, got "
+                  f"{obs.dtype} {obs.shape}")
+        if belief.observed is not None and np.any(belief.observed & ~obs):
+            _fail(f"{label}: observed lost {int(np.sum(belief.observed & ~obs))} voxel(s) the input's ray record "
+                  "had; a view only adds to the record")
+    return out
+
+
+def observation_model_conformance(
+    factory: Callable[[], ObservationModel] | str,
+    *,
+    grid: GridSpec | None = None,
+    camera: CameraConfig | None = None,
+    views: int = 2,
+) -> EvidentialMap:
+    """Run every observation-model check on a model from ``factory`` (a class, a function, or a
+    registered belief-model name with the *observe* role); return the belief after ``views`` views.
+
+    The conformance scene (``conformance_scene``) is observed in PyBullet from ``views`` of the default
+    viewpoints, the start view first, and integrated from the prior on ``grid`` (default: the library's
+    grid). Per view: ``check_updated_belief`` and that the input belief is left as it was; after the
+    first view the belief differs from the prior (a view is evidence); and a second model from
+    ``factory`` fed the same views returns the same beliefs (``update`` is deterministic).
+    """
+    from msmem_core.sim.build import build_simulator
+    from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
+
+    suite = "observation_model_conformance"
+    what = ("a factory returning a msmem_core.interfaces.ObservationModel (or a registered belief-model name "
+            "with the observe role)")
+    model: ObservationModel = built(factory, ObservationModel, suite, what, _plugin_manager_build("belief-model"))
+    label = f"observation model {type(model).__name__}" + (f" ({factory!r})" if isinstance(factory, str) else "")
+    if views < 1:
+        raise ConformanceUsageError(f"{suite}: views must be at least 1, got {views}")
+    scene = conformance_scene()
+    grid = grid or GridSpec()
+    camera = camera or CameraConfig(width_px=160, height_px=120)
+    cfg = ViewpointConfig()
+    poses = generate_viewpoints(cfg, scene.shelf)
+    start = default_start_view(cfg)
+    order = [start, *[int(i) for i in np.linspace(0, len(poses) - 1, views + 1).astype(int) if i != start]][:views]
+    sim = build_simulator("pybullet", camera=camera, seed=0, label_noise=0.0)
+    try:
+        sim.reset(scene)
+        observations = [sim.observe(poses[v]) for v in order]
+    finally:
+        sim.close()
+    beliefs = []
+    belief = EvidentialMap.empty(grid, scene.num_classes)
+    for i, obs in enumerate(observations):
+        before = (belief.alpha.copy(), belief.beta.copy(), belief.eta.copy())
+        out = check_updated_belief(model.update(belief, obs), belief, f"{label}, view {i + 1}")
+        for name, arr, old in zip(("alpha", "beta", "eta"), (belief.alpha, belief.beta, belief.eta), before,
+                                  strict=True):
+            if not np.array_equal(arr, old):
+                _fail(f"{label}: update modified the belief it was given ({name} of {int(np.sum(arr != old))} "
+                      "voxel(s)); return a new map")
+        if i == 0 and all(np.array_equal(a, b) for a, b in zip((out.alpha, out.beta, out.eta), before, strict=True)):
+            _fail(f"{label}: the first view left the prior unchanged; a view is evidence")
+        beliefs.append(out)
+        belief = out
+    again: ObservationModel = built(factory, ObservationModel, suite, what, _plugin_manager_build("belief-model"))
+    b2 = EvidentialMap.empty(grid, scene.num_classes)
+    for i, obs in enumerate(observations):
+        b2 = again.update(b2, obs)
+        if not all(np.array_equal(a, b) for a, b in zip((b2.alpha, b2.beta, b2.eta),
+                                                         (beliefs[i].alpha, beliefs[i].beta, beliefs[i].eta),
+                                                         strict=True)):
+            _fail(f"{label}: a second model fed the same views returned another belief at view {i + 1}: update "
+                  "must be deterministic")
+    return belief
+
+
 __all__ = [
     "EXECUTE_CAMERA",
     "ConformanceError",
@@ -463,7 +564,9 @@ __all__ = [
     "check_outcome",
     "check_prediction",
     "check_reproducible",
+    "check_updated_belief",
     "describe",
     "effect_model_conformance",
+    "observation_model_conformance",
     "skill_conformance",
 ]
