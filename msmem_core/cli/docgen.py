@@ -365,6 +365,8 @@ API_SECTIONS: tuple[tuple[str, str, tuple[str, ...]], ...] = (
         "msmem_core.testing.plugin_conformance.skill_conformance",
         "msmem_core.testing.plugin_conformance.SkillReport",
         "msmem_core.testing.plugin_conformance.effect_model_conformance",
+        "msmem_core.testing.plugin_conformance.observation_model_conformance",
+        "msmem_core.testing.plugin_conformance.check_updated_belief",
         "msmem_core.testing.plugin_conformance.check_actions",
         "msmem_core.testing.plugin_conformance.check_reproducible",
         "msmem_core.testing.plugin_conformance.check_manipulation_gate",
