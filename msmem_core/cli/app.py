@@ -211,7 +211,9 @@ def _run(held: Any, method: str | None, config: Path | None, sim: str | None, ro
 
 def bench(
     methods: Annotated[str, typer.Option("--methods", help="Comma-separated method presets.")] = "view-only,push-only",
-    suite: Annotated[str, typer.Option("--suite", help="Scene suite shipped with msmem.")] = "hard25",
+    suite: Annotated[str, typer.Option("--suite", help="A shipped scene suite (hard25, tune10, mesh25), a folder of "
+                                       "scene JSON files, or a suite file (YAML, `scenes:` listing scene files).")
+                     ] = "hard25",
     scenes: Annotated[str | None, typer.Option("--scenes", help="Scene indices, e.g. 0-4,7 (default: all).")] = None,
     steps: Annotated[int | None, typer.Option("--steps", help="T_max per episode.")] = None,
     sim: Annotated[str | None, typer.Option("--sim", help="Simulator plugin name.")] = None,
@@ -259,7 +261,9 @@ def bench(
 
 
 def eval_ceiling(
-    suite: Annotated[str, typer.Option("--suite", help="Scene suite shipped with msmem.")] = "hard25",
+    suite: Annotated[str, typer.Option("--suite", help="A shipped scene suite (hard25, tune10, mesh25), a folder of "
+                                       "scene JSON files, or a suite file (YAML, `scenes:` listing scene files).")
+                     ] = "hard25",
     scenes: Annotated[str | None, typer.Option("--scenes", help="Scene indices, e.g. 0-4,7 (default: all).")] = "0-4",
     views: Annotated[int, typer.Option("--views", help="Evenly spaced views integrated per scene.")] = 100,
     observe: Annotated[list[str] | None, typer.Option(

@@ -82,12 +82,49 @@ CURVE_METRICS = ("occupancy_iou", "semantic_miou", "observable_iou", "position_c
 
 
 def suite_scenes(suite: str) -> list[SceneSpec]:
-    """The scenes of a shipped suite, in order."""
-    if suite not in SUITES:
-        raise UserError(f"unknown suite {suite!r}; suites: {', '.join(SUITES)}")
-    folder = resources.files("msmem_core.suites").joinpath(suite)
-    files = sorted((f for f in folder.iterdir() if f.name.endswith(".json")), key=lambda f: f.name)
-    return [SceneSpec.model_validate_json(f.read_text()) for f in files]
+    """The scenes of a suite, in order: a shipped suite by name (``SUITES``), a folder of scene JSON files
+    (sorted by file name), or a suite file (YAML) whose ``scenes`` list names scene files relative to it.
+    Every file is validated as ``msmem run --scene`` validates it (``placement.load_scene``); a name that
+    is neither, an empty folder or a bad file is a one-line ``UserError`` naming it."""
+    if suite in SUITES:
+        folder = resources.files("msmem_core.suites").joinpath(suite)
+        files = sorted((f for f in folder.iterdir() if f.name.endswith(".json")), key=lambda f: f.name)
+        return [SceneSpec.model_validate_json(f.read_text()) for f in files]
+    path = Path(suite)
+    if path.is_dir():
+        paths = sorted(path.glob("*.json"), key=lambda p: p.name)
+        if not paths:
+            raise UserError(f"--suite {suite}: the folder holds no scene file (*.json)")
+    elif path.is_file():
+        paths = _suite_file(path)
+    else:
+        raise UserError(f"unknown suite {suite!r}: not a shipped suite ({', '.join(SUITES)}), a folder of scene "
+                        "files or a suite file")
+    from msmem_core.plugins.manager import get_plugin_manager
+    from msmem_core.world.placement import load_scene
+
+    offered = get_plugin_manager().object_classes()
+    return [load_scene(str(p), offered) for p in paths]
+
+
+def _suite_file(path: Path) -> list[Path]:
+    """The scene files a suite file names (``scenes: [a.json, ...]``, relative to the file)."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise UserError(f"--suite {path}: not a YAML suite file ({type(e).__name__})") from None
+    scenes = data.get("scenes") if isinstance(data, dict) else None
+    if not isinstance(scenes, list) or not scenes or not all(isinstance(x, str) for x in scenes):
+        raise UserError(f"--suite {path}: a suite file lists its scene files under `scenes:` "
+                        "(paths relative to it), e.g. scenes: [shelf_a.json, shelf_b.json]")
+    out = [(path.parent / x) for x in scenes]
+    missing = [str(p) for p in out if not p.is_file()]
+    if missing:
+        raise UserError(f"--suite {path}: scene file {missing[0]} does not exist"
+                        + (f" (+{len(missing) - 1} more)" if len(missing) > 1 else ""))
+    return out
 
 
 def parse_methods(text: str) -> list[str]:

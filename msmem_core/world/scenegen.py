@@ -594,12 +594,18 @@ def _generate(seed: int, cfg: SceneGenConfig) -> SceneSpec:
     config (both immutable), and generating one takes seconds."""
     sub_seeds = np.random.default_rng(seed).integers(0, 2**63 - 1, size=cfg.max_tries)
     views = generate_viewpoints(cfg.viewpoints, cfg.shelf)
+    best, unplaced, screened = -1, 0, 0
     for sub in sub_seeds:
         placed = _place_objects(np.random.default_rng(int(sub)), cfg, views)
-        if placed is None or (cfg.require_hard and not _may_be_hard(placed[0], cfg, views)):
+        if placed is None:
+            unplaced += 1
+            continue
+        if cfg.require_hard and not _may_be_hard(placed[0], cfg, views):
+            screened += 1
             continue
         objects, fraction = placed
         hidden = _count_hidden(objects, cfg, views)
+        best = max(best, hidden)
         if not cfg.require_hard or hidden >= cfg.min_hidden:
             return SceneSpec(
                 name=f"gen-{seed}",
@@ -611,8 +617,11 @@ def _generate(seed: int, cfg: SceneGenConfig) -> SceneSpec:
                 occupancy_fraction=round(fraction, 6),
                 hidden_objects=hidden,
             )
+    tried = f"the best attempt hid {best}" if best >= 0 else "no attempt got as far as counting hidden objects"
     raise UserError(
         f"no scene for seed {seed} passed the hardness check (>= {cfg.min_hidden} objects hidden from all"
-        f" {len(views)} views) in {cfg.max_tries} tries: raise max_tries, lower min_hidden or"
-        " raise min_visible_pixels"
+        f" {len(views)} views) in {cfg.max_tries} tries: {tried}; {unplaced} tries could not place the objects,"
+        f" {screened} were screened out as unable to hide enough. Lower min_hidden"
+        + (f" (to {best} or less to accept the best)" if best >= 0 else "")
+        + ", raise max_tries, or raise min_visible_pixels (objects seen by fewer pixels count as hidden)"
     )
