@@ -63,6 +63,8 @@ def test_the_docs_have_runnable_blocks():
     assert len(runnable_blocks()) >= 5
 
 
+# each block runs msmem commands end to end (10-15 s each): the slow suite's, which CI runs
+@pytest.mark.slow
 @pytest.mark.parametrize(("where", "script"), runnable_blocks(), ids=[w for w, _ in runnable_blocks()])
 def test_runnable_shell_blocks_run_as_written(where, script):
     if not (ROOT / ".venv" / "bin" / "msmem").exists():

@@ -15,9 +15,9 @@ import pytest
 from tests.golden.episodes import DEFAULTS_EPISODE, GOLDEN_DIR, NAMES, record
 
 
-# the default method's episodes (analytic and library defaults) guard every fast run; the other presets run
-# in the slow suite (CI runs both)
-@pytest.mark.parametrize("method", [m if m in ("ours", DEFAULTS_EPISODE) else pytest.param(m, marks=pytest.mark.slow)
+# the library defaults' episode guards every fast run; the presets' episodes (on the analytic models) run in
+# the slow suite (CI runs both)
+@pytest.mark.parametrize("method", [m if m == DEFAULTS_EPISODE else pytest.param(m, marks=pytest.mark.slow)
                                     for m in NAMES])
 def test_golden_episode(method: str) -> None:
     want = json.loads((GOLDEN_DIR / f"{method}.json").read_text())
