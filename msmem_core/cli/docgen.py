@@ -350,7 +350,8 @@ API_SECTIONS: tuple[tuple[str, str, tuple[str, ...]], ...] = (
         "msmem_core.plugins.types.SkillSpec", "msmem_core.plugins.types.BeliefModelSpec",
         "msmem_core.plugins.types.ObjectiveTermSpec", "msmem_core.plugins.types.SimulatorSpec",
         "msmem_core.plugins.types.RobotSpec", "msmem_core.plugins.types.CommandSpec",
-        "msmem_core.plugins.manager.ComponentRef", "msmem_core.plugins.manager.get_plugin_manager")),
+        "msmem_core.plugins.manager.ComponentRef", "msmem_core.plugins.manager.get_plugin_manager",
+        "msmem_core.plugins.manager.MsmemPluginManager")),
     ("MSAS", "msmem_core.msas", (
         "msmem_core.msas.BoundSkill", "msmem_core.msas.Objective", "msmem_core.msas.Decision",
         "msmem_core.msas.decide", "msmem_core.msas.execute_measured")),
