@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy import stats
 
 from msmem_core.errors import IncompleteError, UserError
@@ -414,14 +415,18 @@ def cumulative_difference(a: dict[int, dict[str, Any]], b: dict[int, dict[str, A
     if not scenes:
         return float("nan"), float("nan"), float("nan")
 
-    def diff(draw: list[int]) -> float:
-        return (paper_metrics_from_counts(sum_paper_counts(a[s] for s in draw))[key]
-                - paper_metrics_from_counts(sum_paper_counts(b[s] for s in draw))[key])
+    stacked = [{k: np.stack([np.asarray(side[s][k], dtype=np.float64) for s in scenes]) for k in PAPER_COUNT_KEYS}
+               for side in (a, b)]  # [scene, ...] per count, so a draw sums by its scene multiplicities
+
+    def diff(times: NDArray[np.float64]) -> float:
+        sa, sb = ({k: np.tensordot(times, v, axes=1) for k, v in side.items()} for side in stacked)
+        return paper_metrics_from_counts(sa)[key] - paper_metrics_from_counts(sb)[key]
 
     rng = np.random.default_rng(seed)
-    boot = [diff([scenes[i] for i in rng.integers(0, len(scenes), len(scenes))]) for _ in range(resamples)]
+    n = len(scenes)
+    boot = [diff(np.bincount(rng.integers(0, n, n), minlength=n).astype(np.float64)) for _ in range(resamples)]
     lo, hi = np.nanpercentile(boot, [2.5, 97.5])
-    return diff(scenes), float(lo), float(hi)
+    return diff(np.ones(n)), float(lo), float(hi)
 
 
 def read_paper_counts(folder: Path, method: str | None = None) -> dict[int, dict[str, Any]]:

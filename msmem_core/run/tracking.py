@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Iterable, Sequence
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -27,11 +28,17 @@ def skill_categories(episode: dict[str, Any]) -> dict[str, str]:
     recorded = episode.get("skill_categories")
     if isinstance(recorded, dict):
         return recorded
+    return dict(_registered_categories(tuple(dict.fromkeys(episode.get("skills") or []))))
+
+
+@lru_cache(maxsize=64)
+def _registered_categories(names: tuple[str, ...]) -> tuple[tuple[str, str], ...]:
+    """(name, category) of the registered skills of these names (the plugin manager is built once per set)."""
     from msmem_core.plugins import get_plugin_manager
 
     specs = get_plugin_manager().skills()
-    return {name: category for name in dict.fromkeys(episode.get("skills") or [])
-            if name in specs and (category := getattr(specs[name].factory, "category", None)) is not None}
+    return tuple((name, category) for name in names
+                 if name in specs and (category := getattr(specs[name].factory, "category", None)) is not None)
 
 
 def step_rows(episode: dict[str, Any]) -> list[dict[str, Any]]:
