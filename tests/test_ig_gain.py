@@ -101,3 +101,27 @@ def test_the_default_field_of_a_sparse_change_equals_a_full_rescore(seed: int) -
     np.testing.assert_allclose(sparse.H, full.H, rtol=1e-6, atol=1e-7)
     np.testing.assert_array_equal(sparse.p, full.p)
     assert (full.H >= 0).all()
+
+
+def test_never_observed_prior_credits_the_prior_and_leaves_how_far_rays_get() -> None:
+    from msmem_core.map.belief import BeliefDelta
+
+    svc = IGService(GRID, CAM, small_views(), SHELF, IGConfig(never_observed="prior"))
+    plain = IGService(GRID, CAM, small_views(), SHELF, IGConfig())
+    b = random_belief(3)
+    rng = np.random.default_rng(3)
+    b.observed = rng.random(GRID.shape) < 0.5
+    f, g = svc.prepare(b), plain.prepare(b)
+    np.testing.assert_array_equal(f.p, g.p)  # transmission: the predicted occupancy, as without the rule
+    never = ~b.observed.ravel() & ~shelf_wall_mask(GRID, SHELF).ravel() & (f.p > 0) & (f.p < 1)
+    prior = occupancy_reduction(np.ones(1), np.ones(1), 10.0)[0] + 0.5 * class_reduction(np.ones((14, 1)), 10.0)[0]
+    np.testing.assert_allclose(f.H[never], prior, rtol=1e-5)
+    idx = np.unique(rng.integers(0, GRID.size, 300))
+    f32 = np.float32
+    d = BeliefDelta(idx, rng.uniform(1, 30, len(idx)).astype(f32), rng.uniform(1, 30, len(idx)).astype(f32),
+                    rng.uniform(1, 30, (b.num_classes, len(idx))).astype(f32))
+    sparse = svc.belief_delta(f, d).apply(f)
+    after = d.apply(b)
+    full = svc.prepare(after, before=f)
+    np.testing.assert_array_equal(sparse.p, full.p)
+    np.testing.assert_allclose(sparse.H, full.H, rtol=1e-6, atol=1e-7)

@@ -237,8 +237,10 @@ class IGService:
                     never = ~belief.observed.ravel()  # type: ignore[union-attr]
                     a, b = np.where(never, np.float32(1), a), np.where(never, np.float32(1), b)
                     eta = np.where(never[None], np.float32(1), eta)
-                    p = np.where(never & ~self.walls, np.float32(0.5), p).astype(np.float32)
-                h = self._information(a, b, eta, p, self.walls)
+                    # the prior's gain there; the predicted occupancy still decides how far rays get
+                    h = self._information(a, b, eta, np.where(never & ~self.walls, np.float32(0.5), p), self.walls)
+                else:
+                    h = self._information(a, b, eta, p, self.walls)
             if before is not None and self.config.predicted_entropy == "no-gain":
                 h = np.minimum(h, before.H)
             return IGField(p, h, record)
@@ -294,9 +296,8 @@ class IGService:
                 h = np.where(self.walls[idx], h, LN2).astype(np.float32)
         elif base.observed_record:
             one = np.ones(len(idx), dtype=np.float32)
-            p = np.where(self.walls[idx], p, np.float32(0.5)).astype(np.float32)
-            h = self._information(one, one, np.ones((np.asarray(delta.eta).shape[0], len(idx)), np.float32), p,
-                                  self.walls[idx])
+            h = self._information(one, one, np.ones((np.asarray(delta.eta).shape[0], len(idx)), np.float32),
+                                  np.where(self.walls[idx], p, np.float32(0.5)), self.walls[idx])
         else:
             h = self._information(a, np.asarray(delta.beta, dtype=np.float32), np.asarray(delta.eta), p,
                                   self.walls[idx])
