@@ -569,6 +569,43 @@ def test_the_effect_removes_the_target_and_pushes_out_what_is_in_its_way() -> No
     assert np.array_equal(high.changed[0], target)
 
 
+def test_the_intended_removal_is_the_whole_grasped_object_not_only_the_fingers_region() -> None:
+    """A 24 cm box grasped from the front 6 cm above the floor: the region the fingers close on is
+    clipped 10 cm above the grasp, but the whole box leaves with it. Both effect models report the whole
+    box as the intended removal, so a CDC term that sees the box's upper part become free counts
+    nothing; with the region alone it counted that upper part as collateral damage."""
+    from msmem_cnabu.features import grasp_removals
+    from msmem_objectives.cdc import disturbed_voxels
+
+    box = ((-0.03, 0.05), (0.03, 0.11), 0.24, SUGAR)
+    belief = box_belief([box])
+    c = GRID.centers()
+    whole = (np.abs(c[..., 0]) < 0.03) & (c[..., 1] > 0.05) & (c[..., 1] < 0.11) & (c[..., 2] > 0) & (c[..., 2] < 0.24)
+    pose = gripper_pose((0.0, 0.05, 0.06), (0, 1, 0), (1, 0, 0))
+    a = GraspAction(pose=tuple(tuple(float(v) for v in row) for row in pose), width_m=0.06, opening_m=0.08,
+                    contact_m=(-0.03, 0.05, 0.06), target_class=SUGAR,
+                    retreat_m=((0.0, 0.05, 0.09), (0.0, -0.3, 0.09)))
+    model = AnalyticGraspEffect()
+    objects = Objects.of(belief, INTERIOR)
+    label, region = model.target_region(belief, objects, a)
+    flat = np.flatnonzero(whole.reshape(-1))
+    assert label > 0
+    assert 0 < len(region) < len(flat)  # the region stops below the box's top
+    removal = model.removal(belief, objects, a)
+    assert np.array_equal(removal, flat)
+    pred = model.predict(belief, [a], WORKSPACE)
+    assert pred.excluded is not None
+    assert np.array_equal(pred.excluded[0], flat)
+    assert [r.tolist() for r in grasp_removals(belief, [a], WORKSPACE)] == [flat.tolist()]
+    # the whole box believed free afterwards (what the learned grasp model predicts for it)
+    after = belief.copy()
+    after.alpha[whole], after.beta[whole], after.eta[:, whole] = 1.0, 21.0, 1.0
+    after.eta[0, whole] = 21.0
+    eta0, eta1 = belief.eta.reshape(belief.num_classes, -1), after.eta.reshape(belief.num_classes, -1)
+    assert not disturbed_voxels(eta0[:, flat], eta1[:, flat], 0.5, np.isin(flat, removal)).any()
+    assert disturbed_voxels(eta0[:, flat], eta1[:, flat], 0.5, np.isin(flat, region)).sum() == len(flat) - len(region)
+
+
 def test_the_hidden_lower_part_of_the_grasped_object_is_carried_out_too() -> None:
     belief = box_belief([TARGET, IN_THE_WAY])
     c = GRID.centers()

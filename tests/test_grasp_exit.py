@@ -1,7 +1,8 @@
 """What a grasp carries out of the shelf and what stops it (``GraspSkill._carried`` and ``_lift``):
 the grasped object leaves whole, its own believed voxels beyond the fingers and background-class
 voxels do not stop it, another believed object in its way does, unless their silhouettes overlap by
-no more than a voxel; the whole carried object must fit under the shelf top."""
+no more than a voxel; the whole carried object must fit under the shelf top (lifted less, down to
+``min_lift_m``, where the top leaves less room than ``lift_m``)."""
 
 from __future__ import annotations
 
@@ -97,31 +98,45 @@ def test_the_carried_body_is_the_whole_object_and_only_other_objects_are_in_its_
     assert not way3.reshape(-1)[body].any()
 
 
-def test_the_whole_carried_object_must_fit_under_the_shelf_top() -> None:
-    """A front grasp low on a 25 cm box: the fingers close on its lower part only, but the box leaves
-    whole, and lifted 3 cm its top would come within 5 mm of the 28 cm shelf top: refused. A 20 cm
-    box of the same footprint is lifted."""
-    skill = GraspSkill(GraspConfig(predictor="geometric"))
+def _box_lift(height: float, **kw: object) -> float | None:
+    """The lift of a front grasp low (6 cm) on a box of ``height`` standing in the front row."""
+    skill = GraspSkill(GraspConfig(predictor="geometric", **kw))  # type: ignore[arg-type]
     c = GRID.centers()
-    for height, lifted in ((0.25, False), (0.20, True)):
-        box = ((-0.03, 0.05), (0.03, 0.11), height, SUGAR)
-        belief = box_belief([box])
-        objects = Objects.of(belief, INTERIOR)
-        inside = (np.abs(c[..., 0]) < 0.03) & (c[..., 1] > 0.05) & (c[..., 1] < 0.11) & (c[..., 2] > 0)
-        inside &= c[..., 2] < height
-        label = int(objects.labels.reshape(-1)[_flat(inside)[0]])
-        region = _flat(inside & (c[..., 2] < 0.12))
-        top = float(INTERIOR[5] - skill.config.clearance_m)
-        lift = skill._lift(GRID, belief.expected_occupancy(), objects, label, region, _front_grasp(0.0, 0.05, 0.06),
-                           0.06, top)
-        assert (lift is not None) == lifted, height
+    box = ((-0.03, 0.05), (0.03, 0.11), height, SUGAR)
+    belief = box_belief([box])
+    objects = Objects.of(belief, INTERIOR)
+    inside = (np.abs(c[..., 0]) < 0.03) & (c[..., 1] > 0.05) & (c[..., 1] < 0.11) & (c[..., 2] > 0)
+    inside &= c[..., 2] < height
+    label = int(objects.labels.reshape(-1)[_flat(inside)[0]])
+    region = _flat(inside & (c[..., 2] < 0.12))
+    top = float(INTERIOR[5] - skill.config.clearance_m)
+    return skill._lift(GRID, belief.expected_occupancy(), objects, label, region, _front_grasp(0.0, 0.05, 0.06),
+                       0.06, top)
+
+
+def test_the_whole_carried_object_must_fit_under_the_shelf_top() -> None:
+    """A front grasp low on a box: the fingers close on its lower part only, but the box leaves whole,
+    so its top sets the room under the 28 cm shelf top (5 mm clearance). By default the lift is at least
+    3 cm: a 20 cm box is lifted, a 25 cm one is refused. With ``min_lift_m`` 0 the 25 cm one is lifted
+    by the 2 cm the room leaves (whole voxels), a 27 cm one slides out along the floor and one reaching
+    the clearance is refused; ``min_lift_m`` 1 cm refuses the 27 cm one."""
+    assert _box_lift(0.20) == pytest.approx(0.03)
+    assert _box_lift(0.25) is None
+    assert _box_lift(0.20, min_lift_m=0.0) == pytest.approx(0.03)
+    assert _box_lift(0.25, min_lift_m=0.0) == pytest.approx(0.02)
+    assert _box_lift(0.27, min_lift_m=0.0) == pytest.approx(0.0)
+    assert _box_lift(0.28, min_lift_m=0.0) is None
+    assert _box_lift(0.25, min_lift_m=0.02) == pytest.approx(0.02)
+    assert _box_lift(0.27, min_lift_m=0.01) is None
 
 
 def test_an_object_whose_top_the_views_missed_is_as_tall_as_its_class() -> None:
     """The belief shows 12 cm of a box whose class stands 26 cm tall (its top unseen): lifted 3 cm it
-    would meet the shelf top, so it is not lifted; without the class's shape the belief's 12 cm is all
-    there is."""
+    would meet the shelf top, so it is not lifted; with ``min_lift_m`` 0 it leaves with the 1 cm the
+    room allows, not the 3 cm a 12 cm box gets. A 20 cm class is lifted the full 3 cm. Without the
+    class's shape the belief's 12 cm is all there is."""
     skill = GraspSkill(GraspConfig(predictor="geometric"))
+    slide = GraspSkill(GraspConfig(predictor="geometric", min_lift_m=0.0))
     c = GRID.centers()
     box = ((-0.03, 0.05), (0.03, 0.11), 0.12, SUGAR)
     belief = box_belief([box])
@@ -131,9 +146,10 @@ def test_an_object_whose_top_the_views_missed_is_as_tall_as_its_class() -> None:
     label = int(objects.labels.reshape(-1)[_flat(inside)[0]])
     top = float(INTERIOR[5] - skill.config.clearance_m)
     args = (GRID, belief.expected_occupancy(), objects, label, _flat(inside), _front_grasp(0.0, 0.05, 0.06), 0.06, top)
-    assert skill._lift(*args) is not None
+    assert skill._lift(*args) == pytest.approx(0.03)
     assert skill._lift(*args, extents=(0.10, 0.065, 0.26)) is None
-    assert skill._lift(*args, extents=(0.10, 0.065, 0.20)) is not None  # a 20 cm one is lifted
+    assert slide._lift(*args, extents=(0.10, 0.065, 0.26)) == pytest.approx(0.01)
+    assert skill._lift(*args, extents=(0.10, 0.065, 0.20)) == pytest.approx(0.03)  # a 20 cm one is lifted
 
 
 def test_another_class_inside_the_objects_own_columns_is_not_in_its_way() -> None:
@@ -181,3 +197,9 @@ def test_the_default_belief_of_a_hard_scene_leaves_grasps_of_its_front_row(tmp_p
                                                              g.contact_m[1] - o.position_m[1])).id
 
     assert {nearest(g) for g in grasps} <= {1, 4}  # the sugar box and the mustard bottle
+    # where the lift may shrink to the room under the shelf top, the whole front row: also the cracker
+    # box and the three 26 cm bleach bottles, which leave held 1 cm above the floor, or along it
+    skill.config = skill.config.model_copy(update={"min_lift_m": 0.0})  # the same fused buffer
+    stages = {}
+    low = skill.executable(Map.load(tmp_path / "belief_final.npz"), ep.scene.shelf, stages, ep.workspace.classes)
+    assert {nearest(g) for g in low} == {0, 1, 2, 3, 4, 5}, stages

@@ -116,6 +116,19 @@ def grasp_regions(belief: Any, actions: Sequence[Any], workspace: Workspace) -> 
     return [twin.target_region(belief, objects, a)[1] for a in actions]
 
 
+def grasp_removals(belief: Any, actions: Sequence[Any], workspace: Workspace) -> list[NDArray[np.int64]]:
+    """The intended removal (flat indices) of each grasp, as ``grasp-analytic`` reports it for CDC: the
+    whole grasped object (``AnalyticGraspEffect.removal``)."""
+    from msmem_grasp.effect import AnalyticGraspEffect
+    from msmem_grasp.planning import Objects
+
+    twin = AnalyticGraspEffect()
+    if not actions:
+        return []
+    objects = Objects.of(belief, workspace.interior_box, twin.config.occupied_threshold)
+    return [twin.removal(belief, objects, a) for a in actions]
+
+
 def manipulation_indices(kind: str, belief: Any, actions: Sequence[Any], workspace: Workspace
                          ) -> tuple[list[list[NDArray[np.int64]]], NDArray[np.float32], list[NDArray[np.int64]] | None]:
     """(per action its two voxel channels as flat indices, [K, 4] scalars, grasped regions or None)."""

@@ -10,9 +10,9 @@
   ``old * (1 - p_change) + pred * p_change``; outside it the prior is copied exactly. The result is
   a sparse ``Prediction`` holding only the changed voxels (those whose evidence differs, or with
   ``change_epsilon`` > 0 those whose expected occupancy or a class probability moves by more than
-  it), so the incremental IG stays incremental. ``cnabu-grasp`` reports the grasped object's believed region
-  (as ``grasp-analytic`` finds it) in ``Prediction.excluded`` for CDC. The shelf interior and the
-  gripper (for the swept volumes) come from the ``Workspace``.
+  it), so the incremental IG stays incremental. ``cnabu-grasp`` reports the whole grasped object
+  (as ``grasp-analytic`` finds it, ``AnalyticGraspEffect.removal``) in ``Prediction.excluded`` for
+  CDC. The shelf interior and the gripper (for the swept volumes) come from the ``Workspace``.
 
 Weights: ``weights`` (default: the shipped ``msmem_cnabu/weights/cnabu_<kind>.pt``), loaded when the
 model is built, with ``torch.load(weights_only=True)`` and the sha256 of their sidecar; a missing file
@@ -38,6 +38,7 @@ from msmem_cnabu.classmap import mapped_classes, onto_slots
 from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
 from msmem_cnabu.features import (
     belief_features,
+    grasp_removals,
     grid_interior,
     manipulation_indices,
     observe_channels,
@@ -257,6 +258,8 @@ class _CNABUEffect(EffectModel):
 
             deltas = [emptied(belief, d, r, cfg.free_evidence).against(belief)
                       for d, r in zip(deltas, regions, strict=True)]
+        if self.kind == "grasp":  # the whole grasped object is the intended removal, not only the region
+            return Prediction(belief, deltas, excluded=grasp_removals(belief, actions, workspace))
         return Prediction(belief, deltas, excluded=regions)
 
     def _check_actions(self, actions: Sequence[Action]) -> None:

@@ -10,8 +10,9 @@ front), from the belief alone:
   box (``Objects.region``: within the opening across the closing axis, ``max_object_radius_m``
   across it), so touching objects of the same class stay separate. Its voxels return to the prior
   (``target_keep`` of the evidence above the prior is kept; default 0): it leaves, and what is
-  behind it is unknown until seen. This region is reported in ``Prediction.excluded`` so a CDC term
-  does not count the intended removal as collateral damage.
+  behind it is unknown until seen. The whole object (the region and its component's voxels above
+  and beside it, ``removal``) is reported in ``Prediction.excluded`` so a CDC term does not count the
+  intended removal as collateral damage.
 - *The way out*: the object (its believed region plus the hidden voxels below it down to the floor
   that are not believed free, ``planning.fill_down``), lifted by the action's lift, is carried
   straight out of the shelf front (-y) with the closed gripper. Every other object whose believed
@@ -31,7 +32,7 @@ front), from the belief alone:
   the unseen parts of other objects (only believed-occupied voxels move).
 
 The prediction is sparse (a ``Prediction``: one ``BeliefDelta`` of the changed voxels per action, and
-per action the grasped object's region as ``excluded``). The shelf interior and the gripper come from
+per action the grasped object as ``excluded``). The shelf interior and the gripper come from
 the ``Workspace``. The components are labelled once per call.
 """
 
@@ -52,6 +53,10 @@ from msmem_grasp.planning import Objects, fill_down, gripper_points, path_offset
 from msmem_grasp.skill import GraspAction
 
 I64 = NDArray[np.int64]
+
+
+REMOVAL_MARGIN_M = 0.02
+"""Columns within this of a grasped region's belong to the removal (the skill's ``exit_margin_m``)."""
 
 
 class GraspEffectConfig(BaseModel):
@@ -119,10 +124,19 @@ class AnalyticGraspEffect(EffectModel):
         objects = Objects.of(belief, workspace.interior_box, self.config.occupied_threshold)
         changes, excluded = [], []
         for a in grasps:
-            d, region = self._predict_one(belief, objects, a, workspace.gripper)
+            d, _region = self._predict_one(belief, objects, a, workspace.gripper)
             changes.append(d.against(belief))
-            excluded.append(region)
+            excluded.append(self.removal(belief, objects, a))
         return Prediction(belief, changes, excluded=excluded)
+
+    def removal(self, belief: EvidentialMap, objects: Objects, a: GraspAction) -> I64:
+        """The grasp's intended removal, which a CDC term does not count as collateral damage: the
+        whole grasped object, its region (``target_region``) and its component's voxels in the columns
+        within ``REMOVAL_MARGIN_M`` of the region's, at any height (``Objects.carried``; the skill
+        carries the same body out of the shelf). The region alone is clipped to the opening: a
+        tall object's upper part, which leaves with it, counted as damage."""
+        label, region = self.target_region(belief, objects, a)
+        return objects.carried(belief.grid, label, region, REMOVAL_MARGIN_M)
 
     # ----------------------------------------------------------------------------------- one grasp
     def target_region(self, belief: EvidentialMap, objects: Objects, a: GraspAction) -> tuple[int, I64]:

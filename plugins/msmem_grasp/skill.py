@@ -27,7 +27,9 @@ Executable grasps (``GraspSkill.propose``, only when manipulation is allowed), f
    front of the target; a grasp from the front slides in. After closing it lifts and retreats
    straight out of the front (-y) to ``retreat_y_m``, where the object is past the shelf. The lift is
    ``lift_m`` (3 cm), raised (up to ``max_lift_m`` and the room under the shelf top) to the lowest
-   height at which the object and the gripper leave without meeting a believed object, if any.
+   height at which the object and the gripper leave without meeting a believed object, if any; where
+   the shelf top leaves less room than ``lift_m``, it is that room, down to ``min_lift_m`` (by default
+   ``lift_m``: no less).
 4. *Collision-free in the belief*: the gripper's fingers and palm (``GripperSpec`` boxes, shrunk
    by ``tolerance_m``), at the grasp and swept along the approach path (sampled every half voxel),
    may not touch a voxel that is believed occupied (p > 0.5), unknown (vacuity >= 0.9 and
@@ -232,6 +234,13 @@ class GraspConfig(BaseModel):
     """Lift after closing (at least); raised up to ``max_lift_m`` (and the room under the shelf top)
     when that lets the object leave without meeting a believed object."""
     max_lift_m: float = Field(0.10, ge=0.0, le=0.5)
+    min_lift_m: float = Field(0.03, ge=0.0, le=0.2)
+    """Where the room under the shelf top is less than ``lift_m``, the lift shrinks to that room
+    (whole voxels) down to this; at ``lift_m`` or above (the default) such grasps are not proposed.
+    At 0 an object nearly as tall as the shelf (a 26 cm bottle under a 28 cm top) slides out held just
+    above the floor, or along it: on ``tune10`` that doubles the grasps and the steps with grasp
+    candidates, but objects fall more often and the map gains nothing (docs/explanation/grasp.md,
+    "Tall objects")."""
     exit_margin_m: float = Field(0.02, ge=0.0, le=0.1)
     """The grasped object's own component (``planning.Objects``), at any height in the columns within this
     of the footprint of the part the fingers hold (its region), is carried out with it: it must fit under
@@ -562,9 +571,10 @@ class GraspSkill(Skill):
         sides one voxel in) and the closed gripper, carried straight out of the front, meet no voxel in
         its way (``_carried``: of another believed object); else one voxel above the lowest height (in
         whole voxels, up to ``max_lift_m`` and the room under the shelf top) at which they do not;
-        ``lift_m`` if there is none (None with ``blocked_exit: skip``); None if even ``lift_m`` brings
-        the body's or the gripper's top closer than ``clearance_m`` to the shelf top (else
-        ``stages["under_top"]``, if given, counts one). With its class's ``extents``, the body stands
+        ``lift_m`` if there is none (None with ``blocked_exit: skip``). Where ``lift_m`` would bring the
+        body's or the gripper's top closer than ``clearance_m`` to the shelf top, the room there is (in
+        whole voxels) takes its place as the least lift; None if that is under ``min_lift_m`` or there
+        is no room (else ``stages["under_top"]``, if given, counts one). With its class's ``extents``, the body stands
         at least as tall as the smallest of them that its believed top reaches (less a voxel): an
         object whose top the views have not seen is as tall as its class."""
         cfg = self.config
@@ -579,7 +589,8 @@ class GraspSkill(Skill):
             taller = [e for e in extents if floor + e >= obj_top - s - 1e-9]
             obj_top = max(obj_top, floor + min(taller)) if taller else obj_top
         room = top - max(grip_top, obj_top)
-        if room < cfg.lift_m - 1e-9:
+        low = min(cfg.lift_m, s * math.floor(room / s + 1e-9))  # the least lift: lift_m, or what the room allows
+        if room < 0 or low < min(cfg.min_lift_m, cfg.lift_m) - 1e-9:
             return None
         if stages is not None:
             stages["under_top"] = stages.get("under_top", 0) + 1
@@ -587,7 +598,7 @@ class GraspSkill(Skill):
         # voxels overlap the body's silhouette by one voxel is within the voxels' slack of it, not in its way
         stride = grid.shape[1] * grid.shape[2]
         core = body[np.isin(body - stride, body) & np.isin(body + stride, body)]
-        first = max(0, math.ceil(cfg.lift_m / s - 1e-9))
+        first = max(0, math.ceil(low / s - 1e-9))
         last = min(int(np.floor(min(room, cfg.max_lift_m) / s + 1e-9)), first + 20)
         for k in range(first, max(first, last) + 1):
             path, _ = way_out(grid, core, k)
@@ -599,8 +610,8 @@ class GraspSkill(Skill):
             if occupied[swept_indices(grid, r, pts, path_offsets(np.stack([pose[:3, 3], lifted, out]), s / 2))].any():
                 continue
             # one voxel more where there is room: the voxels' heights are only known to a voxel
-            return max(cfg.lift_m, min((k + 1) * s, room)) if k > first else cfg.lift_m
-        return cfg.lift_m if cfg.blocked_exit == "lift_m" else None
+            return max(low, min((k + 1) * s, room)) if k > first else low
+        return low if cfg.blocked_exit == "lift_m" else None
 
     @staticmethod
     def _class_shape(classes: tuple[ObjectClass, ...], cls: int) -> tuple[float, float, float] | None:
@@ -639,12 +650,7 @@ class GraspSkill(Skill):
                 foot[np.unique(vox // nz)] = True
                 return foot.reshape(nx, ny)
 
-            near = footprint(body)
-            margin = math.floor(cfg.exit_margin_m / grid.voxel_m + 1e-9)
-            if margin > 0:
-                near = ndimage.binary_dilation(near, np.ones((3, 3), dtype=bool), iterations=margin)
-            own = objects.voxels_of(label)
-            body = np.union1d(body, own[near.reshape(-1)[own // nz]])
+            body = objects.carried(grid, label, body, cfg.exit_margin_m)
             # under its top in its own columns, and in the columns it surrounds, nothing else stands: the
             # belief's voxels there are its own (of another class), not in its way
             foot = footprint(body)
