@@ -386,7 +386,7 @@ class Prediction:
     (``BeliefDelta.against`` drops the others)."""
     excluded: list[NDArray[np.int64]] | None = None
     """Per candidate, flat voxel indices a disturbance term (CDC) ignores: a grasp's intended removal
-    (the grasped object's region); None: none."""
+    (the whole grasped object); None: none."""
 
     @classmethod
     def from_beliefs(cls, base: EvidentialMap, beliefs: Sequence[EvidentialMap],

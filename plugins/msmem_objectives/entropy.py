@@ -34,7 +34,7 @@ class SemanticEntropyConfig(BaseModel):
     clip: bool = True
     """MEM's reference rule ``min(0, dH)``; false: the paper's ``dH`` as written."""
     removal: Literal["exempt", "counted"] = "exempt"
-    """The voxels of a grasp's intended removal (``Prediction.excluded``, the grasped object's region).
+    """The voxels of a grasp's intended removal (``Prediction.excluded``, the whole grasped object).
     ``exempt``: they do not count, as the paper exempts them from CDC: the object leaves on purpose, and
     the space it leaves, believed free on two views' evidence, has a vaguer class (background at 0.6
     against 14 object classes) than the object it held; counted, that rise (about 1.4 nats a voxel)
