@@ -189,6 +189,7 @@ def test_datagen_cnabu_simulates_in_the_named_backend(recording, tmp_path):
     assert "not in 'pybullet'" in str(again.exception)
 
 
+@pytest.mark.slow  # an end-to-end run or a benchmark: the slow suite (CI) runs it
 def test_grasp_datagen_and_bench_build_the_named_backend(recording, tmp_path):
     from msmem_grasp.fpp import FPPConfig
     from msmem_grasp.learn.bench import GraspBenchConfig, run_scene

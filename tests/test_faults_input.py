@@ -262,7 +262,7 @@ def test_presets_validate(method):
     validate_config(preset(method))
 
 
-@pytest.mark.parametrize(("seed", "hard"), [(0, True), (1, False), (6, False)])
+@pytest.mark.parametrize(("seed", "hard"), [pytest.param(0, True, marks=pytest.mark.slow), (1, False), (6, False)])
 def test_generated_scenes_pass_the_placement_checks(seed, hard):
     scene = generate_scene(seed, SceneGenConfig(require_hard=hard))
     assert len(scene.objects) >= 10

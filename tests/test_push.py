@@ -728,6 +728,7 @@ def test_push_only_episode_executes_a_push_and_records_it(tmp_path: Path, monkey
     assert final["actions"] == {"view": 2, "push": 1}
 
 
+@pytest.mark.slow  # an end-to-end run or a benchmark: the slow suite (CI) runs it
 def test_perf_push_times_the_named_effect_model_and_matches_the_reference() -> None:
     from msmem_push.perf import perf_push
 

@@ -51,6 +51,7 @@ def test_a_bad_suite_is_one_line_naming_what_is_wrong(tmp_path: Path, make, mess
         suite_scenes(make(tmp_path))
 
 
+@pytest.mark.slow  # an end-to-end run or a benchmark: the slow suite (CI) runs it
 def test_bench_runs_a_folder_of_scenes_and_resumes(tmp_path: Path) -> None:
     d = _folder(tmp_path)
     out = tmp_path / "bench"
@@ -67,6 +68,7 @@ def test_bench_runs_a_folder_of_scenes_and_resumes(tmp_path: Path) -> None:
     assert [p.stat().st_mtime_ns for p in eps] == mtimes  # resumed: nothing rerun
 
 
+@pytest.mark.slow  # an end-to-end run or a benchmark: the slow suite (CI) runs it
 def test_an_impossible_hardness_check_says_how_hard_the_best_attempt_was(monkeypatch: pytest.MonkeyPatch) -> None:
     with pytest.raises(UserError, match=r"no attempt got as far as counting .* 3 were screened out.* min_hidden,"):
         generate_scene(0, SceneGenConfig(min_hidden=30, max_tries=3))
