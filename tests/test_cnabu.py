@@ -15,7 +15,7 @@ import torch
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from msmem_cnabu.configs import CNABUEffectConfig, CNABUObserveConfig
-from msmem_cnabu.features import belief_features, grid_interior, prior_evidence, wall_mask
+from msmem_cnabu.features import belief_features, grasp_regions, grid_interior, prior_evidence, wall_mask
 from msmem_cnabu.learn.datagen import CNABUDataConfig, ShardError, generate_dataset, load_shard, shard_path
 from msmem_cnabu.learn.losses import CNABULossConfig, cnabu_loss, dirichlet_kl_uniform
 from msmem_cnabu.learn.training import TrainConfig, sha256_file, train, write_weights
@@ -177,8 +177,10 @@ def test_cnabu_grasp_believes_the_grasped_region_free_and_keeps_the_network_else
     pred, net_pred = free.predict(belief, actions, WORKSPACE), raw.predict(belief, actions, WORKSPACE)
     assert pred.excluded is not None
     emptied = 0
+    regions = grasp_regions(belief, actions, WORKSPACE)
     for k, (b, r) in enumerate(zip(pred.beliefs, net_pred.beliefs, strict=True)):
-        region = np.asarray(pred.excluded[k])
+        region = np.asarray(regions[k])
+        assert np.isin(region, pred.excluded[k]).all()  # the region is part of the intended removal
         emptied += len(region)
         assert np.all(b.alpha.reshape(-1)[region] == 1.0)
         assert np.all(b.beta.reshape(-1)[region] == 21.0)

@@ -606,6 +606,40 @@ def test_the_intended_removal_is_the_whole_grasped_object_not_only_the_fingers_r
     assert disturbed_voxels(eta0[:, flat], eta1[:, flat], 0.5, np.isin(flat, region)).sum() == len(flat) - len(region)
 
 
+def test_the_intended_removal_takes_the_objects_own_voxels_of_another_class() -> None:
+    """The default belief labels bands of an object with another class (here the lower 10 cm of the 24 cm
+    box's front voxel layer as a meat can): a component of its own. The band stands in the box's
+    columns under its top, where nothing else can stand, so it is part of the removal; a CDC term that
+    sees it become free counts nothing (it counted the band's 60 voxels with the box's component alone)."""
+    from msmem_objectives.cdc import disturbed_voxels
+
+    box = ((-0.03, 0.05), (0.03, 0.11), 0.24, SUGAR)
+    belief = box_belief([box])
+    c = GRID.centers()
+    whole = (np.abs(c[..., 0]) < 0.03) & (c[..., 1] > 0.05) & (c[..., 1] < 0.11) & (c[..., 2] > 0) & (c[..., 2] < 0.24)
+    band = whole & (c[..., 1] < 0.06) & (c[..., 2] < 0.10)
+    belief.eta[:, band] = 1.0
+    belief.eta[MEAT, band] = 21.0
+    pose = gripper_pose((0.0, 0.05, 0.06), (0, 1, 0), (1, 0, 0))
+    a = GraspAction(pose=tuple(tuple(float(v) for v in row) for row in pose), width_m=0.06, opening_m=0.08,
+                    contact_m=(-0.03, 0.05, 0.06), target_class=SUGAR,
+                    retreat_m=((0.0, 0.05, 0.09), (0.0, -0.3, 0.09)))
+    model = AnalyticGraspEffect()
+    objects = Objects.of(belief, INTERIOR)
+    label, region = model.target_region(belief, objects, a)
+    own = objects.carried(GRID, label, region, 0.02)
+    flat = np.flatnonzero(whole.reshape(-1))
+    assert not np.isin(np.flatnonzero(band.reshape(-1)), own).any()  # another component
+    removal = model.removal(belief, objects, a)
+    assert np.array_equal(removal, flat)
+    after = belief.copy()
+    after.alpha[whole], after.beta[whole], after.eta[:, whole] = 1.0, 21.0, 1.0
+    after.eta[0, whole] = 21.0
+    eta0, eta1 = belief.eta.reshape(belief.num_classes, -1), after.eta.reshape(belief.num_classes, -1)
+    assert not disturbed_voxels(eta0[:, flat], eta1[:, flat], 0.5, np.isin(flat, removal)).any()
+    assert disturbed_voxels(eta0[:, flat], eta1[:, flat], 0.5, np.isin(flat, own)).sum() == band.sum() == 60
+
+
 def test_the_hidden_lower_part_of_the_grasped_object_is_carried_out_too() -> None:
     belief = box_belief([TARGET, IN_THE_WAY])
     c = GRID.centers()

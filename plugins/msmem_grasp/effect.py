@@ -49,7 +49,16 @@ from msmem_core.interfaces import Action, EffectModel, Prediction, Workspace
 from msmem_core.map.belief import BeliefDelta, EvidentialMap
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec
-from msmem_grasp.planning import Objects, fill_down, gripper_points, path_offsets, shift_voxels, swept_indices, way_out
+from msmem_grasp.planning import (
+    Objects,
+    fill_down,
+    gripper_points,
+    path_offsets,
+    shift_voxels,
+    swept_indices,
+    under_top,
+    way_out,
+)
 from msmem_grasp.skill import GraspAction
 
 I64 = NDArray[np.int64]
@@ -133,10 +142,16 @@ class AnalyticGraspEffect(EffectModel):
         """The grasp's intended removal, which a CDC term does not count as collateral damage: the
         whole grasped object, its region (``target_region``) and its component's voxels in the columns
         within ``REMOVAL_MARGIN_M`` of the region's, at any height (``Objects.carried``; the skill
-        carries the same body out of the shelf). The region alone is clipped to the opening: a
-        tall object's upper part, which leaves with it, counted as damage."""
+        carries the same body out of the shelf), and the believed-occupied voxels below its top in its
+        columns (``planning.under_top``: its own voxels that the belief gave another class). The region
+        alone is clipped to the opening: a tall object's upper part, which leaves with it, counted as
+        damage, and so did bands of the object labelled another class."""
         label, region = self.target_region(belief, objects, a)
-        return objects.carried(belief.grid, label, region, REMOVAL_MARGIN_M)
+        body = objects.carried(belief.grid, label, region, REMOVAL_MARGIN_M)
+        if not len(body):
+            return body
+        occupied = belief.expected_occupancy().reshape(-1) > self.config.occupied_threshold
+        return np.union1d(body, np.flatnonzero(occupied & under_top(belief.grid, body)))
 
     # ----------------------------------------------------------------------------------- one grasp
     def target_region(self, belief: EvidentialMap, objects: Objects, a: GraspAction) -> tuple[int, I64]:

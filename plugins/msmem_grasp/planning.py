@@ -310,6 +310,21 @@ class Objects:
         return np.union1d(vox, own[near.reshape(-1)[own // nz]])
 
 
+def under_top(grid: GridSpec, body: I64) -> NDArray[np.bool_]:
+    """Flat mask of the voxels below ``body``'s top in each of its columns, and at any height in the
+    columns its footprint surrounds. Objects stand on the shelf floor, so nothing else stands there:
+    on the default belief, believed-occupied voxels there are the object's own, of another class."""
+    nx, ny, nz = grid.shape
+    cols = np.asarray(body, dtype=np.int64) // nz
+    foot = np.zeros(nx * ny, dtype=bool)
+    foot[cols] = True
+    top = np.full(nx * ny, -1, dtype=np.int64)
+    np.maximum.at(top, cols, np.asarray(body, dtype=np.int64) % nz)
+    foot2 = foot.reshape(nx, ny)
+    top[(ndimage.binary_fill_holes(foot2) & ~foot2).reshape(-1)] = nz
+    return (np.arange(nz)[None, :] < top[:, None]).reshape(-1)
+
+
 def shift_voxels(grid: GridSpec, vox: I64, di: int, dj: int, dk: int) -> tuple[I64, NDArray[np.bool_]]:
     """Flat indices of voxels moved by (di, dj, dk) and which of them stay inside the grid."""
     nx, ny, nz = grid.shape

@@ -70,7 +70,6 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator
-from scipy import ndimage
 
 from msmem_core.interfaces import Action, Category, DecisionContext, Outcome, Simulator, Skill, Workspace
 from msmem_core.map.belief import EvidentialMap
@@ -94,6 +93,7 @@ from msmem_grasp.planning import (
     path_offsets,
     sweep_hits,
     swept_indices,
+    under_top,
     voxel_centres,
     way_out,
 )
@@ -643,22 +643,10 @@ class GraspSkill(Skill):
         body = fill_down(grid, p, objects.labels, region, label, cfg.geometric.free_threshold)
         way = (p.reshape(-1) > cfg.occupied_threshold) & (objects.labels.reshape(-1) > 0)
         if len(body):
-            nx, ny, nz = grid.shape
-
-            def footprint(vox: NDArray[np.int64]) -> NDArray[np.bool_]:
-                foot = np.zeros(nx * ny, dtype=bool)
-                foot[np.unique(vox // nz)] = True
-                return foot.reshape(nx, ny)
-
             body = objects.carried(grid, label, body, cfg.exit_margin_m)
             # under its top in its own columns, and in the columns it surrounds, nothing else stands: the
             # belief's voxels there are its own (of another class), not in its way
-            foot = footprint(body)
-            top = np.full(nx * ny, -1, dtype=np.int64)
-            np.maximum.at(top, body // nz, body % nz)
-            top[(ndimage.binary_fill_holes(foot) & ~foot).reshape(-1)] = nz
-            ahead = np.flatnonzero(way)
-            way[ahead[ahead % nz < top[ahead // nz]]] = False
+            way &= ~under_top(grid, body)
         way[body] = False
         return body, way
 
