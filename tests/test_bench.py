@@ -205,6 +205,7 @@ def test_paper_metrics_per_scene_and_suite_cumulative():
     assert "semantic mIoU 2-D (paper)" in paired_header
 
 
+@pytest.mark.slow  # an end-to-end run: the slow suite (CI) runs it
 def test_kill_and_resume_loses_at_most_the_inflight_episode(tmp_path):
     script = (
         "import sys, json; from pathlib import Path; from msmem_core.run.bench import run_bench, suite_scenes;"

@@ -22,6 +22,7 @@ FLAKY = SMALL + "skills:\n  - name: flaky-view\n    params: {fail_at: 1}\n"
 NAMED = "skill 'flaky-view' (plugin 'failing' from MSMEM_PLUGINS)"
 
 
+@pytest.mark.slow  # an end-to-end run: the slow suite (CI) runs it
 def test_a_component_that_raises_mid_run_is_one_line_naming_it_and_the_partial_folder_rc_3(tmp_path):
     config = tmp_path / "flaky.yaml"
     config.write_text(FLAKY)

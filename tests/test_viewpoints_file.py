@@ -151,6 +151,7 @@ def test_the_benchmark_fingerprint_follows_the_files_content(tmp_path: Path) -> 
     assert fingerprint(cfg, "s", scene, {})["config_sha256"] != before["config_sha256"]
 
 
+@pytest.mark.slow  # an end-to-end run: the slow suite (CI) runs it
 def test_the_grasp_skill_gets_the_runs_viewpoints_for_its_virtual_front_cameras(tmp_path: Path) -> None:
     from msmem_grasp.fpp import virtual_front_views
 
