@@ -569,22 +569,39 @@ def test_the_effect_removes_the_target_and_pushes_out_what_is_in_its_way() -> No
     assert np.array_equal(high.changed[0], target)
 
 
-def test_the_intended_removal_is_the_whole_grasped_object_not_only_the_fingers_region() -> None:
-    """A 24 cm box grasped from the front 6 cm above the floor: the region the fingers close on is
-    clipped 10 cm above the grasp, but the whole box leaves with it. Both effect models report the whole
-    box as the intended removal, so a CDC term that sees the box's upper part become free counts
-    nothing; with the region alone it counted that upper part as collateral damage."""
-    from msmem_cnabu.features import grasp_removals
-    from msmem_objectives.cdc import disturbed_voxels
-
+def _tall_box() -> tuple[EvidentialMap, np.ndarray, GraspAction]:  # type: ignore[type-arg]
+    """A confident 24 cm box in the front row, the mask of its voxels, and a front grasp 6 cm above the floor."""
     box = ((-0.03, 0.05), (0.03, 0.11), 0.24, SUGAR)
-    belief = box_belief([box])
     c = GRID.centers()
     whole = (np.abs(c[..., 0]) < 0.03) & (c[..., 1] > 0.05) & (c[..., 1] < 0.11) & (c[..., 2] > 0) & (c[..., 2] < 0.24)
     pose = gripper_pose((0.0, 0.05, 0.06), (0, 1, 0), (1, 0, 0))
     a = GraspAction(pose=tuple(tuple(float(v) for v in row) for row in pose), width_m=0.06, opening_m=0.08,
                     contact_m=(-0.03, 0.05, 0.06), target_class=SUGAR,
                     retreat_m=((0.0, 0.05, 0.09), (0.0, -0.3, 0.09)))
+    return box_belief([box]), whole, a
+
+
+def _disturbed_if_emptied(belief: EvidentialMap, whole: np.ndarray, excluded: np.ndarray) -> int:  # type: ignore[type-arg]
+    """CDC's count over the box's voxels when the whole box is believed free afterwards (what the
+    learned grasp model predicts for it), ``excluded`` (flat indices) left out."""
+    from msmem_objectives.cdc import disturbed_voxels
+
+    flat = np.flatnonzero(whole.reshape(-1))
+    after = belief.copy()
+    after.alpha[whole], after.beta[whole], after.eta[:, whole] = 1.0, 21.0, 1.0
+    after.eta[0, whole] = 21.0
+    eta0, eta1 = belief.eta.reshape(belief.num_classes, -1), after.eta.reshape(belief.num_classes, -1)
+    return int(disturbed_voxels(eta0[:, flat], eta1[:, flat], 0.5, np.isin(flat, excluded)).sum())
+
+
+def test_the_intended_removal_is_the_whole_grasped_object_not_only_the_fingers_region() -> None:
+    """A 24 cm box grasped from the front 6 cm above the floor: the region the fingers close on is
+    clipped 10 cm above the grasp, but the whole box leaves with it. Both effect models report the whole
+    box as the intended removal, so a CDC term that sees the box's upper part become free counts
+    nothing; with the region alone it counted that upper part as collateral damage."""
+    from msmem_cnabu.features import grasp_removals
+
+    belief, whole, a = _tall_box()
     model = AnalyticGraspEffect()
     objects = Objects.of(belief, INTERIOR)
     label, region = model.target_region(belief, objects, a)
@@ -597,13 +614,8 @@ def test_the_intended_removal_is_the_whole_grasped_object_not_only_the_fingers_r
     assert pred.excluded is not None
     assert np.array_equal(pred.excluded[0], flat)
     assert [r.tolist() for r in grasp_removals(belief, [a], WORKSPACE)] == [flat.tolist()]
-    # the whole box believed free afterwards (what the learned grasp model predicts for it)
-    after = belief.copy()
-    after.alpha[whole], after.beta[whole], after.eta[:, whole] = 1.0, 21.0, 1.0
-    after.eta[0, whole] = 21.0
-    eta0, eta1 = belief.eta.reshape(belief.num_classes, -1), after.eta.reshape(belief.num_classes, -1)
-    assert not disturbed_voxels(eta0[:, flat], eta1[:, flat], 0.5, np.isin(flat, removal)).any()
-    assert disturbed_voxels(eta0[:, flat], eta1[:, flat], 0.5, np.isin(flat, region)).sum() == len(flat) - len(region)
+    assert _disturbed_if_emptied(belief, whole, removal) == 0
+    assert _disturbed_if_emptied(belief, whole, region) == len(flat) - len(region)
 
 
 def test_the_intended_removal_takes_the_objects_own_voxels_of_another_class() -> None:
@@ -611,19 +623,11 @@ def test_the_intended_removal_takes_the_objects_own_voxels_of_another_class() ->
     box's front voxel layer as a meat can): a component of its own. The band stands in the box's
     columns under its top, where nothing else can stand, so it is part of the removal; a CDC term that
     sees it become free counts nothing (it counted the band's 60 voxels with the box's component alone)."""
-    from msmem_objectives.cdc import disturbed_voxels
-
-    box = ((-0.03, 0.05), (0.03, 0.11), 0.24, SUGAR)
-    belief = box_belief([box])
+    belief, whole, a = _tall_box()
     c = GRID.centers()
-    whole = (np.abs(c[..., 0]) < 0.03) & (c[..., 1] > 0.05) & (c[..., 1] < 0.11) & (c[..., 2] > 0) & (c[..., 2] < 0.24)
     band = whole & (c[..., 1] < 0.06) & (c[..., 2] < 0.10)
     belief.eta[:, band] = 1.0
     belief.eta[MEAT, band] = 21.0
-    pose = gripper_pose((0.0, 0.05, 0.06), (0, 1, 0), (1, 0, 0))
-    a = GraspAction(pose=tuple(tuple(float(v) for v in row) for row in pose), width_m=0.06, opening_m=0.08,
-                    contact_m=(-0.03, 0.05, 0.06), target_class=SUGAR,
-                    retreat_m=((0.0, 0.05, 0.09), (0.0, -0.3, 0.09)))
     model = AnalyticGraspEffect()
     objects = Objects.of(belief, INTERIOR)
     label, region = model.target_region(belief, objects, a)
@@ -632,12 +636,8 @@ def test_the_intended_removal_takes_the_objects_own_voxels_of_another_class() ->
     assert not np.isin(np.flatnonzero(band.reshape(-1)), own).any()  # another component
     removal = model.removal(belief, objects, a)
     assert np.array_equal(removal, flat)
-    after = belief.copy()
-    after.alpha[whole], after.beta[whole], after.eta[:, whole] = 1.0, 21.0, 1.0
-    after.eta[0, whole] = 21.0
-    eta0, eta1 = belief.eta.reshape(belief.num_classes, -1), after.eta.reshape(belief.num_classes, -1)
-    assert not disturbed_voxels(eta0[:, flat], eta1[:, flat], 0.5, np.isin(flat, removal)).any()
-    assert disturbed_voxels(eta0[:, flat], eta1[:, flat], 0.5, np.isin(flat, own)).sum() == band.sum() == 60
+    assert _disturbed_if_emptied(belief, whole, removal) == 0
+    assert _disturbed_if_emptied(belief, whole, own) == band.sum() == 60
 
 
 def test_the_hidden_lower_part_of_the_grasped_object_is_carried_out_too() -> None:

@@ -126,7 +126,8 @@ def grasp_removals(belief: Any, actions: Sequence[Any], workspace: Workspace) ->
     if not actions:
         return []
     objects = Objects.of(belief, workspace.interior_box, twin.config.occupied_threshold)
-    return [twin.removal(belief, objects, a) for a in actions]
+    occupied = twin.occupied(belief)
+    return [twin.removal(belief, objects, a, occupied) for a in actions]
 
 
 def manipulation_indices(kind: str, belief: Any, actions: Sequence[Any], workspace: Workspace

@@ -132,26 +132,34 @@ class AnalyticGraspEffect(EffectModel):
             return Prediction(belief, [], excluded=[])
         objects = Objects.of(belief, workspace.interior_box, self.config.occupied_threshold)
         changes, excluded = [], []
+        occupied = self.occupied(belief)
         for a in grasps:
             d, _region = self._predict_one(belief, objects, a, workspace.gripper)
             changes.append(d.against(belief))
-            excluded.append(self.removal(belief, objects, a))
+            excluded.append(self.removal(belief, objects, a, occupied))
         return Prediction(belief, changes, excluded=excluded)
 
-    def removal(self, belief: EvidentialMap, objects: Objects, a: GraspAction) -> I64:
+    def removal(self, belief: EvidentialMap, objects: Objects, a: GraspAction,
+                occupied: NDArray[np.bool_] | None = None) -> I64:
         """The grasp's intended removal, which a CDC term does not count as collateral damage: the
         whole grasped object, its region (``target_region``) and its component's voxels in the columns
         within ``REMOVAL_MARGIN_M`` of the region's, at any height (``Objects.carried``; the skill
         carries the same body out of the shelf), and the believed-occupied voxels below its top in its
         columns (``planning.under_top``: its own voxels that the belief gave another class). The region
         alone is clipped to the opening: a tall object's upper part, which leaves with it, counted as
-        damage, and so did bands of the object labelled another class."""
+        damage, and so did bands of the object labelled another class. ``occupied``: the flat mask of
+        believed-occupied voxels, when the caller has it (one per belief, not per grasp)."""
         label, region = self.target_region(belief, objects, a)
         body = objects.carried(belief.grid, label, region, REMOVAL_MARGIN_M)
         if not len(body):
             return body
-        occupied = belief.expected_occupancy().reshape(-1) > self.config.occupied_threshold
+        if occupied is None:
+            occupied = self.occupied(belief)
         return np.union1d(body, np.flatnonzero(occupied & under_top(belief.grid, body)))
+
+    def occupied(self, belief: EvidentialMap) -> NDArray[np.bool_]:
+        """Flat mask of the believed-occupied voxels (expected occupancy above ``occupied_threshold``)."""
+        return belief.expected_occupancy().reshape(-1) > self.config.occupied_threshold
 
     # ----------------------------------------------------------------------------------- one grasp
     def target_region(self, belief: EvidentialMap, objects: Objects, a: GraspAction) -> tuple[int, I64]:
