@@ -747,12 +747,14 @@ def test_a_class_map_feeds_the_network_the_mapped_classes_and_maps_its_answer_ba
     b0 = AnalyticObservationModel().apply_masks(EvidentialMap.empty(shard.grid), f0, o0, s0)
     f, o, s = shard.masks(0)
     # the fill under surfaces takes the top voxel's class among the classes the belief holds: the unmapped
-    # twin could take one the scene does not have, so both leave it out here
+    # twin could take one the scene does not have, so both leave it out here; the mapped twin keeps the
+    # network's guesses and their evidence (``unlabelled_columns``, ``unreached_occupied``: not by default)
     plain = CNABUMapObservationModel(CNABUMapConfig(unlabelled_objects="keep", fill_under_surfaces=None))
     keep = np.random.default_rng(0).permutation(np.arange(1, 15))[:11]  # scene class i is trained class keep[i-1]
     cmap = {f"thing{i}": plain.classes[k] for i, k in enumerate(keep, 1)}
     mapped = CNABUMapObservationModel(CNABUMapConfig(class_map=cmap, unlabelled_objects="keep",
-                                                     fill_under_surfaces=None))
+                                                     fill_under_surfaces=None, unlabelled_columns="keep",
+                                                     unreached_occupied="keep"))
     assert mapped.classes == ("background", *cmap)
     idx = np.r_[0, keep]
     unmapped = np.setdiff1d(np.arange(15), idx)
@@ -970,7 +972,7 @@ def test_what_rays_reached_comes_from_the_rays_and_the_network_predicts_the_rest
     from msmem_cnabu.mapmodel import CNABUMapObservationModel
 
     views = [start_masks(shard), *(shard.masks(i) for i in range(4))]
-    fused = CNABUMapObservationModel(CNABUMapConfig(fill_under_surfaces=None))
+    fused = CNABUMapObservationModel(CNABUMapConfig(fill_under_surfaces=None, ray_classes_within=None))
     net = CNABUMapObservationModel(CNABUMapConfig(observed_voxels="network"))
     rays = AnalyticObservationModel()
     b = n = r = EvidentialMap.empty(shard.grid)
@@ -989,6 +991,127 @@ def test_what_rays_reached_comes_from_the_rays_and_the_network_predicts_the_rest
     np.testing.assert_array_equal(b.eta[:, never], n.eta[:, never])
     # the network alone overwrites classes the rays labelled (what the rule is there for)
     assert (np.argmax(n.eta[:, labelled], axis=0) != np.argmax(r.eta[:, labelled], axis=0)).sum() > 100
+
+
+@pytest.mark.slow  # an option that is off by default
+def test_an_occupied_voxel_no_ray_named_takes_the_class_of_the_nearest_voxel_rays_named(shard):
+    """``ray_classes_within``: the network's completion of an object takes the object class of the nearest
+    voxel whose rays gave one (within the distance), its object-class evidence moved onto that class; the
+    rays' object classes, the background evidence and the occupancy are untouched."""
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel, majority_labels
+    from scipy import ndimage
+
+    views = [start_masks(shard), *(shard.masks(i) for i in range(4))]
+    near = CNABUMapObservationModel(CNABUMapConfig(fill_under_surfaces=None, ray_classes_within=4))
+    plain = CNABUMapObservationModel(CNABUMapConfig(fill_under_surfaces=None))  # the default: off
+    rays = AnalyticObservationModel()
+    b = n = r = EvidentialMap.empty(shard.grid)
+    for f, o, s in views:
+        b, n, r = near.update_masks(b, f, o, s), plain.update_masks(n, f, o, s), rays.apply_masks(r, f, o, s)
+    np.testing.assert_array_equal(b.alpha, n.alpha)
+    np.testing.assert_array_equal(b.beta, n.beta)
+    np.testing.assert_array_equal(b.eta[0], n.eta[0])  # background evidence stays
+    named = r.eta[1:].sum(axis=0) > r.num_classes - 1  # a ray gave these an object class
+    np.testing.assert_array_equal(b.eta[:, named], n.eta[:, named])
+    changed = (b.eta != n.eta).any(axis=0)
+    source = majority_labels(r)[1:].any(axis=0)
+    dist = ndimage.distance_transform_edt(~source)
+    assert changed.sum() > 100
+    assert (b.expected_occupancy()[changed] > 0.5).all()
+    assert not named[changed].any()
+    assert dist[changed].max() <= 4
+    assert (b.eta[:, changed] >= 1.0).all()  # (the network's own evidence is 1 up to float rounding)
+    # each took the majority class of a labelled voxel at its distance, with at least the network's mass
+    cls = np.argmax(b.eta[1:], axis=0) + 1
+    ray_cls = np.argmax(r.eta[1:], axis=0) + 1
+    for x, y, z in np.argwhere(changed)[::37]:
+        d = dist[x, y, z]
+        lo, hi = np.maximum([x, y, z] - np.ceil(d).astype(int), 0), np.array([x, y, z]) + int(np.ceil(d)) + 1
+        box = np.argwhere(source[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]) + lo
+        at = box[np.isclose(np.linalg.norm(box - [x, y, z], axis=1), d)]
+        assert cls[x, y, z] in {int(ray_cls[tuple(v)]) for v in at}
+        mass = (n.eta[1:, x, y, z] - 1).sum()
+        assert b.eta[1:, x, y, z].sum() - (b.num_classes - 1) == pytest.approx(max(mass, 1.0), rel=1e-5)
+    # the network alone names some of these voxels otherwise
+    assert (np.argmax(n.eta[1:, changed], axis=0) + 1 != cls[changed]).sum() > 10
+
+
+def _replay(shard, views: int = 3, **kw: object) -> tuple[EvidentialMap, EvidentialMap]:
+    """cnabu-map with ``kw`` through the shard's start view and ``views`` more (the scene's classes being
+    the shard's first ones), and the ray record of the same views."""
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+
+    model = CNABUMapObservationModel(CNABUMapConfig(**kw))
+    idx = np.arange(len(model.classes))
+    b = r = EvidentialMap.empty(shard.grid, len(model.classes))
+    rays = AnalyticObservationModel()
+    for f, o, s in [start_masks(shard), *(shard.masks(i) for i in range(views))]:
+        b, r = model.update_masks(b, f, o, s[idx]), rays.apply_masks(r, f, o, s[idx])
+    return b, r
+
+
+def _some_class_map() -> dict[str, str]:
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+
+    return {f"thing{i}": c for i, c in enumerate(CNABUMapObservationModel(CNABUMapConfig()).classes[1:12], 1)}
+
+
+def test_unlabelled_columns_return_the_networks_guesses_where_no_ray_named_an_object_to_the_prior(shard):
+    """``unlabelled_columns: unknown``: the voxels the network alone calls occupied, in the columns where no
+    ray gave any voxel an object class, are the prior; nothing else changes. ``auto`` is that with a
+    class map (the scene's objects are not the trained shapes) and ``keep`` without one."""
+    keep, r = _replay(shard, unlabelled_columns="keep", fill_under_surfaces=None)  # (the fill fills under rays' hits)
+    drop, _ = _replay(shard, unlabelled_columns="unknown", fill_under_surfaces=None)
+    named = (r.eta[1:].sum(axis=0) > r.num_classes - 1).any(axis=2)
+    reached = (r.alpha != 1.0) | (r.beta != 1.0)
+    changed = (drop.alpha != keep.alpha) | (drop.beta != keep.beta) | (drop.eta != keep.eta).any(axis=0)
+    assert changed.sum() > 1000
+    assert not changed[named].any()
+    assert not changed[reached].any()
+    assert (drop.alpha[changed] == 1.0).all()
+    assert (drop.beta[changed] == 1.0).all()
+    assert (drop.eta[:, changed] == 1.0).all()
+    # in those columns nothing no ray reached stays occupied
+    assert not ((drop.expected_occupancy() > 0.5) & ~named[:, :, None] & ~reached).any()
+    auto, _ = _replay(shard, fill_under_surfaces=None)
+    np.testing.assert_array_equal(auto.alpha, keep.alpha)  # no class map: the network's guesses stay
+    cmap = _some_class_map()
+    mapped_auto, _ = _replay(shard, class_map=cmap, unreached_occupied="keep")
+    mapped_drop, _ = _replay(shard, class_map=cmap, unlabelled_columns="unknown", unreached_occupied="keep")
+    mapped_keep, _ = _replay(shard, class_map=cmap, unlabelled_columns="keep", unreached_occupied="keep")
+    np.testing.assert_array_equal(mapped_auto.alpha, mapped_drop.alpha)
+    np.testing.assert_array_equal(mapped_auto.eta, mapped_drop.eta)
+    assert (mapped_auto.alpha != mapped_keep.alpha).sum() > 1000
+
+
+def test_unreached_occupied_least_keeps_the_map_with_the_least_evidence(shard):
+    """``unreached_occupied: least``: what no ray reached and the network calls occupied keeps the least
+    evidence that calls it occupied (the hard maps, the classes and what rays reached are unchanged,
+    its entropy is nearly the prior's); ``auto`` is that with a class map only."""
+    from msmem_cnabu.mapmodel import LEAST_OCCUPIED_ALPHA
+
+    keep, r = _replay(shard, views=2, unreached_occupied="keep", fill_under_surfaces=None)
+    least, _ = _replay(shard, views=2, unreached_occupied="least", fill_under_surfaces=None)
+    reached = (r.alpha != 1.0) | (r.beta != 1.0)
+    np.testing.assert_array_equal(least.expected_occupancy() > 0.5, keep.expected_occupancy() > 0.5)
+    np.testing.assert_array_equal(least.eta, keep.eta)
+    changed = (least.alpha != keep.alpha) | (least.beta != keep.beta)
+    assert changed.sum() > 1000
+    assert not changed[reached].any()
+    assert (least.alpha[changed] == LEAST_OCCUPIED_ALPHA).all()
+    assert (least.beta[changed] == 1.0).all()
+    assert (keep.expected_occupancy()[changed] > 0.6).mean() > 0.5  # the network was sure of most of them
+    assert (least.expected_occupancy()[changed] < 0.55).all()
+    auto, _ = _replay(shard, views=2, fill_under_surfaces=None)
+    np.testing.assert_array_equal(auto.alpha, keep.alpha)  # no class map: the network's evidence
+    cmap = _some_class_map()
+    mapped_auto, _ = _replay(shard, views=2, class_map=cmap, fill_under_surfaces=None)
+    mapped_keep, _ = _replay(shard, views=2, class_map=cmap, unreached_occupied="keep", fill_under_surfaces=None)
+    assert (mapped_auto.alpha != mapped_keep.alpha).sum() > 1000
+    assert ((mapped_auto.alpha == LEAST_OCCUPIED_ALPHA) | (mapped_auto.alpha == mapped_keep.alpha)).all()
 
 
 @pytest.mark.slow
