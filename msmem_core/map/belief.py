@@ -36,7 +36,11 @@ def categorical_entropy(eta: NDArray[np.floating]) -> NDArray[np.float64]:
 
 def bernoulli_entropy(p: NDArray[np.floating]) -> NDArray[np.float64]:
     """Shannon entropy (nats) of Bernoulli(p), elementwise; 0 at p in {0, 1}."""
-    return -(_xlogx(p) + _xlogx(1.0 - np.asarray(p, dtype=np.float64)))
+    p64 = np.asarray(p, dtype=np.float64)
+    q64 = 1.0 - p64
+    if p64.size and bool(((p64 > 0.0) & (q64 > 0.0)).all()):  # no 0 log 0 to guard
+        return -(p64 * np.log(p64) + q64 * np.log(q64))
+    return -(_xlogx(p64) + _xlogx(q64))
 
 
 def bytes_per_voxel(num_classes: int = NUM_CLASSES) -> int:

@@ -94,15 +94,21 @@ def occupancy_reduction(alpha: NDArray[np.floating], beta: NDArray[np.floating],
 
 def class_reduction(eta: NDArray[np.floating], w: float) -> NDArray[np.float64]:
     """Expected drop of the Shannon entropy (nats) of the expected categorical of Dirichlet evidence
-    ``eta [C, ...]`` when one observation adds ``w`` to class c, drawn from the expected categorical. ``>= 0``."""
+    ``eta [C, ...]`` when one observation adds ``w`` to class c, drawn from the expected categorical. ``>= 0``.
+
+    With ``S = sum_k e_k`` and ``T = sum_k e_k log e_k``: the entropy is ``log S - T / S``, after class c
+    it is ``log(S + w) - (T - e_c log e_c + (e_c + w) log(e_c + w)) / (S + w)``, and the expectation over
+    c (weights ``e_c / S``) folds into sums over the classes (tests/test_ig_gain.py checks it against the
+    entropy after each class, enumerated)."""
     e = np.asarray(eta, np.float64)
     s = e.sum(axis=0)
-    elog = _xlogx(e)
+    positive = bool((e > 0.0).all())
+    elog = e * np.log(e) if positive else _xlogx(e)
+    ew = e + w
     total = elog.sum(axis=0)
-    # entropy after class c: log(S + w) - (sum_k e_k log e_k - e_c log e_c + (e_c + w) log(e_c + w)) / (S + w)
-    after_c = np.log(s + w) - (total - elog + _xlogx(e + w)) / (s + w)
-    expected = ((e / s) * after_c).sum(axis=0)
-    return np.maximum(categorical_entropy(e) - expected, 0.0)
+    moved = (e * (ew * np.log(ew) - elog)).sum(axis=0)  # sum_c e_c ((e_c + w) log(e_c + w) - e_c log e_c)
+    expected = np.log(s + w) - (s * total + moved) / (s * (s + w))
+    return np.maximum(np.log(s) - total / s - expected, 0.0)
 
 
 def _unique_deltas(deltas: Sequence[IGDelta]) -> tuple[list[IGDelta], NDArray[np.int64]]:
@@ -205,6 +211,7 @@ class IGService:
         self.rays = raycast.RayTable.build(self.origins, self.dirs, grid, self.t_min, self.t_max)
         """The same rays with their grid entry/exit, grid-crossing rays first (what the kernels read)."""
         self._coarse: dict[int, raycast.RayTable] = {}
+        self._prior_gain: dict[int, np.float32] = {}
         self._sweeps: list[tuple[IGField, int, float, NDArray[np.float64], NDArray[np.float64]]] = []
         """Recent base sweeps with their ray stops: (field, ray_step, eps, IG [V], stop t [V, R])."""
 
@@ -266,6 +273,15 @@ class IGService:
             h = h + p * cls
         return np.where(walls, 0.0, h).astype(np.float32)
 
+    def _prior_information(self, num_classes: int) -> np.float32:
+        """What a ray reaching a voxel at the prior gains (``_information`` of the prior's evidence at
+        p = 0.5 off the walls), cached per class count."""
+        if num_classes not in self._prior_gain:
+            one = np.ones(1, dtype=np.float32)
+            self._prior_gain[num_classes] = self._information(one, one, np.ones((num_classes, 1), np.float32),
+                                                              np.full(1, 0.5, np.float32), np.zeros(1, dtype=bool))[0]
+        return self._prior_gain[num_classes]
+
     def _clamp(
         self, p: NDArray[np.float32], walls: NDArray[np.bool_]
     ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
@@ -294,10 +310,8 @@ class IGService:
         if self._mem():
             if base.observed_record:  # a predicted change clears the ray record where it writes
                 h = np.where(self.walls[idx], h, LN2).astype(np.float32)
-        elif base.observed_record:
-            one = np.ones(len(idx), dtype=np.float32)
-            h = self._information(one, one, np.ones((np.asarray(delta.eta).shape[0], len(idx)), np.float32),
-                                  np.where(self.walls[idx], p, np.float32(0.5)), self.walls[idx])
+        elif base.observed_record:  # the prior's gain off the walls: one value, computed once
+            h = np.where(self.walls[idx], np.float32(0), self._prior_information(np.asarray(delta.eta).shape[0]))
         else:
             h = self._information(a, np.asarray(delta.beta, dtype=np.float32), np.asarray(delta.eta), p,
                                   self.walls[idx])

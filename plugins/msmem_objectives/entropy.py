@@ -53,8 +53,11 @@ class SemanticEntropyTerm(Term):
         assert pred is not None
         eta0 = pred.base.eta.reshape(pred.base.num_classes, -1)
         out = np.zeros(len(pred))
+        # the base belief's entropy per voxel: once for the whole grid where the changes cover more voxels
+        h0 = categorical_entropy(eta0) if sum(len(d.idx) for d in pred.changes) > eta0.shape[1] else None
         for k, d in enumerate(pred.changes):
-            dh = categorical_entropy(eta0[:, d.idx]) - categorical_entropy(d.eta)
+            before = h0[d.idx] if h0 is not None else categorical_entropy(eta0[:, d.idx])
+            dh = before - categorical_entropy(d.eta)
             gone = pred.excluded_among(k) if self.config.removal == "exempt" else None
             out[k] = float(dh.sum() if gone is None else dh[~gone].sum())
         return np.minimum(0.0, out) if self.config.clip else out
