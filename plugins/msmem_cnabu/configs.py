@@ -153,8 +153,8 @@ class CNABUMapConfig(BaseModel):
     underside of an object whose faces the rays labelled, and the rays know that object's class better
     than the network's guess from its shape; an occupied voxel that rays labelled only background (an
     object's surface seen at a grazing angle) gets its object class the same way. None (the default):
-    the network's class. Measured at 4 on ``tune10``, view-only, 40 steps: -0.012 +- 0.021 2-D semantic
-    mIoU (per scene, paired), though +0.014 offline on ``hard25`` scenes 0-4 (docs/explanation/map-prediction.md)."""
+    the network's class. Measured at 4 on ``tune10``, view-only, 40 steps: -0.012 +- 0.024 2-D semantic
+    mIoU (per scene, paired), though +0.013 offline on ``hard25`` scenes 0-4 (docs/explanation/map-prediction.md)."""
     fill_under_surfaces: float | None = Field(2.0, gt=0.0, lt=10.0)
     """With ``observed_voxels: rays``: voxels no ray reached below a column's highest believed-occupied
     voxel that the network believes free are filled as ``column-fill`` fills them (occupied with this
