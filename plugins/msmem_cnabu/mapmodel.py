@@ -142,20 +142,19 @@ class CNABUMapObservationModel(ObservationModel):
             else:
                 out_a[unknown] = out_b[unknown] = (out_a[unknown] + out_b[unknown]) / 2  # p = 0.5: a tie is free
         if rays is not None:
-            out_a, out_b, out_eta = fuse_rays(out_a, out_b, out_eta, rays, self.config.ray_confidence)
-            columns = self.config.unlabelled_columns
-            if columns == "unknown" or (columns == "auto" and self._index is not None):
-                unlabelled_columns(out_a, out_b, out_eta, rays, valid.numpy())
-            least = self.config.unreached_occupied
-            if least == "least" or (least == "auto" and self._index is not None):
-                least_evidence(out_a, out_b, rays, valid.numpy())
-            if self.config.ray_classes_within is not None:
-                labelled = self._labelled if drop else majority_labels(rays)
-                no_object = rays.eta[1:].sum(axis=0) <= rays.num_classes - 1  # no ray gave it an object class
-                ray_classes_nearby((out_a / (out_a + out_b) > 0.5) & no_object & valid.numpy(), out_eta, labelled,
-                                   self.config.ray_classes_within)
-            if self.config.fill_under_surfaces is not None:
-                fill_under_surfaces(out_a, out_b, out_eta, observed, valid.numpy(), self.config.fill_under_surfaces)
+            cfg, inside, mapped = self.config, valid.numpy(), self._index is not None
+            out_a, out_b, out_eta = fuse_rays(out_a, out_b, out_eta, rays, cfg.ray_confidence)
+            unreached = inside & (rays.alpha == 1.0) & (rays.beta == 1.0)  # the record's occupancy is the prior
+            named = rays.eta[1:].sum(axis=0) > rays.num_classes - 1  # a ray gave it an object class
+            if cfg.unlabelled_columns == "unknown" or (cfg.unlabelled_columns == "auto" and mapped):
+                unlabelled_columns(out_a, out_b, out_eta, unreached & ~named.any(axis=2)[:, :, None])
+            if cfg.unreached_occupied == "least" or (cfg.unreached_occupied == "auto" and mapped):
+                least_evidence(out_a, out_b, unreached)
+            if cfg.ray_classes_within is not None:
+                ray_classes_nearby((out_a / (out_a + out_b) > 0.5) & inside & ~named, out_eta,
+                                   self._labelled if drop else majority_labels(rays), cfg.ray_classes_within)
+            if cfg.fill_under_surfaces is not None:
+                fill_under_surfaces(out_a, out_b, out_eta, observed, inside, cfg.fill_under_surfaces)
         out = EvidentialMap(belief.grid, out_a, out_b, out_eta, observed)
         if raw is not None:
             self._state = (out, tuple(x[0].numpy() for x in raw))  # the trained slots: the next input as is
@@ -202,13 +201,11 @@ def fuse_rays(alpha: NDArray[np.float32], beta: NDArray[np.float32], eta: NDArra
 
 
 def unlabelled_columns(alpha: NDArray[np.float32], beta: NDArray[np.float32], eta: NDArray[np.float32],
-                       rays: EvidentialMap, inside: NDArray[np.bool_]) -> None:
-    """In place: the voxels (within ``inside``) believed occupied whose occupancy no ray gave (the ray
-    record ``rays`` at the prior there), in the columns in which no ray gave any voxel an object class,
-    go back to the prior (expected occupancy 0.5, no class evidence)."""
-    named = rays.eta[1:].sum(axis=0) > rays.num_classes - 1  # a ray gave it an object class
-    reached = (rays.alpha != 1.0) | (rays.beta != 1.0)
-    m = (alpha / (alpha + beta) > 0.5) & inside & ~reached & ~named.any(axis=2)[:, :, None]
+                       where: NDArray[np.bool_]) -> None:
+    """In place: the voxels of ``where`` (never reached by a ray, in a column in which no ray gave any
+    voxel an object class) that are believed occupied go back to the prior (expected occupancy 0.5, no
+    class evidence)."""
+    m = (alpha / (alpha + beta) > 0.5) & where
     alpha[m] = beta[m] = 1.0
     eta[:, m] = 1.0
 
@@ -217,20 +214,17 @@ LEAST_OCCUPIED_ALPHA = 1.2
 """``unreached_occupied: least``: alpha of a never-reached voxel believed occupied (beta 1: p = 0.545)."""
 
 
-def least_evidence(alpha: NDArray[np.float32], beta: NDArray[np.float32], rays: EvidentialMap,
-                   inside: NDArray[np.bool_]) -> None:
-    """In place: the voxels (within ``inside``) believed occupied whose occupancy no ray gave (the ray
-    record ``rays`` at the prior there) keep the least evidence that calls them occupied
-    (``LEAST_OCCUPIED_ALPHA``, 1)."""
-    reached = (rays.alpha != 1.0) | (rays.beta != 1.0)
-    m = (alpha / (alpha + beta) > 0.5) & inside & ~reached
+def least_evidence(alpha: NDArray[np.float32], beta: NDArray[np.float32], unreached: NDArray[np.bool_]) -> None:
+    """In place: the voxels of ``unreached`` (whose occupancy no ray gave) believed occupied keep the least
+    evidence that calls them occupied (``LEAST_OCCUPIED_ALPHA``, 1)."""
+    m = (alpha / (alpha + beta) > 0.5) & unreached
     alpha[m] = LEAST_OCCUPIED_ALPHA
     beta[m] = 1.0
 
 
 def ray_classes_nearby(target: NDArray[np.bool_], eta: NDArray[np.float32], labelled: NDArray[np.bool_],
                        within: int) -> None:
-    """In place: each ``target`` voxel (believed occupied, and no ray gave it an object class) takes the
+    """In place: each ``target`` voxel (believed occupied, no ray gave it an object class) takes the
     object class of the nearest voxel that ``labelled`` [C, X, Y, Z] gives one (ties: any of them), if
     that is at most ``within`` voxels away: its object-class evidence above the prior (at least one)
     moves onto that class; its background evidence (a ray's, where one saw it) stays."""
