@@ -386,6 +386,8 @@ def test_bad_network_settings_name_the_field(tmp_path):
 
 # ------------------------------------------------------------------------------ post-manipulation sequences
 POSTMANIP = dict(kind="observe", min_views=0, max_views=0, observe_samples=4, manipulate_after=2)
+ANALYTIC_EFFECTS = {"push": {"name": "push-analytic", "params": {}}, "grasp": {"name": "grasp-analytic", "params": {}}}
+"""The effect models a rollout applies unless others are named (``rollouts.default_effect_models``)."""
 """``msmem datagen cnabu --kind observe --samples 4 --min-views 0 --max-views 0 --manipulate-after 2``
 (about 8 s per scene on a loaded machine)."""
 
@@ -448,6 +450,57 @@ def test_manipulate_after_must_leave_views_to_follow():
         CNABUDataConfig(**{**POSTMANIP, "manipulate_after": 4})
 
 
+GRASPMANIP = dict(kind="observe", min_views=0, max_views=0, observe_samples=6, manipulate_after=3,
+                  manipulate_skill="grasp", manipulate_tries=2)
+"""``msmem datagen cnabu --kind observe --samples 6 --min-views 0 --max-views 0 --manipulate-after 3
+--manipulate-skill grasp --manipulate-tries 2``: on scene 600003 the grasp skill proposes nothing after
+3 views and 2 grasps after the fourth."""
+
+
+@pytest.fixture(scope="module")
+def graspmanip():
+    from msmem_cnabu.learn.datagen import CNABUDataConfig, make_shard
+
+    return make_shard(600003, CNABUDataConfig(**GRASPMANIP))
+
+
+@pytest.mark.slow  # two scenes simulated (about 20 s)
+def test_a_grasp_sequence_removes_the_held_object_and_later_views_see_it_gone(graspmanip):
+    from msmem_cnabu.learn.datagen import CNABUDataConfig, make_shard
+    from msmem_cnabu.learn.rollouts import Effects
+    from msmem_grasp.skill import GraspAction
+
+    s = graspmanip
+    info = s.info["manipulation"]
+    assert info["skill"] == "grasp"
+    assert info["effect_model"] == "grasp-analytic"
+    assert info["executed"]
+    assert info["success"]
+    assert len(info["removed"]) == 1
+    k = info["sample"]
+    assert k == 4  # asked after views 3 (nothing) and 4 (the second try)
+    assert [s.manipulation(i) is not None for i in range(len(s))] == [False] * 4 + [True] + [False] * 2
+    action = s.manipulation(k)
+    assert isinstance(action, GraspAction)
+    before, after = s.gt_occ[k - 1], s.gt_occ[k]
+    assert after.sum() < before.sum() - 500  # the object left the shelf
+    assert (before & ~after).sum() == info["voxels_changed"]  # and nothing appeared
+    for i in range(k, len(s)):
+        assert np.array_equal(s.gt_occ[i], after)
+    seq = sequence(s)
+    assert list(seq.manipulations) == [5]  # after the start view and four recorded views
+    grasped = Effects().apply(EvidentialMap(s.grid, s.alpha[s.state[k]].astype(np.float32),
+                                            s.beta[s.state[k]].astype(np.float32),
+                                            s.eta[s.state[k]].astype(np.float32)), action, s.workspace)
+    p0 = s.alpha[s.state[k]].astype(np.float64) / (s.alpha[s.state[k]] + s.beta[s.state[k]])
+    assert (grasped.expected_occupancy() < p0 - 0.1).sum() > 100  # grasp-analytic takes the object out
+    # one try only: the skill proposed nothing after 3 views, and the sequence is a plain one
+    once = make_shard(600003, CNABUDataConfig(**{**GRASPMANIP, "manipulate_tries": 1}))
+    assert once.info["manipulation"]["executed"] is False
+    assert all(once.manipulation(i) is None for i in range(len(once)))
+    assert np.array_equal(once.act_vox[:4], s.act_vox[:4])  # the same views up to the grasp
+
+
 def test_the_sequence_exposes_the_push_and_the_ground_truth_of_every_view(postmanip):
     seq = sequence(postmanip)
     assert len(seq) == 5  # the start view and the 4 recorded views
@@ -483,7 +536,7 @@ def test_a_rollout_applies_the_push_and_scores_later_views_against_the_moved_wor
     valid = torch.from_numpy(seq.valid)
     trace: list = []
     effects = Effects()
-    assert effects.record() == {"push": {"name": "push-analytic", "params": {}}}
+    assert effects.record() == ANALYTIC_EFFECTS
     losses = rollout_loss(net, batch, valid, effects=effects, trace=trace)
     assert len(losses) == len(trace) == 5
     cfg = net.config
@@ -564,7 +617,7 @@ def test_the_twins_go_through_the_same_push_with_the_same_effect_model(postmanip
     r = evaluate_rollouts(net, postmanip_dir, models=models, log=lambda _: None)
     assert set(r["final"]) == {"cnabu-map", "analytic-observation", "column-fill"}
     assert r["post_manipulation_scenes"] == 1
-    assert r["effect_models"] == {"push": {"name": "push-analytic", "params": {}}}
+    assert r["effect_models"] == ANALYTIC_EFFECTS
     action, ws = postmanip.manipulation(2), postmanip.workspace
     for m in models:
         (_, out2), (in3, _) = calls[m][2], calls[m][3]
@@ -579,7 +632,7 @@ def test_train_map_on_post_manipulation_data_records_the_effect_model(postmanip_
                      MapNetConfig(grid_shape=(78, 40, 30), width=8, embed=2, context=2, hidden=8, levels=2),
                      log=lambda _: None)
     assert side["post_manipulation_scenes"] == 1
-    assert side["effect_models"] == {"push": {"name": "push-analytic", "params": {}}}
+    assert side["effect_models"] == ANALYTIC_EFFECTS
     assert side["train"]["effect_models"] == side["effect_models"]
 
 

@@ -41,8 +41,14 @@ def datagen_cnabu(
     min_views: Annotated[int, typer.Option("--min-views", help="Random views before the first sample (min).")] = 1,
     max_views: Annotated[int, typer.Option("--max-views", help="Random views before the first sample (max).")] = 6,
     manipulate_after: Annotated[int | None, typer.Option(
-        "--manipulate-after", help="observe: after this many recorded views, execute one push for real "
-                                   "(post-manipulation sequences).")] = None,
+        "--manipulate-after", help="observe: after this many recorded views, execute one push (or grasp) for "
+                                   "real (post-manipulation sequences).")] = None,
+    manipulate_skill: Annotated[str, typer.Option(
+        "--manipulate-skill", help="observe: the skill --manipulate-after executes: push or grasp (a grasp "
+                                   "removes the object it holds).")] = "push",
+    manipulate_tries: Annotated[int, typer.Option(
+        "--manipulate-tries", help="observe: if the skill proposes nothing, ask it again after each next view, "
+                                   "up to this many times in all.")] = 1,
     require_hard: Annotated[bool, typer.Option(
         "--require-hard", help="Hard scenes (as the hard25 suite: more hidden objects) instead of random "
                                "30-45 % shelves; slower to generate.")] = False,
@@ -74,7 +80,8 @@ def datagen_cnabu(
     try:
         cfg = CNABUDataConfig(kind=kind, voxel_m=voxel, states=states, actions_per_state=actions,
                               observe_samples=samples, min_views=min_views, max_views=max_views,
-                              manipulate_after=manipulate_after, require_hard=require_hard,
+                              manipulate_after=manipulate_after, manipulate_skill=manipulate_skill,
+                              manipulate_tries=manipulate_tries, require_hard=require_hard,
                               generator=load_generator_config(generator) if generator else None,
                               observation_model=ComponentRef(name=observation), simulator=ComponentRef(name=sim))
     except ValidationError as e:

@@ -9,12 +9,15 @@ episode's start view and ``min_views``-``max_views`` random views into an analyt
 - ``observe``: ``observe_samples`` times: a random unvisited view is rendered; its ray masks
   (free / occupied / class seen, ``AnalyticObservationModel.masks``) are the action; the belief
   before and the ground truth (objects do not move) are recorded; the view is integrated. With
-  ``manipulate_after`` K (post-manipulation sequences), after K recorded views the push skill
-  proposes candidates from the belief (UPS) and one, drawn at random, is executed for real
-  (``execute_measured``): a sample whose action JSON is ``{"manipulation": "push", "action": ...}``,
-  whose masks are empty and whose ground truth is the world after the push
-  (``CNABUShard.manipulation``); the belief becomes the ``push-analytic`` prediction, as in an
-  episode, and the remaining views (and their ground truth) see the moved world.
+  ``manipulate_after`` K (post-manipulation sequences), after K recorded views the
+  ``manipulate_skill`` (push: UPS; grasp: UGS, as ``push`` / ``grasp`` below) proposes candidates
+  from the belief and one, drawn at random, is executed for real (``execute_measured``): a sample
+  whose action JSON is ``{"manipulation": "push", "action": ...}`` (or ``"grasp"``), whose masks are
+  empty and whose ground truth is the world after it (``CNABUShard.manipulation``); the belief
+  becomes the analytic effect model's prediction (``push-analytic``, ``grasp-analytic``), as in an
+  episode, and the remaining views (and their ground truth) see the changed world. With
+  ``manipulate_tries`` T, a skill that proposes nothing is asked again after each of the next views,
+  up to T times in all.
   ``info["manipulation"]`` records the candidates, the displacements and the voxels the push changed
   in the ground truth, or that the skill proposed nothing (then the scene is a plain sequence).
 - ``push`` / ``grasp``: ``states`` belief states; in each the skill proposes candidates from the
@@ -98,8 +101,12 @@ class CNABUDataConfig(BaseModel):
     prediction (``push-analytic``), as in an episode. The remaining views see the moved world. When the
     skill proposes nothing the scene stays a plain observe sequence (``info["manipulation"]`` says so).
     None: no manipulation."""
-    manipulate_skill: Literal["push"] = "push"
-    """observe: the skill ``manipulate_after`` executes."""
+    manipulate_skill: Literal["push", "grasp"] = "push"
+    """observe: the skill ``manipulate_after`` executes (grasp: a grasp removes the object it holds,
+    so the views after it see where it stood)."""
+    manipulate_tries: int = Field(1, ge=1)
+    """observe: when the skill proposes nothing after ``manipulate_after`` views, it is asked again after
+    each next recorded view, up to this many times in all (a view must still follow)."""
     states: int = Field(2, ge=1)
     """push/grasp: belief states per scene."""
     actions_per_state: int = Field(4, ge=1)
@@ -240,7 +247,13 @@ def _push_action() -> Any:
     return PushAction
 
 
-_ACTIONS: dict[str, Callable[[], Any]] = {"push": _push_action}
+def _grasp_action() -> Any:
+    from msmem_grasp.skill import GraspAction
+
+    return GraspAction
+
+
+_ACTIONS: dict[str, Callable[[], Any]] = {"push": _push_action, "grasp": _grasp_action}
 """The action model of each skill ``manipulate_after`` can execute."""
 
 
@@ -418,11 +431,18 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
             gt = _ground_truth(sim, scene, grid)
             from msmem_cnabu.features import observe_channels
 
+            def propose(skill: Any, b: EvidentialMap) -> list[Any]:
+                if cfg.manipulate_skill == "push":
+                    return list(skill.sample(b, scene.shelf, rng))
+                return _propose("grasp", skill, b, scene.shelf, viewpoints, visited, rng, seed, len(visited))
+
+            after = cfg.manipulate_after
             for k, v in enumerate(fresh_views(cfg.observe_samples)):
-                if k == cfg.manipulate_after:
+                due = after is not None and after <= k < after + cfg.manipulate_tries
+                if due and not (manip or {}).get("executed"):
                     t0 = time.perf_counter()
                     belief, gt, manip = _manipulate(cfg.manipulate_skill, belief, sim, scene, grid, rng, rec,
-                                                    visited[-1], observe_channels)
+                                                    visited[-1], observe_channels, propose)
                     t_sim += time.perf_counter() - t0
                 obs = sim.observe(viewpoints[v])
                 free, occ, seen = model.masks(belief, obs)
@@ -487,19 +507,18 @@ def _observation_model(ref: ComponentRef) -> Any:
 
 
 def _manipulate(skill_name: str, belief: Any, sim: Any, scene: Any, grid: GridSpec, rng: np.random.Generator,
-                rec: _Recorder, view: int, observe_channels: Callable[..., NDArray[np.bool_]]
+                rec: _Recorder, view: int, observe_channels: Callable[..., NDArray[np.bool_]],
+                propose: Callable[[Any, Any], list[Any]]
                 ) -> tuple[Any, tuple[NDArray[np.bool_], NDArray[np.int16]], dict[str, Any]]:
-    """observe with ``manipulate_after``: one candidate of the skill, drawn at random, executed for real and
-    recorded as a manipulation sample; returns (the belief the effect model predicts, the ground truth
-    after, what ``info["manipulation"]`` records). Without candidates: the belief and ground truth as
-    they were."""
-    from msmem_push.effect import AnalyticPushEffect
-
+    """observe with ``manipulate_after``: one candidate of the skill (``propose(skill, belief)``), drawn at
+    random, executed for real and recorded as a manipulation sample; returns (the belief the skill's
+    analytic effect model predicts, the ground truth after, what ``info["manipulation"]`` records).
+    Without candidates: the belief and ground truth as they were (``info["executed"]`` False)."""
     skill = _skill(skill_name, 0)
     workspace = Workspace(grid, scene.shelf)
     gt0 = _ground_truth(sim, scene, grid)
-    actions = list(skill.sample(belief, scene.shelf, rng))
-    info: dict[str, Any] = {"skill": skill_name, "effect_model": "push-analytic", "candidates": len(actions)}
+    actions = propose(skill, belief)
+    info: dict[str, Any] = {"skill": skill_name, "effect_model": f"{skill_name}-analytic", "candidates": len(actions)}
     if not actions:
         return belief, gt0, {**info, "executed": False, "reason": f"the {skill_name} skill proposed no candidate"}
     a = actions[int(rng.integers(len(actions)))]
@@ -515,7 +534,20 @@ def _manipulate(skill_name: str, belief: Any, sim: Any, scene: Any, grid: GridSp
     info |= {"executed": True, "sample": len(rec.samples) - 1, "success": bool(out.success),
              "displacement_m": moved, "fell_or_left": list(out.fell_or_left),
              "voxels_changed": int((gt[0] != gt0[0]).sum())}
-    return predicted_belief(AnalyticPushEffect(), belief, a, workspace), gt, info
+    if skill_name == "grasp":
+        info["removed"] = [int(i) for i in out.removed]
+    return predicted_belief(_analytic_effect(skill_name), belief, a, workspace), gt, info
+
+
+def _analytic_effect(skill_name: str) -> Any:
+    """The analytic effect model of a skill (what a post-manipulation sequence's belief becomes)."""
+    if skill_name == "push":
+        from msmem_push.effect import AnalyticPushEffect
+
+        return AnalyticPushEffect()
+    from msmem_grasp.effect import AnalyticGraspEffect
+
+    return AnalyticGraspEffect()
 
 
 def _skill(kind: str, seed: int) -> Any:

@@ -12,12 +12,12 @@ view. Scenes are mirrored left-right at random (the shelf, the grid and the view
 symmetric), except post-manipulation sequences (their actions are not mirrored).
 
 Post-manipulation sequences (``msmem datagen cnabu --kind observe ... --manipulate-after K``): after
-K recorded views a real push was executed. At that step of a rollout the network's current output
-becomes the effect model's prediction for the recorded push (``rollouts.Effects``,
-``MapTrainConfig.effect_models``, default ``push-analytic``; bounded like the network's own output,
-``rollouts.manipulate``, without gradient); the loss after each view is taken against the ground truth
-after that view. The weights are written (atomically, with their sidecar) after every epoch and at the
-end, so a stopped run leaves its last checkpoint.
+K recorded views a real push or grasp was executed. At that step of a rollout the network's current
+output becomes the effect model's prediction for the recorded action (``rollouts.Effects``,
+``MapTrainConfig.effect_models``, default ``push-analytic`` and ``grasp-analytic``; bounded like the
+network's own output, ``rollouts.manipulate``, without gradient); the loss after each view is taken
+against the ground truth after that view. The weights are written (atomically, with their sidecar)
+after every epoch and at the end, so a stopped run leaves its last checkpoint.
 """
 from __future__ import annotations
 

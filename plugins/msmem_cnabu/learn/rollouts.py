@@ -10,10 +10,11 @@ view's masks are recovered exactly from it (``sequence``), and a rollout starts 
 as an episode does.
 
 Post-manipulation sequences (``msmem datagen cnabu --kind observe ... --manipulate-after K``): after
-K recorded views a real push was executed. At that step of a rollout the belief (the network's
-current output, or a twin's belief in ``mapeval``) becomes the effect model's prediction for the
-recorded push (``Effects``, ``MapTrainConfig.effect_models``, default ``default_effect_models``:
-``push-analytic``; applied as the MSAS loop applies it), for the network bounded like its own output
+K recorded views a real push (or, with ``--manipulate-skill grasp``, a grasp) was executed. At that
+step of a rollout the belief (the network's current output, or a twin's belief in ``mapeval``) becomes
+the effect model's prediction for the recorded action (``Effects``, ``MapTrainConfig.effect_models``,
+default ``default_effect_models``: ``push-analytic`` and ``grasp-analytic``; applied as the MSAS loop
+applies it), for the network bounded like its own output
 (``bounded_map``) and without gradient; the next views' masks then show what really happened, and a
 belief is scored against the ground truth after its view (``Sequence_.step_gt_occ``: after the push
 for every later view).
@@ -40,8 +41,9 @@ from msmem_core.world.scene import CLASS_NAMES
 
 
 def default_effect_models() -> dict[str, ComponentRef]:
-    """The effect model of a post-manipulation sequence's pushes unless one is named: ``push-analytic``."""
-    return {"push": ComponentRef(name="push-analytic")}
+    """The effect models of a post-manipulation sequence's actions unless others are named: the analytic
+    ones (``push-analytic``, ``grasp-analytic``), as the data generation applies them."""
+    return {"push": ComponentRef(name="push-analytic"), "grasp": ComponentRef(name="grasp-analytic")}
 
 
 @dataclass
