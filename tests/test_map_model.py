@@ -1187,3 +1187,30 @@ def test_a_predicted_change_hands_its_voxels_back_to_the_network_until_a_ray_rea
     assert (stale.alpha[seen_occ] == 1).all()
     assert (stale.eta[:, seen_occ] == 1).all()
     assert not after.observed[seen_occ].any()
+
+
+def test_ray_ties_network_lets_the_network_choose_among_tied_ray_classes_only():
+    """``ray_ties: network``: a voxel whose rays gave classes 3 and 4 once each decodes as the network's
+    choice between them (never as a third class the network prefers); untied voxels keep the rays'
+    evidence exactly; evidence only grows, by at most the epsilon."""
+    from msmem_cnabu.mapmodel import RAY_TIE_EPSILON, break_ray_ties
+
+    c = 6
+    ray = np.ones((c, 4, 1, 1), np.float32)
+    ray[3, 0] = ray[4, 0] = 11.0  # tie, the network prefers 4 (and 5 above both)
+    ray[3, 1] = ray[4, 1] = 11.0  # tie, the network prefers 3
+    ray[2, 2] = 11.0  # one class: no tie
+    # voxel 3: never labelled (all classes at the prior): no tie to break
+    net = np.ones((c, 4, 1, 1), np.float32)
+    net[4, 0], net[5, 0] = 5.0, 50.0
+    net[3, 1], net[5, 1] = 5.0, 50.0
+    net[5, 2] = 50.0
+    net[1, 3] = 50.0
+    eta = ray.copy()
+    break_ray_ties(eta, ray, net)
+    decoded = np.argmax(eta[1:], axis=0)[:, 0, 0] + 1
+    assert decoded.tolist()[:3] == [4, 3, 2]
+    assert np.array_equal(eta[:, 2:], ray[:, 2:])  # untied and unlabelled voxels: the rays' evidence as is
+    assert np.array_equal(eta[[0, 1, 2, 5]], ray[[0, 1, 2, 5]])  # only the tied classes gain
+    assert (eta >= ray).all()
+    assert (eta - ray).sum(axis=0).max() <= RAY_TIE_EPSILON * (1 + 1e-6)

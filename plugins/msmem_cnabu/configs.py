@@ -155,6 +155,12 @@ class CNABUMapConfig(BaseModel):
     object's surface seen at a grazing angle) gets its object class the same way. None (the default):
     the network's class. Measured at 4 on ``tune10``, view-only, 40 steps: -0.012 +- 0.024 2-D semantic
     mIoU (per scene, paired), though +0.013 offline on ``hard25`` scenes 0-4 (docs/explanation/map-prediction.md)."""
+    ray_ties: Literal["lowest", "network"] = "lowest"
+    """With ``observed_voxels: rays``: where the rays gave a voxel two or more object classes equally
+    often (its ray record's strongest object classes tie), ``network`` adds 0.001 times the network's
+    object-class probabilities to those tied classes' evidence, so the network's class decides among
+    them and nothing else changes; ``lowest`` (the default) leaves the tie, which the argmax decodes as
+    the lowest class index. Study: docs/lab/2026-12-05-stray-classes."""
     fill_under_surfaces: float | None = Field(2.0, gt=0.0, lt=10.0)
     """With ``observed_voxels: rays``: voxels no ray reached below a column's highest believed-occupied
     voxel that the network believes free are filled as ``column-fill`` fills them (occupied with this

@@ -143,7 +143,10 @@ class CNABUMapObservationModel(ObservationModel):
                 out_a[unknown] = out_b[unknown] = (out_a[unknown] + out_b[unknown]) / 2  # p = 0.5: a tie is free
         if rays is not None:
             cfg, inside, mapped = self.config, valid.numpy(), self._index is not None
+            net_eta = out_eta
             out_a, out_b, out_eta = fuse_rays(out_a, out_b, out_eta, rays, cfg.ray_confidence)
+            if cfg.ray_ties == "network":
+                break_ray_ties(out_eta, rays.eta, net_eta)
             unreached = inside & (rays.alpha == 1.0) & (rays.beta == 1.0)  # the record's occupancy is the prior
             named = rays.eta[1:].sum(axis=0) > rays.num_classes - 1  # a ray gave it an object class
             if cfg.unlabelled_columns == "unknown" or (cfg.unlabelled_columns == "auto" and mapped):
@@ -198,6 +201,26 @@ def fuse_rays(alpha: NDArray[np.float32], beta: NDArray[np.float32], eta: NDArra
     sure = (p > confidence) | (p < 1.0 - confidence)
     return (np.where(sure, rays.alpha, alpha).astype(np.float32), np.where(sure, rays.beta, beta).astype(np.float32),
             np.where(labelled[None], rays.eta, eta).astype(np.float32))
+
+
+RAY_TIE_EPSILON = 1e-3
+"""The network's share in a tie of the ray record's classes (``ray_ties: network``)."""
+
+
+def break_ray_ties(eta: NDArray[np.float32], ray_eta: NDArray[np.float32], net_eta: NDArray[np.floating],
+                   epsilon: float = RAY_TIE_EPSILON) -> None:
+    """In place: where the ray record's strongest object classes tie (at least one ray gave them), add
+    ``epsilon`` times the network's object-class probabilities (``net_eta`` normalised over the object
+    classes) to the tied classes of ``eta``, so that the network's class decides among them."""
+    obj = ray_eta[1:]
+    top = obj.max(axis=0)
+    tied_classes = np.isclose(obj, top[None], rtol=1e-6, atol=0.0)
+    tied = (tied_classes.sum(axis=0) > 1) & (top > 1.0)
+    if not tied.any():
+        return
+    net = np.asarray(net_eta[1:, tied], dtype=np.float64)
+    share = net / net.sum(axis=0, keepdims=True)
+    eta[1:, tied] += (epsilon * share * tied_classes[:, tied]).astype(eta.dtype)
 
 
 def unlabelled_columns(alpha: NDArray[np.float32], beta: NDArray[np.float32], eta: NDArray[np.float32],
