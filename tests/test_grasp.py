@@ -239,7 +239,8 @@ def _seeded_belief(seed: int) -> EvidentialMap:
     return b
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+# seed 0 in the fast suite; seeds 1 and 2 (about 9 s more) in the slow one
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
 def test_batched_collision_tests_equal_the_per_grasp_loop(seed: int) -> None:
     belief = _seeded_belief(seed)
     found = []
