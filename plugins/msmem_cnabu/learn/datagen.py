@@ -432,9 +432,8 @@ def make_shard(seed: int, config: CNABUDataConfig) -> CNABUShard:
             from msmem_cnabu.features import observe_channels
 
             def propose(skill: Any, b: EvidentialMap) -> list[Any]:
-                if cfg.manipulate_skill == "push":
-                    return list(skill.sample(b, scene.shelf, rng))
-                return _propose("grasp", skill, b, scene.shelf, viewpoints, visited, rng, seed, len(visited))
+                return _propose(cfg.manipulate_skill, skill, b, scene.shelf, viewpoints, visited, rng, seed,
+                                len(visited))
 
             after = cfg.manipulate_after
             for k, v in enumerate(fresh_views(cfg.observe_samples)):
@@ -518,7 +517,8 @@ def _manipulate(skill_name: str, belief: Any, sim: Any, scene: Any, grid: GridSp
     workspace = Workspace(grid, scene.shelf)
     gt0 = _ground_truth(sim, scene, grid)
     actions = propose(skill, belief)
-    info: dict[str, Any] = {"skill": skill_name, "effect_model": f"{skill_name}-analytic", "candidates": len(actions)}
+    effect = f"{skill_name}-analytic"
+    info: dict[str, Any] = {"skill": skill_name, "effect_model": effect, "candidates": len(actions)}
     if not actions:
         return belief, gt0, {**info, "executed": False, "reason": f"the {skill_name} skill proposed no candidate"}
     a = actions[int(rng.integers(len(actions)))]
@@ -536,18 +536,10 @@ def _manipulate(skill_name: str, belief: Any, sim: Any, scene: Any, grid: GridSp
              "voxels_changed": int((gt[0] != gt0[0]).sum())}
     if skill_name == "grasp":
         info["removed"] = [int(i) for i in out.removed]
-    return predicted_belief(_analytic_effect(skill_name), belief, a, workspace), gt, info
+    from msmem_core.plugins import get_plugin_manager
 
-
-def _analytic_effect(skill_name: str) -> Any:
-    """The analytic effect model of a skill (what a post-manipulation sequence's belief becomes)."""
-    if skill_name == "push":
-        from msmem_push.effect import AnalyticPushEffect
-
-        return AnalyticPushEffect()
-    from msmem_grasp.effect import AnalyticGraspEffect
-
-    return AnalyticGraspEffect()
+    model = get_plugin_manager().build("belief-model", effect, where="manipulate_skill")
+    return predicted_belief(model, belief, a, workspace), gt, info
 
 
 def _skill(kind: str, seed: int) -> Any:
