@@ -106,16 +106,34 @@ def test_shipped_weights_load_as_plain_tensors_and_stay_small():
 
 
 @pytest.fixture(scope="module")
-def heldout():
+def heldout(tmp_path_factory):
+    """``msmem eval map`` on the held-out shards, as a user runs it: its JSON's final scores."""
+    from typer.testing import CliRunner
+
+    from msmem_core.cli.app import build_app
+
     torch.set_num_threads(1)
-    net, _ = load_map_net(SHIPPED)
-    return evaluate_rollouts(net, HELDOUT, log=lambda _: None)["final"]
+    out = tmp_path_factory.mktemp("eval") / "map.json"
+    res = CliRunner().invoke(build_app(), ["eval", "map", "--data", str(HELDOUT), "--threads", "1", "--json", str(out)])
+    assert res.exit_code == 0, res.output
+    return json.loads(out.read_text())["final"]
 
 
 def test_shipped_weights_beat_the_analytic_update_on_heldout_scenes(heldout):
     learned, analytic = heldout["cnabu-map"], heldout["analytic-observation"]
     assert learned["occ_nll"] + learned["sem_nll"] < analytic["occ_nll"] + analytic["sem_nll"], (learned, analytic)
     assert learned["occupancy_miou"] > analytic["occupancy_miou"]
+
+
+def test_eval_map_scores_the_default_belief_which_keeps_what_rays_labelled(heldout):
+    """The belief an episode uses (the network with the ray record's authority) keeps the classes rays
+    gave: its 2-D semantics are at least the analytic update's, where the raw network's are not, and it
+    keeps the network's occupancy."""
+    default, learned, analytic = (heldout[k] for k in ("cnabu-map (default belief)", "cnabu-map",
+                                                        "analytic-observation"))
+    assert default["semantic_miou_2d"] >= analytic["semantic_miou_2d"], (default, analytic)
+    assert default["semantic_miou_2d"] > learned["semantic_miou_2d"]
+    assert default["occupancy_miou"] > analytic["occupancy_miou"] + 0.2
 
 
 def test_a_long_rollout_keeps_evidence_at_least_one_and_bounded(shard):

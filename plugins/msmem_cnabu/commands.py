@@ -254,17 +254,26 @@ def eval_map(
         "--unseen-class-weight", help="cnabu-map's unseen_class_weight (1: off).", min=1e-9, max=1.0)] = 1.0,
     class_map: Annotated[Path | None, typer.Option("--class-map", help=CLASS_MAP_HELP)] = None,
 ) -> None:
-    """Rollouts of recorded views: cnabu-map against analytic-observation and column-fill (paper metrics, NLL, ECE)."""
+    """Rollouts of recorded views: the cnabu-map network, the default belief it is part of (the network with the
+    ray record's authority), analytic-observation and column-fill (paper metrics, NLL, ECE)."""
     import torch
 
-    from msmem_cnabu.learn.mapeval import evaluate_rollouts
-    from msmem_cnabu.mapmodel import SHIPPED
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.learn.mapeval import evaluate_rollouts, twins
+    from msmem_cnabu.mapmodel import SHIPPED, CNABUMapObservationModel
     from msmem_cnabu.weights import load_map_net
 
     torch.set_num_threads(threads)
     net, meta = load_map_net(weights or SHIPPED)
-    r = evaluate_rollouts(net, data, max_scenes=scenes, log=typer.echo, unseen_class_weight=unseen_class_weight,
-                          class_map=_class_map(class_map))
+    models = twins()
+    # with a class map the shards are moved onto the trained classes, which the belief's class-map rules do not see
+    if class_map is None:
+        # the observation model an episode uses: the network with the ray record's authority (its defaults)
+        default = CNABUMapObservationModel(CNABUMapConfig(weights=weights, unseen_class_weight=unseen_class_weight,
+                                                          threads=threads))
+        models = {"cnabu-map (default belief)": default.update_masks, **models}
+    r = evaluate_rollouts(net, data, models=models, max_scenes=scenes, log=typer.echo,
+                          unseen_class_weight=unseen_class_weight, class_map=_class_map(class_map))
     r["weights"], r["weights_sha256"] = str(weights or SHIPPED), meta["sha256"]
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)

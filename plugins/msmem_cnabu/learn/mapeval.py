@@ -140,7 +140,7 @@ def evaluate_rollouts(net: Any, data_dir: str | Path, models: dict[str, Callable
         "by_views": {m: {k: {kk: v for kk, v in sc.result().items() if kk != "per_scene"} for k, sc in s.items()}
                      for m, s in scores.items()}}
     for m, r in out["final"].items():
-        log(f"{m:22s} occ mIoU {r['occupancy_miou']:.3f} sem mIoU 2-D {r['semantic_miou_2d']:.3f} "
+        log(f"{m:26s} occ mIoU {r['occupancy_miou']:.3f} sem mIoU 2-D {r['semantic_miou_2d']:.3f} "
             f"occ NLL {r['occ_nll']:.4f} sem NLL {r['sem_nll']:.4f} occ ECE {r['occ_ece']:.3f} "
             f"sem ECE {r['sem_ece']:.3f} max evidence {r['max_evidence_total']:.0f}")
     return out
