@@ -2,7 +2,8 @@
 the grasped object leaves whole, its own believed voxels beyond the fingers and background-class
 voxels do not stop it, another believed object in its way does, unless their silhouettes overlap by
 no more than a voxel; the whole carried object must fit under the shelf top (lifted less, down to
-``min_lift_m``, where the top leaves less room than ``lift_m``)."""
+``min_lift_m``, where the top leaves less room than ``lift_m``, and with ``short_lift_margin_m`` only
+around an object narrow enough for the fingers' margin)."""
 
 from __future__ import annotations
 
@@ -128,6 +129,14 @@ def test_the_whole_carried_object_must_fit_under_the_shelf_top() -> None:
     assert _box_lift(0.28, min_lift_m=0.0) is None
     assert _box_lift(0.25, min_lift_m=0.02) == pytest.approx(0.02)
     assert _box_lift(0.27, min_lift_m=0.01) is None
+
+
+def test_a_short_lift_needs_the_fingers_full_margin_around_the_object() -> None:
+    """``short_lift_margin_m``: the 25 cm box (6 cm grasped, the 8 cm gripper) slides out with a 2 cm lift
+    when a 2 cm margin is asked, not when 3 cm is; the 20 cm box, lifted the full 3 cm, is not concerned."""
+    assert _box_lift(0.25, min_lift_m=0.0, short_lift_margin_m=0.02) == pytest.approx(0.02)
+    assert _box_lift(0.25, min_lift_m=0.0, short_lift_margin_m=0.03) is None
+    assert _box_lift(0.20, min_lift_m=0.0, short_lift_margin_m=0.03) == pytest.approx(0.03)
 
 
 def test_an_object_whose_top_the_views_missed_is_as_tall_as_its_class() -> None:

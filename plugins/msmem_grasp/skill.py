@@ -241,6 +241,11 @@ class GraspConfig(BaseModel):
     above the floor, or along it: on ``tune10`` that doubles the grasps and the steps with grasp
     candidates, but objects fall more often and the map gains nothing (docs/explanation/grasp.md,
     "Tall objects")."""
+    short_lift_margin_m: float | None = Field(None, ge=0.0, le=0.08)
+    """A grasp lifted less than ``lift_m`` (``min_lift_m`` below it) is proposed only when the fingers
+    can open at least this much wider than the grasped width (``width + short_lift_margin_m`` within
+    the gripper's opening); None: any width. Such grasps are near the top of an object tall for the
+    shelf, where the fingers come down over it with little room."""
     exit_margin_m: float = Field(0.02, ge=0.0, le=0.1)
     """The grasped object's own component (``planning.Objects``), at any height in the columns within this
     of the footprint of the part the fingers hold (its region), is carried out with it: it must fit under
@@ -592,6 +597,9 @@ class GraspSkill(Skill):
         low = min(cfg.lift_m, s * math.floor(room / s + 1e-9))  # the least lift: lift_m, or what the room allows
         if room < 0 or low < min(cfg.min_lift_m, cfg.lift_m) - 1e-9:
             return None
+        if (cfg.short_lift_margin_m is not None and low < cfg.lift_m - 1e-9
+                and width + cfg.short_lift_margin_m > cfg.gripper.max_opening_m + 1e-9):
+            return None  # a short lift, near the shelf top: only with the fingers' full margin around the object
         if stages is not None:
             stages["under_top"] = stages.get("under_top", 0) + 1
         # its sides one voxel in (a voxel both of whose x neighbours are the body's): a neighbour whose
