@@ -117,12 +117,13 @@ def _box_lift(height: float, **kw: object) -> float | None:
 
 def test_the_whole_carried_object_must_fit_under_the_shelf_top() -> None:
     """A front grasp low on a box: the fingers close on its lower part only, but the box leaves whole,
-    so its top sets the room under the 28 cm shelf top (5 mm clearance). By default the lift is at least
-    3 cm: a 20 cm box is lifted, a 25 cm one is refused. With ``min_lift_m`` 0 the 25 cm one is lifted
-    by the 2 cm the room leaves (whole voxels), a 27 cm one slides out along the floor and one reaching
-    the clearance is refused; ``min_lift_m`` 1 cm refuses the 27 cm one."""
-    assert _box_lift(0.20) == pytest.approx(0.03)
-    assert _box_lift(0.25) is None
+    so its top sets the room under the 28 cm shelf top (5 mm clearance). With a 3 cm minimum lift a 20 cm
+    box is lifted, a 25 cm one is refused. By default (``min_lift_m`` 0) the 25 cm one is lifted by the
+    2 cm the room leaves (whole voxels), a 27 cm one slides out along the floor and one reaching the
+    clearance is refused; ``min_lift_m`` 1 cm refuses the 27 cm one."""
+    assert _box_lift(0.20, min_lift_m=0.03) == pytest.approx(0.03)
+    assert _box_lift(0.25, min_lift_m=0.03) is None
+    assert _box_lift(0.25) == pytest.approx(0.02)
     assert _box_lift(0.20, min_lift_m=0.0) == pytest.approx(0.03)
     assert _box_lift(0.25, min_lift_m=0.0) == pytest.approx(0.02)
     assert _box_lift(0.27, min_lift_m=0.0) == pytest.approx(0.0)
@@ -141,11 +142,11 @@ def test_a_short_lift_needs_the_fingers_full_margin_around_the_object() -> None:
 
 def test_an_object_whose_top_the_views_missed_is_as_tall_as_its_class() -> None:
     """The belief shows 12 cm of a box whose class stands 26 cm tall (its top unseen): lifted 3 cm it
-    would meet the shelf top, so it is not lifted; with ``min_lift_m`` 0 it leaves with the 1 cm the
-    room allows, not the 3 cm a 12 cm box gets. A 20 cm class is lifted the full 3 cm. Without the
-    class's shape the belief's 12 cm is all there is."""
-    skill = GraspSkill(GraspConfig(predictor="geometric"))
-    slide = GraspSkill(GraspConfig(predictor="geometric", min_lift_m=0.0))
+    would meet the shelf top, so with a 3 cm minimum lift it is not lifted; by default (``min_lift_m`` 0)
+    it leaves with the 1 cm the room allows, not the 3 cm a 12 cm box gets. A 20 cm class is lifted the
+    full 3 cm. Without the class's shape the belief's 12 cm is all there is."""
+    skill = GraspSkill(GraspConfig(predictor="geometric", min_lift_m=0.03))
+    slide = GraspSkill(GraspConfig(predictor="geometric"))
     c = GRID.centers()
     box = ((-0.03, 0.05), (0.03, 0.11), 0.12, SUGAR)
     belief = box_belief([box])
@@ -183,8 +184,9 @@ def test_another_class_inside_the_objects_own_columns_is_not_in_its_way() -> Non
 @pytest.mark.slow
 def test_the_default_belief_of_a_hard_scene_leaves_grasps_of_its_front_row(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """``hard25`` scene 0 under the library defaults, 10 views of a grasp-only episode (manipulation
-    held off): the front row's sugar box (17.5 cm) and mustard bottle (19 cm) can be grasped from
-    above and carried out, and the skill proposes grasps. Under the rule before, which counted every
+    held off): with a 3 cm lift, the front row's sugar box (17.5 cm) and mustard bottle (19 cm) can be
+    grasped from above and carried out; with the lift shrunk to the room under the shelf top, the whole
+    front row, and by default all of it but the cracker box. Under the rule before, which counted every
     believed-occupied voxel outside the fingers' region as in the way, it proposed none (the boxes'
     own surface voxels of class background, and their own parts beyond the region, stopped them)."""
     from msmem_core.config import load_config
@@ -197,18 +199,22 @@ def test_the_default_belief_of_a_hard_scene_leaves_grasps_of_its_front_row(tmp_p
     ep = build_episode(cfg, get_plugin_manager(), scene=suite_scenes("hard25")[0])
     run_episode(ep, tmp_path)
     skill = next(b.skill for b in ep.skills if b.name == "grasp")
-    stages: dict[str, int] = {}
-    grasps = skill.executable(Map.load(tmp_path / "belief_final.npz"), ep.scene.shelf, stages, ep.workspace.classes)
-    assert grasps, stages
+    belief = Map.load(tmp_path / "belief_final.npz")
 
-    def nearest(g: GraspAction) -> int:
-        return min(ep.scene.objects, key=lambda o: np.hypot(g.contact_m[0] - o.position_m[0],
-                                                             g.contact_m[1] - o.position_m[1])).id
+    def targets(**params: object) -> set[int]:
+        """The objects nearest the contacts of the executable grasps, the skill's parameters changed
+        (the same fused buffer)."""
+        skill.config = skill.config.model_copy(update=params)
+        stages: dict[str, int] = {}
+        grasps = skill.executable(belief, ep.scene.shelf, stages, ep.workspace.classes)
+        assert grasps, stages
+        return {min(ep.scene.objects, key=lambda o: np.hypot(g.contact_m[0] - o.position_m[0],
+                                                             g.contact_m[1] - o.position_m[1])).id for g in grasps}
 
-    assert {nearest(g) for g in grasps} <= {1, 4}  # the sugar box and the mustard bottle
+    assert targets(min_lift_m=0.03) <= {1, 4}  # with a 3 cm lift: the sugar box and the mustard bottle
     # where the lift may shrink to the room under the shelf top, the whole front row: also the cracker
     # box and the three 26 cm bleach bottles, which leave held 1 cm above the floor, or along it
-    skill.config = skill.config.model_copy(update={"min_lift_m": 0.0})  # the same fused buffer
-    stages = {}
-    low = skill.executable(Map.load(tmp_path / "belief_final.npz"), ep.scene.shelf, stages, ep.workspace.classes)
-    assert {nearest(g) for g in low} == {0, 1, 2, 3, 4, 5}, stages
+    assert targets(min_lift_m=0.0, short_lift_margin_m=None) == {0, 1, 2, 3, 4, 5}
+    # by default only where the fingers have their 2 cm margin around the object: not the cracker box,
+    # grasped across its 6 cm side or wider
+    assert targets(min_lift_m=0.0, short_lift_margin_m=0.02) == {0, 1, 3, 4, 5}
