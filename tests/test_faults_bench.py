@@ -293,3 +293,34 @@ def test_the_fingerprint_follows_the_weights_a_component_may_load(tmp_path):
     scene = suite_scenes("tune10")[0]
     old, new = fingerprint(cfg, "tune10", scene, before), fingerprint(cfg, "tune10", scene, after)
     assert "plugins" in fingerprint_diff(old, new)
+
+
+def test_the_fingerprint_follows_a_plugins_defaults_not_only_the_config_text(monkeypatch):
+    """A component's resolved config is part of the fingerprint: naming a default explicitly changes
+    nothing, another value does, and so does a plugin whose default changed under the same config and
+    version (a resume would otherwise reuse episodes made under the old default)."""
+    from msmem_grasp.skill import GraspConfig
+
+    from msmem_core.config import load_config
+    from msmem_core.plugins import get_plugin_manager
+    from msmem_core.run.runner import check_components
+
+    pm = get_plugin_manager()
+
+    def components(params: dict) -> str:
+        return check_components(load_config("grasp-only", None, {"skill_params": {"grasp": params}}), pm)["components"]
+
+    default = GraspConfig().min_lift_m
+    assert components({}) == components({"min_lift_m": default})
+    assert components({"min_lift_m": default + 0.01}) != components({})
+    before = components({})
+    monkeypatch.setattr(GraspConfig.model_fields["min_lift_m"], "default", default + 0.01)
+    GraspConfig.model_rebuild(force=True)
+    try:
+        assert GraspConfig().min_lift_m == default + 0.01
+        assert components({}) != before
+    finally:
+        monkeypatch.undo()
+        GraspConfig.model_rebuild(force=True)
+    assert GraspConfig().min_lift_m == default
+    assert components({}) == before

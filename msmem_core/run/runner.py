@@ -11,6 +11,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import inspect
+import json
 import os
 import time
 from collections import Counter
@@ -175,17 +176,23 @@ def artifact_files(spec: Any, params: dict[str, Any]) -> list[Path]:
 def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
     """Check, without building anything, that every component the config names is registered and
     accepts its params (``PluginError`` naming it otherwise); returns ``{distribution: version}`` of
-    the distributions that provide them, and under ``weights`` a hash of the weights files the
-    components may load (``artifact_files``), so that new weights are not mistaken for the old."""
+    the distributions that provide them, under ``weights`` a hash of the weights files the
+    components may load (``artifact_files``), so that new weights are not mistaken for the old, and
+    under ``components`` a hash of every component's resolved config (its defaults filled in), so that
+    a plugin whose default changed is not mistaken for the old one either."""
     from importlib.metadata import PackageNotFoundError, version
 
     dists = set()
     weights: set[Path] = set()
-    for kind, ref, where in check_params(cfg, pm):
+    common = run_wide(cfg)
+    resolved = {}
+    for kind, ref, where in component_refs(cfg, pm):
+        config = pm.validate(kind, ref, where=where, **common)
+        resolved[where] = {"name": ref.name, "config": config.model_dump(mode="json")}
         dists.add(pm.registered(kind)[ref.name].distribution)
         weights.update(artifact_files(pm.spec(kind, ref.name), dict(ref.params)))
         check_named_weights(ref, where)
-    out = {}
+    out = {"components": hashlib.sha256(json.dumps(resolved, sort_keys=True, default=str).encode()).hexdigest()[:16]}
     for d in sorted(dists):
         try:
             out[d] = version(d)
