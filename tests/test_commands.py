@@ -39,6 +39,7 @@ def test_builtin_plugins_register_their_commands(plugin_manager):
                      "perf push": "push", "robot": "robots"}
 
 
+@pytest.mark.slow  # integration (subprocesses or a full scene build); CI runs it in make test-slow
 def test_plugin_command_appears_in_help_and_runs():
     env = {"MSMEM_PLUGINS": "cmds=tests.support.command_plugin"}
     top = run_cli("--help", env=env)

@@ -82,6 +82,7 @@ def test_unknown_simulator_lists_the_available_ones():
     assert len(out.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.slow  # integration (subprocesses or a full scene build); CI runs it in make test-slow
 def test_invalid_scene_file_names_file_and_field(tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"objects": [{"id": 0, "class_name": "cracker_box", "position_m": [0, 0]}]}))

@@ -80,6 +80,7 @@ def test_msas_proposes_scores_and_executes_the_nudge(nudge_package, tmp_path):
     assert steps[-1]["metrics"]["position_change_m"] > 0.005, "the nudged object moved"
 
 
+@pytest.mark.slow  # integration (subprocesses or a full scene build); CI runs it in make test-slow
 def test_the_example_package_own_tests_pass(nudge_package):
     out = subprocess.run([PY, "-m", "pytest", "-q", "-p", "no:cacheprovider"], cwd=EXAMPLE, capture_output=True,
                          text=True, timeout=900, env=ENV, check=False)

@@ -184,6 +184,7 @@ def lattice_scene(n: int, name: str = "crowd") -> SceneSpec:
     return SceneSpec(name=name, shelf=ShelfSpec(width_m=3.0, depth_m=2.0, height_m=0.28), objects=tuple(objects))
 
 
+@pytest.mark.slow  # integration (subprocesses or a full scene build); CI runs it in make test-slow
 def test_a_1000_object_scene_is_refused_with_its_estimate(tmp_path):
     scene = tmp_path / "crowd.json"
     scene.write_text(lattice_scene(1000).model_dump_json())
