@@ -581,8 +581,9 @@ class GraspSkill(Skill):
         whole voxels, up to ``max_lift_m`` and the room under the shelf top) at which they do not;
         ``lift_m`` if there is none (None with ``blocked_exit: skip``). Where ``lift_m`` would bring the
         body's or the gripper's top closer than ``clearance_m`` to the shelf top, the room there is (in
-        whole voxels) takes its place as the least lift; None if that is under ``min_lift_m`` or there
-        is no room (else ``stages["under_top"]``, if given, counts one). With its class's ``extents``, the body stands
+        whole voxels) takes its place as the least lift; None if that is under ``min_lift_m``, if there
+        is no room, or if the fingers lack ``short_lift_margin_m`` around the grasped width for such a
+        short lift (else ``stages["under_top"]``, if given, counts one). With its class's ``extents``, the body stands
         at least as tall as the smallest of them that its believed top reaches (less a voxel): an
         object whose top the views have not seen is as tall as its class."""
         cfg = self.config
