@@ -184,10 +184,8 @@ def check_components(cfg: RunConfig, pm: MsmemPluginManager) -> dict[str, str]:
 
     dists = set()
     weights: set[Path] = set()
-    common = run_wide(cfg)
     resolved = {}
-    for kind, ref, where in component_refs(cfg, pm):
-        config = pm.validate(kind, ref, where=where, **common)
+    for kind, ref, where, config in resolved_components(cfg, pm):
         resolved[where] = {"name": ref.name, "config": config.model_dump(mode="json")}
         dists.add(pm.registered(kind)[ref.name].distribution)
         weights.update(artifact_files(pm.spec(kind, ref.name), dict(ref.params)))
@@ -222,15 +220,20 @@ def check_named_weights(ref: ComponentRef, where: str) -> None:
             load_state(Path(v), functools.partial(_prefixed_error, f"{where}: {ref.name}'s {key}: "))
 
 
+def resolved_components(cfg: RunConfig, pm: MsmemPluginManager) -> list[tuple[str, ComponentRef, str, Any]]:
+    """``component_refs`` with each component's config as ``build_episode`` will build it (its params
+    checked against its config model, run-wide values and defaults filled in; ``PluginError`` naming
+    the component and the field otherwise)."""
+    common = run_wide(cfg)  # as build_episode gives them
+    return [(kind, ref, where, pm.validate(kind, ref, where=where, **common))
+            for kind, ref, where in component_refs(cfg, pm)]
+
+
 def check_params(cfg: RunConfig, pm: MsmemPluginManager) -> list[tuple[str, ComponentRef, str]]:
     """Check that every component the config names is registered and accepts its params, as
     ``build_episode`` will build it (``PluginError`` naming the component and the field otherwise);
     returns ``component_refs``."""
-    common = run_wide(cfg)  # as build_episode gives them
-    refs = component_refs(cfg, pm)
-    for kind, ref, where in refs:
-        pm.validate(kind, ref, where=where, **common)
-    return refs
+    return [(kind, ref, where) for kind, ref, where, _ in resolved_components(cfg, pm)]
 
 
 def run_wide(cfg: RunConfig) -> dict[str, Any]:
