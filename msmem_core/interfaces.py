@@ -449,6 +449,13 @@ class ObservationModel(BeliefModel):
     @abstractmethod
     def update(self, belief: EvidentialMap, observation: Observation) -> EvidentialMap: ...
 
+    def disturbed(self, region: NDArray[np.bool_], cap: float) -> None:
+        """A manipulation disturbed ``region`` ([X, Y, Z]): MSAS capped the belief's evidence there at
+        alpha + beta <= ``cap`` (``EvidentialMap.capped``), so that later views can overturn it. A model
+        that keeps evidence of its own between updates (``cnabu-map``'s record of the episode's rays)
+        caps it there too, or its next update would restore what the cap took. A model that keeps
+        none, like the default here, does nothing."""
+
 
 class EffectModel(BeliefModel):
     """sigma_p / sigma_g: predict the belief after manipulation actions, batched."""

@@ -341,27 +341,21 @@ def mapped_fraction(belief: EvidentialMap, interior: NDArray[np.bool_], conf_cut
     return float((bev_confidence(belief, interior)[cols] > conf_cutoff).mean())
 
 
-def cap_evidence(belief: EvidentialMap, changed: NDArray[np.bool_], cap: float, margin_voxels: int) -> EvidentialMap:
-    """``belief`` with the evidence of ``changed`` (dilated by ``margin_voxels``) shrunk towards the prior:
-    where alpha + beta > cap, alpha - 1, beta - 1 and eta - 1 are scaled by (cap - 2) / (alpha + beta - 2).
-    Expected occupancy moves towards 0.5 but stays on its side of it and the class argmax is kept,
-    except with ``cap`` 2, which resets those voxels to the prior."""
+def disturbed_region(changed: NDArray[np.bool_], margin_voxels: int) -> NDArray[np.bool_]:
+    """[X, Y, Z]: ``changed`` dilated by ``margin_voxels`` (26-neighbourhood)."""
     from scipy import ndimage
 
-    region = changed if margin_voxels <= 0 else ndimage.binary_dilation(
-        changed, structure=np.ones((3, 3, 3), dtype=bool), iterations=margin_voxels)
-    idx = np.flatnonzero(region)
-    a, b = belief.alpha.reshape(-1)[idx], belief.beta.reshape(-1)[idx]
-    s = a + b
-    big = s > cap
-    idx, a, b, s = idx[big], a[big], b[big], s[big]
-    f = ((cap - 2.0) / (s - 2.0)).astype(np.float32)
-    out = belief.copy()
-    out.alpha.reshape(-1)[idx] = 1.0 + f * (a - 1.0)
-    out.beta.reshape(-1)[idx] = 1.0 + f * (b - 1.0)
-    eta = out.eta.reshape(belief.num_classes, -1)
-    eta[:, idx] = 1.0 + f[None] * (eta[:, idx] - 1.0)
-    return out
+    if margin_voxels <= 0:
+        return changed
+    return ndimage.binary_dilation(changed, structure=np.ones((3, 3, 3), dtype=bool), iterations=margin_voxels)
+
+
+def cap_evidence(belief: EvidentialMap, changed: NDArray[np.bool_], cap: float, margin_voxels: int) -> EvidentialMap:
+    """``belief`` with the evidence of ``changed`` (dilated by ``margin_voxels``) shrunk towards the prior
+    (``EvidentialMap.capped``): where alpha + beta > cap, alpha - 1, beta - 1 and eta - 1 are scaled by
+    (cap - 2) / (alpha + beta - 2). Expected occupancy moves towards 0.5 but stays on its side of it and
+    the class argmax is kept, except with ``cap`` 2, which resets those voxels to the prior."""
+    return belief.capped(disturbed_region(changed, margin_voxels), cap)
 
 
 # ---------------------------------------------------------------------------------------- outcomes
@@ -438,7 +432,9 @@ def run_msas(
     by the observation model and counted as visited. After a manipulation the belief becomes the
     effect model's prediction (capped where it changed by ``cfg.disturbed_evidence_cap``); after one that
     reports failure it stays as it was, capped where the prediction would have changed it
-    (``cfg.failed_manipulation_cap``). Either way visited
+    (``cfg.failed_manipulation_cap``); the observation model is told the capped region
+    (``ObservationModel.disturbed``), so that evidence it keeps of its own does not restore what the cap
+    took. Either way visited
     views are cleared, and the next step may only choose a view, the manipulation's associated best
     view (both count towards T_max). Manipulation is allowed in ``cfg.manipulation_window``, not once
     ``cfg.mapped_fraction`` of the BEV cells are mapped (``mapped_fraction``), and never again after
@@ -487,8 +483,9 @@ def run_msas(
                 if cap is not None:
                     changed = np.zeros(workspace.grid.size, dtype=bool)
                     changed[prediction.changes[decision.index].idx] = True
-                    belief = cap_evidence(belief, changed.reshape(workspace.grid.shape), cap,
-                                          cfg.disturbed_margin_voxels)
+                    region = disturbed_region(changed.reshape(workspace.grid.shape), cfg.disturbed_margin_voxels)
+                    belief = belief.capped(region, cap)
+                    observe_model.disturbed(region, cap)  # and what the model keeps of its own there
                 visited.clear()
                 last_manipulation = step
                 manipulation_ok = manipulation_ok and not outcome.fell_or_left

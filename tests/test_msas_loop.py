@@ -253,6 +253,40 @@ def test_a_failed_manipulation_does_not_write_the_prediction_of_success(ig, succ
         assert np.all(b[10:] == 2.0)
 
 
+class Told(Sure):
+    """``Sure``, recording what MSAS tells it about disturbed regions."""
+
+    def __init__(self) -> None:
+        self.told: list[tuple[np.ndarray, float]] = []
+
+    def disturbed(self, region: np.ndarray, cap: float) -> None:
+        self.told.append((region.copy(), cap))
+
+
+@pytest.mark.parametrize("success", [True, False])
+def test_the_observation_model_is_told_the_region_msas_capped(ig, success):
+    """After a manipulation MSAS caps the belief where the prediction changed it (dilated) and tells the
+    observation model the same region and cap, so that evidence the model keeps of its own (a ray
+    record) is capped there too."""
+    sim = FakeSimulator(CAMERA)
+    sim.reset(SCENE)
+    beliefs: list[EvidentialMap] = []
+    model = Told()
+    cfg = MSASConfig(manipulation_window=(0, 10), mapped_fraction=1.0, disturbed_margin_voxels=1,
+                     disturbed_evidence_cap=5.0, failed_manipulation_cap=3.0)
+    run_msas(sim, model, [BoundSkill("view", ViewSkill()), BoundSkill("flaky", Flaky(success), Stamp())],
+             Objective([("constant", 1.0, Constant())]), ig, WORKSPACE, cfg, 1, start_view=0, seed=0,
+             on_step=lambda step, d, o, b: beliefs.append(b))
+    assert len(model.told) == 1
+    region, cap = model.told[0]
+    assert cap == (5.0 if success else 3.0)
+    assert region.reshape(-1)[:10].all()  # Stamp's voxels
+    assert region.sum() > 10  # dilated by the margin
+    after = beliefs[0]
+    capped = (after.alpha + after.beta) <= cap + 1e-5
+    assert np.array_equal(capped, region)  # Sure's evidence (32) everywhere else
+
+
 def test_an_episode_counts_its_falls_and_the_bench_table_reads_them(tmp_path):
     """run_episode counts the manipulations after which an object fell or left; the bench turns them
     into ``falls`` and ``fell`` (NaN for an episode that never manipulated)."""

@@ -124,6 +124,24 @@ class EvidentialMap:
         return EvidentialMap(self.grid, self.alpha.copy(), self.beta.copy(), self.eta.copy(),
                              None if self.observed is None else self.observed.copy())
 
+    def capped(self, region: NDArray[np.bool_], cap: float) -> EvidentialMap:
+        """A copy with the evidence of ``region`` ([X, Y, Z]) shrunk towards the prior: where alpha +
+        beta > ``cap``, alpha - 1, beta - 1 and eta - 1 are scaled by (cap - 2) / (alpha + beta - 2).
+        Expected occupancy moves towards 0.5 but stays on its side of it and the class argmax is kept,
+        except with ``cap`` 2, which resets those voxels to the prior."""
+        idx = np.flatnonzero(region)
+        a, b = self.alpha.reshape(-1)[idx], self.beta.reshape(-1)[idx]
+        s = a + b
+        big = s > cap
+        idx, a, b, s = idx[big], a[big], b[big], s[big]
+        f = ((cap - 2.0) / (s - 2.0)).astype(np.float32)
+        out = self.copy()
+        out.alpha.reshape(-1)[idx] = 1.0 + f * (a - 1.0)
+        out.beta.reshape(-1)[idx] = 1.0 + f * (b - 1.0)
+        eta = out.eta.reshape(self.num_classes, -1)
+        eta[:, idx] = 1.0 + f[None] * (eta[:, idx] - 1.0)
+        return out
+
     # ------------------------------------------------------------------ expected distributions
     def expected_occupancy(self) -> NDArray[np.float32]:
         """E[occupancy] = alpha / (alpha + beta), [X,Y,Z]."""

@@ -69,6 +69,13 @@ class CNABUMapObservationModel(ObservationModel):
     def update(self, belief: EvidentialMap, observation: Observation) -> EvidentialMap:
         return self.update_masks(belief, *self.rays.masks(belief, observation))
 
+    def disturbed(self, region: NDArray[np.bool_], cap: float) -> None:
+        """The episode's ray record is capped in ``region`` as MSAS capped the belief: rays from before
+        a manipulation count there as at most ``cap`` in all, so that the next views can overturn them
+        (uncapped, the record's confident evidence would be authoritative again at the next update)."""
+        if self._rays is not None and self._rays.alpha.shape == region.shape:
+            self._rays = self._rays.capped(region, cap)
+
     def _carried(self, belief: EvidentialMap, alpha: NDArray[np.float32], beta: NDArray[np.float32],
                  eta: NDArray[np.float32]) -> tuple[NDArray[np.float32], ...]:
         """A belief this model did not return, within an episode (an effect model's prediction made from the
