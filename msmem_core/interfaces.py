@@ -453,8 +453,9 @@ class ObservationModel(BeliefModel):
         """A manipulation disturbed ``region`` ([X, Y, Z]): MSAS capped the belief's evidence there at
         alpha + beta <= ``cap`` (``EvidentialMap.capped``), so that later views can overturn it. A model
         that keeps evidence of its own between updates (``cnabu-map``'s record of the episode's rays)
-        caps it there too, or its next update would restore what the cap took. A model that keeps
-        none, like the default here, does nothing."""
+        may cap it there too; otherwise its next update restores what the cap took where that evidence
+        rules (``cnabu-map``: ``disturbed_rays``). A model that keeps none, like the default here, does
+        nothing."""
 
 
 class EffectModel(BeliefModel):

@@ -70,10 +70,12 @@ class CNABUMapObservationModel(ObservationModel):
         return self.update_masks(belief, *self.rays.masks(belief, observation))
 
     def disturbed(self, region: NDArray[np.bool_], cap: float) -> None:
-        """The episode's ray record is capped in ``region`` as MSAS capped the belief: rays from before
-        a manipulation count there as at most ``cap`` in all, so that the next views can overturn them
-        (uncapped, the record's confident evidence would be authoritative again at the next update)."""
-        if self._rays is not None and self._rays.alpha.shape == region.shape:
+        """With ``disturbed_rays: cap``, the episode's ray record is capped in ``region`` as MSAS capped
+        the belief: rays from before a manipulation count there as at most ``cap`` in all, so that the
+        next views can overturn them (uncapped, the record's confident evidence is authoritative again
+        at the next update). ``keep``, the default, leaves the record."""
+        if (self.config.disturbed_rays == "cap" and self._rays is not None
+                and self._rays.alpha.shape == region.shape):
             self._rays = self._rays.capped(region, cap)
 
     def _carried(self, belief: EvidentialMap, alpha: NDArray[np.float32], beta: NDArray[np.float32],

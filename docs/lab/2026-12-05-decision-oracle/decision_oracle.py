@@ -15,9 +15,26 @@ then the next-best views up to H steps in all. One JSON line per scene: the map 
 (``base``) and per candidate its skill, objective rank, value and terms, outcome, and the change of
 both paper metrics after the candidate and one view (``d2_``) and at step H (``d_``), with the final
 2-D semantic counts per class. Ground truth only scores.
+
+The observation model keeps state between updates (``cnabu-map``: the episode's ray record and the
+network's own map). It is saved at step K and put back before each candidate, as the simulator's
+state is; without that, every candidate after the first inherited the ray record of the previous
+candidate's rollout (the runs made before this was fixed are ``runs/*-inherited-record.jsonl``).
+
+``--skills view,push`` limits the candidates to those skills; ``--record MODE`` says what happens to
+the model's ray record after a manipulation (the belief is always the effect model's prediction,
+capped as MSAS caps it):
+
+- ``as-is`` (MSAS today): the record is cleared only where the prediction rewrote the belief;
+- ``cap``: the record's evidence is capped like the belief's (the predicted change, dilated);
+- ``cap-all``: the record's evidence is capped everywhere (every ray before the manipulation counts as
+  at most ``disturbed_evidence_cap`` in all);
+- ``truth``: an oracle, the record is cleared wherever the ground-truth occupancy changed (dilated by
+  ``disturbed_margin_voxels``).
 """
 from __future__ import annotations
 
+import copy
 import json
 import sys
 
@@ -32,12 +49,51 @@ from msmem_core.run.bench import suite_scenes
 from msmem_core.run.runner import MetricTracker, build_episode
 
 KEYS = ("occupancy_miou", "semantic_miou_2d")
+RECORD_MODES = ("as-is", "cap", "cap-all", "truth")
+
+
+def model_state(model: object) -> dict:
+    """A deep copy of an observation model's private state (its ray record, its own map, ...)."""
+    return copy.deepcopy({k: v for k, v in vars(model).items() if k.startswith("_")})
+
+
+def treat_record(model: object, mode: str, changed: np.ndarray, cap: float, margin: int,
+                 truth_changed: np.ndarray | None) -> None:
+    """After a manipulation: what ``mode`` does to ``cnabu-map``'s ray record (module docstring)."""
+    from scipy import ndimage
+
+    rays = getattr(model, "_rays", None)
+    if rays is None or mode == "as-is":
+        return
+    if mode == "cap":
+        model._rays = cap_evidence(rays, changed, cap, margin)
+    elif mode == "cap-all":
+        model._rays = cap_evidence(rays, np.ones_like(changed), cap, 0)
+    elif mode == "truth":
+        region = ndimage.binary_dilation(truth_changed, np.ones((3, 3, 3), bool), iterations=margin)
+        r = rays.copy()
+        r.alpha[region] = r.beta[region] = 1.0
+        r.eta[:, region] = 1.0
+        model._rays = r
+
+
+def option(args: list[str], name: str, default: str) -> str:
+    if name in args:
+        i = args.index(name)
+        value = args[i + 1]
+        del args[i:i + 2]
+        return value
+    return default
 
 
 def main() -> None:
-    suite, scenes, K, M = sys.argv[1], [int(s) for s in sys.argv[2].split(",")], int(sys.argv[3]), int(sys.argv[4])
-    H = int(sys.argv[5])  # steps in all: views only after the candidate's associated view
-    over = read_config_file(sys.argv[6]) if len(sys.argv) > 6 else {}
+    args = sys.argv[1:]
+    record = option(args, "--record", "as-is")
+    only = option(args, "--skills", "")
+    assert record in RECORD_MODES, record
+    suite, scenes, K, M = args[0], [int(s) for s in args[1].split(",")], int(args[2]), int(args[3])
+    H = int(args[4])  # steps in all: views only after the candidate's associated view
+    over = read_config_file(args[5]) if len(args) > 5 else {}
     pm = get_plugin_manager()
     for si in scenes:
         ep = build_episode(load_config("ours", None, {**over, "steps": 40, "threads": 1}), pm,
@@ -59,11 +115,15 @@ def main() -> None:
             belief = ep.observe_model.update(belief, out.observation)
             visited.add(d.action.view)
         base = truth(belief)
+        gt_before = truth.gt_occ.copy()
         token = ep.sim.snapshot()
+        state = model_state(ep.observe_model)
         ctx = DecisionContext(K, belief, ep.ig, ep.viewpoints, set(visited), ws, rng, True, cfg.tau_chi, -1)
         views_only = [b for b in ep.skills if b.skill.category == "perception"]
         rows = []
         for bound in ep.skills:
+            if only and bound.name not in only.split(","):
+                continue
             bound.skill.track(ctx)
             ctx.funnel.skill = bound.name
             acts = bound.skill.propose(ctx)
@@ -81,6 +141,7 @@ def main() -> None:
                             parts[name][i] = float(ex[0])
             for i in order:
                 ep.sim.restore(token)
+                vars(ep.observe_model).update(copy.deepcopy(state))
                 a = acts[i]
                 out = execute_measured(bound.skill, ep.sim, a, ctx)
                 b, vis, last = belief, set(visited), -1
@@ -93,10 +154,14 @@ def main() -> None:
                         b, cap = pred.belief(int(i)), cfg.disturbed_evidence_cap
                     else:
                         b, cap = belief, cfg.failed_manipulation_cap
+                    ch = np.zeros(ws.grid.size, bool)
+                    ch[pred.changes[int(i)].idx] = True
+                    ch = ch.reshape(ws.grid.shape)
                     if cap is not None:
-                        ch = np.zeros(ws.grid.size, bool)
-                        ch[pred.changes[int(i)].idx] = True
-                        b = cap_evidence(b, ch.reshape(ws.grid.shape), cap, cfg.disturbed_margin_voxels)
+                        b = cap_evidence(b, ch, cap, cfg.disturbed_margin_voxels)
+                    truth(b)  # the ground truth after the manipulation
+                    treat_record(ep.observe_model, record, ch, cfg.disturbed_evidence_cap or 4.0,
+                                 cfg.disturbed_margin_voxels, truth.gt_occ != gt_before)
                     vis, last = set(), K
                 c2 = DecisionContext(K + 1, b, ep.ig, ep.viewpoints, vis, ws, rng, False, cfg.tau_chi, last)
                 d2 = decide(c2, views_only, ep.objective)
@@ -122,7 +187,8 @@ def main() -> None:
                              **{f"d_{k}": m[k] - base[k] for k in KEYS}})
         ep.sim.restore(token)
         ep.sim.close()
-        print(json.dumps({"scene": si, "base": {k: base[k] for k in KEYS}, "rows": rows}), flush=True)
+        print(json.dumps({"scene": si, "record": record, "base": {k: base[k] for k in KEYS}, "rows": rows}),
+              flush=True)
 
 
 main()
