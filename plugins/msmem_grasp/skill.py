@@ -108,6 +108,21 @@ _SIN15 = math.sin(math.radians(15.0))
 _WARNED: set[str] = set()
 
 
+def front_about(b: F64, a: F64) -> F64:
+    """Approaches [N, 3] of grasps with closing axes ``b`` turned about them to point as straight into the
+    shelf (+y) as each axis allows: +y with its component along b taken out, normalised; where b is within
+    about 1 deg of the y axis (nothing of +y is left), the approach ``a`` given."""
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    t = np.zeros_like(b)
+    t[:, 1] = 1.0
+    t -= b[:, 1:2] * b
+    n = np.linalg.norm(t, axis=-1, keepdims=True)
+    ok = n[:, 0] > 0.02
+    out = np.array(a, dtype=np.float64, copy=True)
+    out[ok] = t[ok] / n[ok]
+    return out
+
+
 class GraspAction(Action):
     """Grasp with the parallel-jaw gripper at ``pose`` (``GripperSpec`` frame: x = closing axis b,
     z = approach a, origin between the fingertips), fingers opened to ``opening_m``; reached through
@@ -293,6 +308,13 @@ class GraspConfig(BaseModel):
     """Largest angle between a grasp's approach and straight into the shelf (+y); 180: any approach the
     open front allows (step 3). An arm whose hand cannot come from above in the shelf needs a small
     one (docs/explanation/robots.md)."""
+    approach_from: Literal["as-predicted", "front", "both"] = "as-predicted"
+    """``front``: every grasp is turned about its closing axis until its approach points as straight into
+    the shelf (+y) as that axis allows (+y with its component along the axis taken out): the same
+    contacts, width and evidence, reached through the open front rather than from where the predictor
+    proposed it. ``both``: every grasp as predicted and turned (the turned one right after it); the
+    collision, reach and exit tests keep what fits. A closing axis within about 1 deg of +y keeps its
+    predicted approach. docs/explanation/grasp.md, "Turning grasps to the front"."""
     roll: Literal["as-predicted", "back-up", "both"] = "as-predicted"
     """``back-up``: a grasp whose gripper y axis (approach x closing axis) points down is turned 180 deg
     about its approach (the same grasp: the fingers swap), so the hand's back, where an arm's wrist
@@ -444,6 +466,14 @@ class GraspSkill(Skill):
         g = h.subset(idx)
         a, _ = g.approach()
         b = g.mu_b
+        if cfg.approach_from != "as-predicted":
+            turned = front_about(b, a)
+            if cfg.approach_from == "front":
+                a = turned
+            else:
+                twice = np.repeat(np.arange(len(g)), 2)
+                g, b = g.subset(twice), b[twice]
+                a = np.stack([a, turned], axis=1).reshape(-1, 3)
         keep = (a[:, 1] >= -_SIN15) & (a[:, 2] <= _SIN15) & (g.width >= cfg.min_width_m)
         if cfg.max_approach_deg < 180.0:
             keep &= a[:, 1] >= math.cos(math.radians(cfg.max_approach_deg)) - 1e-12
