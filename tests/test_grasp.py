@@ -813,6 +813,57 @@ def test_predicted_occupancy_after_a_disturbing_grasp_beats_removal_alone() -> N
     assert compared >= 1, "no successful grasp pushed the can (nothing to compare)"
 
 
+def test_a_grasp_turned_to_the_front_keeps_its_contacts_and_holds_where_from_above_the_hand_does_not_fit() -> None:
+    pytest.importorskip("pybullet")
+    from msmem_grasp.fusion import GraspHypotheses
+    from msmem_grasp.skill import front_about
+    from msmem_pybullet.simulator import PyBulletSimulator
+
+    # the turned approach: orthogonal to the closing axis, as far into the shelf (+y) as the axis allows
+    rng = np.random.default_rng(0)
+    b = rng.normal(size=(200, 3))
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    a = front_about(b, np.zeros_like(b))
+    np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1.0)
+    np.testing.assert_allclose((a * b).sum(1), 0.0, atol=1e-12)
+    np.testing.assert_allclose(a[:, 1], np.sqrt(1.0 - b[:, 1] ** 2))  # the most of +y left orthogonal to b
+    along_y = np.array([[0.0, 1.0, 0.0]])
+    np.testing.assert_array_equal(front_about(along_y, np.array([[0.0, 0.0, -1.0]])), [[0.0, 0.0, -1.0]])
+
+    # a predicted grasp from above, 7.5 cm under the top of a standing 4 cm-wide box: the palm meets the box
+    scene = SceneSpec(name="turn", objects=(
+        ObjectSpec(id=0, class_name="sugar_box", position_m=(0.0, 0.15, 0.0), quat_xyzw=tuple(yaw_quat(math.pi / 2))),))
+    sim = PyBulletSimulator(label_noise=0.0)
+    try:
+        sim.reset(scene)
+        belief = observed_belief(sim, scene, VIEWS)
+        one = np.ones(1)
+        from_above = GraspHypotheses(
+            contact=np.array([[-0.02, 0.15, 0.10]]), mu_a_hat=np.array([[0.0, 0.0, -1.0]]), kappa_a_hat=50 * one,
+            mu_b=np.array([[1.0, 0.0, 0.0]]), kappa_b=50 * one, alpha=9 * one, beta=one, width=0.04 * one)
+        got = {}
+        for mode in ("as-predicted", "front", "both"):
+            skill = GraspSkill(GraspConfig(predictor="geometric", approach_from=mode))  # type: ignore[arg-type]
+            skill.buffer.update(from_above)
+            stages: dict[str, int] = {}
+            got[mode] = skill.executable(belief, scene.shelf, stages, WORKSPACE.classes)
+            assert stages["from_front"] == (2 if mode == "both" else 1)
+        assert got["as-predicted"] == []
+        assert len(got["front"]) == 1
+        assert got["both"] == got["front"]  # the predicted one does not fit, its turned twin does
+        g = got["front"][0]
+        np.testing.assert_allclose(g.matrix[:3, 2], [0.0, 1.0, 0.0], atol=1e-12)  # straight into the shelf
+        np.testing.assert_allclose(g.matrix[:3, 0], [1.0, 0.0, 0.0], atol=1e-12)  # the same closing axis
+        np.testing.assert_allclose(g.matrix[:3, 3], [0.0, 0.15, 0.10], atol=1e-12)  # and centre
+        assert g.contact_m == pytest.approx((-0.02, 0.15, 0.10))
+        out = execute_measured(GraspSkill(GraspConfig(predictor="geometric")), sim, g,
+                               SimpleNamespace(shelf=scene.shelf))  # type: ignore[arg-type]
+        assert out.success
+        assert out.removed == [0]
+    finally:
+        sim.close()
+
+
 @pytest.mark.slow
 def test_a_grasp_only_episode_executes_a_grasp(tmp_path) -> None:  # type: ignore[no-untyped-def]
     from msmem_core.config import load_config
