@@ -138,19 +138,30 @@ def test_the_bench_sums_the_funnel_per_method_and_reports_it() -> None:
     assert "Candidate funnel" not in table_markdown(summarise(older, ["grasp-only"]))
 
 
-def test_the_grasp_funnel_counts_every_candidate_past_top_k() -> None:
-    """The stages are counted over every candidate, so ``clear_exit`` can exceed what ``top_k`` and
-    ``max_per_object`` let through to ``proposed``."""
+@pytest.mark.parametrize(("top_k", "max_per_object"), [(2, 4), (40, 1), (3, 2)])
+def test_the_grasp_funnel_counts_every_candidate_past_top_k_when_asked(top_k: int, max_per_object: int) -> None:
+    """With ``funnel: every-candidate`` the stages are counted over every candidate, so ``clear_exit`` can
+    exceed what ``top_k`` and ``max_per_object`` let through to ``proposed``; by default the tests stop
+    once nothing more would be proposed, and the proposals are the same."""
     from msmem_grasp.skill import FUNNEL_STAGES, GraspConfig, GraspSkill
 
-    from tests.test_grasp import TARGET, box_belief, ctx
+    from tests.test_grasp import BYSTANDER, TARGET, box_belief, ctx
 
-    c = ctx(box_belief([TARGET]))
-    c.funnel.skill = "grasp"
-    skill = GraspSkill(GraspConfig(predictor="geometric", top_k=2))
-    out = skill.propose(c)
-    stages = c.funnel.stages("grasp")
-    assert list(stages) == list(FUNNEL_STAGES)
-    assert _non_increasing(stages)
-    assert len(out) == 2 < stages["clear_exit"]
-    assert np.all(np.diff(list(stages.values())) <= 0)
+    got = {}
+    for funnel in ("every-candidate", "until-full"):
+        c = ctx(box_belief([TARGET, BYSTANDER]))
+        c.funnel.skill = "grasp"
+        skill = GraspSkill(GraspConfig(predictor="geometric", top_k=top_k, max_per_object=max_per_object,
+                                       funnel=funnel))  # type: ignore[arg-type]
+        got[funnel] = (skill.propose(c), c.funnel.stages("grasp"))
+    (out, every), (same, until) = got["every-candidate"], got["until-full"]
+    assert same == out
+    assert 0 < len(out) <= top_k
+    for stages in (every, until):
+        assert list(stages) == list(FUNNEL_STAGES)
+        assert _non_increasing(stages)
+        assert np.all(np.diff(list(stages.values())) <= 0)
+    assert len(out) < every["clear_exit"]
+    assert until["clear_exit"] == len(out)  # every candidate tested was proposed: nothing was left over
+    assert until["collision_free"] < every["collision_free"]
+    assert {k: until[k] for k in FUNNEL_STAGES[:6]} == {k: every[k] for k in FUNNEL_STAGES[:6]}

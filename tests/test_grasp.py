@@ -4,6 +4,7 @@ replaced (kept here as a reference)."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from types import SimpleNamespace
@@ -823,12 +824,14 @@ def test_a_grasp_turned_to_the_front_keeps_its_contacts_and_holds_where_from_abo
     rng = np.random.default_rng(0)
     b = rng.normal(size=(200, 3))
     b /= np.linalg.norm(b, axis=1, keepdims=True)
-    a = front_about(b, np.zeros_like(b))
-    np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1.0)
-    np.testing.assert_allclose((a * b).sum(1), 0.0, atol=1e-12)
-    np.testing.assert_allclose(a[:, 1], np.sqrt(1.0 - b[:, 1] ** 2))  # the most of +y left orthogonal to b
-    along_y = np.array([[0.0, 1.0, 0.0]])
-    np.testing.assert_array_equal(front_about(along_y, np.array([[0.0, 0.0, -1.0]])), [[0.0, 0.0, -1.0]])
+    given = np.tile([0.0, 0.0, -1.0], (len(b), 1))
+    a, ok = front_about(b, given)
+    assert 0 < ok.sum() < len(b)
+    np.testing.assert_array_equal(ok, np.abs(b[:, 1]) <= math.sin(math.radians(45)))  # turned within 45 deg of +y
+    np.testing.assert_allclose(np.linalg.norm(a[ok], axis=1), 1.0)
+    np.testing.assert_allclose((a[ok] * b[ok]).sum(1), 0.0, atol=1e-12)
+    np.testing.assert_allclose(a[ok, 1], np.sqrt(1.0 - b[ok, 1] ** 2))  # the most of +y left orthogonal to b
+    np.testing.assert_array_equal(a[~ok], given[~ok])  # a closing axis near the depth axis keeps its approach
 
     # a predicted grasp from above, 7.5 cm under the top of a standing 4 cm-wide box: the palm meets the box
     scene = SceneSpec(name="turn", objects=(
@@ -848,6 +851,13 @@ def test_a_grasp_turned_to_the_front_keeps_its_contacts_and_holds_where_from_abo
             stages: dict[str, int] = {}
             got[mode] = skill.executable(belief, scene.shelf, stages, WORKSPACE.classes)
             assert stages["from_front"] == (2 if mode == "both" else 1)
+        # closing along the depth: no twin from the front (turned, it would come from the side)
+        deep = GraspSkill(GraspConfig(predictor="geometric", approach_from="both"))
+        deep.buffer.update(dataclasses.replace(from_above, contact=np.array([[0.0, 0.105, 0.10]]),
+                                               mu_b=np.array([[0.0, 1.0, 0.0]]), width=0.09 * one))
+        stages = {}
+        deep.executable(belief, scene.shelf, stages, WORKSPACE.classes)
+        assert stages["from_front"] == 1
         assert got["as-predicted"] == []
         assert len(got["front"]) == 1
         assert got["both"] == got["front"]  # the predicted one does not fit, its turned twin does

@@ -108,19 +108,25 @@ _SIN15 = math.sin(math.radians(15.0))
 _WARNED: set[str] = set()
 
 
-def front_about(b: F64, a: F64) -> F64:
-    """Approaches [N, 3] of grasps with closing axes ``b`` turned about them to point as straight into the
-    shelf (+y) as each axis allows: +y with its component along b taken out, normalised; where b is within
-    about 1 deg of the y axis (nothing of +y is left), the approach ``a`` given."""
+FRONT_TURN_DEG = 45.0
+"""A grasp is turned to the front only if its turned approach comes within this of straight into the shelf."""
+
+
+def front_about(b: F64, a: F64) -> tuple[F64, NDArray[np.bool_]]:
+    """Grasps with closing axes ``b`` [N, 3] turned about them to approach as straight into the shelf (+y)
+    as each axis allows: +y with its component along b taken out, normalised. Returns (approaches [N, 3],
+    turned [N]): a grasp is turned only where that approach is within ``FRONT_TURN_DEG`` of +y (its
+    closing axis at least 45 deg off the y axis); elsewhere the approach ``a`` given is kept (a closing axis
+    along the depth has no approach from the front)."""
     b = b / np.linalg.norm(b, axis=-1, keepdims=True)
     t = np.zeros_like(b)
     t[:, 1] = 1.0
     t -= b[:, 1:2] * b
-    n = np.linalg.norm(t, axis=-1, keepdims=True)
-    ok = n[:, 0] > 0.02
+    n = np.linalg.norm(t, axis=-1, keepdims=True)  # = the turned approach's y component
+    ok = n[:, 0] >= math.cos(math.radians(FRONT_TURN_DEG)) - 1e-12
     out = np.array(a, dtype=np.float64, copy=True)
     out[ok] = t[ok] / n[ok]
-    return out
+    return out, ok
 
 
 class GraspAction(Action):
@@ -313,8 +319,15 @@ class GraspConfig(BaseModel):
     the shelf (+y) as that axis allows (+y with its component along the axis taken out): the same
     contacts, width and evidence, reached through the open front rather than from where the predictor
     proposed it. ``both``: every grasp as predicted and turned (the turned one right after it); the
-    collision, reach and exit tests keep what fits. A closing axis within about 1 deg of +y keeps its
-    predicted approach. docs/explanation/grasp.md, "Turning grasps to the front"."""
+    collision, reach and exit tests keep what fits. A grasp is turned only if its turned approach comes
+    within 45 deg of +y (its closing axis at least 45 deg off the depth axis); the others keep their
+    predicted approach (``front``) or have no twin (``both``).
+    docs/explanation/grasp.md, "Turning grasps to the front"."""
+    funnel: Literal["until-full", "every-candidate"] = "until-full"
+    """How far the tests after ``free_at_grasp`` go. until-full: a candidate is planned only while its object
+    has fewer than ``max_per_object`` proposals and fewer than ``top_k`` are found, so ``collision_free``,
+    ``under_top`` and ``clear_exit`` count the candidates tested. every-candidate: every candidate goes
+    through every test, so that each count says what its test removed (slower; the proposals are the same)."""
     roll: Literal["as-predicted", "back-up", "both"] = "as-predicted"
     """``back-up``: a grasp whose gripper y axis (approach x closing axis) points down is turned 180 deg
     about its approach (the same grasp: the fingers swap), so the hand's back, where an arm's wrist
@@ -467,13 +480,14 @@ class GraspSkill(Skill):
         a, _ = g.approach()
         b = g.mu_b
         if cfg.approach_from != "as-predicted":
-            turned = front_about(b, a)
+            turned, ok = front_about(b, a)
             if cfg.approach_from == "front":
                 a = turned
-            else:
-                twice = np.repeat(np.arange(len(g)), 2)
-                g, b = g.subset(twice), b[twice]
-                a = np.stack([a, turned], axis=1).reshape(-1, 3)
+            else:  # each grasp, then its turned twin where it has one
+                twin = np.stack([np.ones(len(g), dtype=bool), ok], axis=1).reshape(-1)
+                both = np.repeat(np.arange(len(g)), 2)[twin]
+                a = np.stack([a, turned], axis=1).reshape(-1, 3)[twin]
+                g, b = g.subset(both), b[both]
         keep = (a[:, 1] >= -_SIN15) & (a[:, 2] <= _SIN15) & (g.width >= cfg.min_width_m)
         if cfg.max_approach_deg < 180.0:
             keep &= a[:, 1] >= math.cos(math.radians(cfg.max_approach_deg)) - 1e-12
@@ -530,9 +544,10 @@ class GraspSkill(Skill):
         ``stages`` receives the grasps left after each step: those of ``candidates``, then ``on_object``
         (a believed object at the contact), ``free_at_grasp`` (the open gripper at the grasp touches no
         blocked voxel), ``collision_free`` (nor on its way in), ``under_top`` (the lifted object and
-        gripper fit under the shelf top) and ``clear_exit`` (they leave the shelf: ``_lift``). Every
-        candidate is tested, also once ``top_k`` are found or its object has ``max_per_object``, so that
-        the counts say what each test removes."""
+        gripper fit under the shelf top) and ``clear_exit`` (they leave the shelf: ``_lift``). With
+        ``funnel: every-candidate`` every candidate is tested, also once ``top_k`` are found or its object
+        has ``max_per_object``, so that the counts say what each test removes; by default (``until-full``)
+        the tests after ``free_at_grasp`` run only while its object and the list have room."""
         cfg = self.config
         stages = {} if stages is None else stages
         c = self.candidates(belief, shelf, stages)
@@ -553,8 +568,12 @@ class GraspSkill(Skill):
         stages["collision_free"] = stages["under_top"] = stages["clear_exit"] = 0
         out: list[GraspAction] = []
         per_object: dict[int, int] = {}
+        every = cfg.funnel == "every-candidate"
         for i in np.flatnonzero(on_object & ~at_grasp):  # candidates in order of E[q]
             lab = int(c.label[i])
+            full = per_object.get(lab, 0) >= cfg.max_per_object or len(out) >= cfg.top_k
+            if full and not every:
+                continue  # it would not be proposed: the tests below are the skill's costliest
             pose = c.poses[i]
             approach = self._plan_approach(grid, c.blocked, c.objects, local, i, pose, lab, float(c.opening[i]))
             if approach is None:
@@ -566,7 +585,7 @@ class GraspSkill(Skill):
             if lift_m is None:
                 continue  # the lifted object or gripper would hit the shelf top, or its way out is blocked
             stages["clear_exit"] += 1
-            if per_object.get(lab, 0) >= cfg.max_per_object or len(out) >= cfg.top_k:
+            if full:
                 continue
             out.append(self.action(c, i, approach, lift_m, shelf))
             per_object[lab] = per_object.get(lab, 0) + 1
