@@ -814,24 +814,27 @@ def test_predicted_occupancy_after_a_disturbing_grasp_beats_removal_alone() -> N
     assert compared >= 1, "no successful grasp pushed the can (nothing to compare)"
 
 
+def test_turned_approaches_are_orthogonal_to_the_closing_axis_and_within_45_deg_of_their_direction() -> None:
+    from msmem_grasp.skill import turn_about
+
+    rng = np.random.default_rng(0)
+    b = rng.normal(size=(400, 3))
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    for d in ((0.0, 1.0, 0.0), (1.0, 0.0, 0.0), (-1.0, 0.0, 0.0)):
+        a, ok = turn_about(b, d)
+        along = b @ np.asarray(d)
+        assert 0 < ok.sum() < len(b)
+        np.testing.assert_array_equal(ok, np.abs(along) <= math.sin(math.radians(45)))  # within 45 deg of d
+        np.testing.assert_allclose(np.linalg.norm(a[ok], axis=1), 1.0)
+        np.testing.assert_allclose((a[ok] * b[ok]).sum(1), 0.0, atol=1e-12)
+        np.testing.assert_allclose(a[ok] @ np.asarray(d), np.sqrt(1.0 - along[ok] ** 2))  # the most of d left
+        assert not a[~ok].any()
+
+
 def test_a_grasp_turned_to_the_front_keeps_its_contacts_and_holds_where_from_above_the_hand_does_not_fit() -> None:
     pytest.importorskip("pybullet")
     from msmem_grasp.fusion import GraspHypotheses
-    from msmem_grasp.skill import front_about
     from msmem_pybullet.simulator import PyBulletSimulator
-
-    # the turned approach: orthogonal to the closing axis, as far into the shelf (+y) as the axis allows
-    rng = np.random.default_rng(0)
-    b = rng.normal(size=(200, 3))
-    b /= np.linalg.norm(b, axis=1, keepdims=True)
-    given = np.tile([0.0, 0.0, -1.0], (len(b), 1))
-    a, ok = front_about(b, given)
-    assert 0 < ok.sum() < len(b)
-    np.testing.assert_array_equal(ok, np.abs(b[:, 1]) <= math.sin(math.radians(45)))  # turned within 45 deg of +y
-    np.testing.assert_allclose(np.linalg.norm(a[ok], axis=1), 1.0)
-    np.testing.assert_allclose((a[ok] * b[ok]).sum(1), 0.0, atol=1e-12)
-    np.testing.assert_allclose(a[ok, 1], np.sqrt(1.0 - b[ok, 1] ** 2))  # the most of +y left orthogonal to b
-    np.testing.assert_array_equal(a[~ok], given[~ok])  # a closing axis near the depth axis keeps its approach
 
     # a predicted grasp from above, 7.5 cm under the top of a standing 4 cm-wide box: the palm meets the box
     scene = SceneSpec(name="turn", objects=(
@@ -845,27 +848,28 @@ def test_a_grasp_turned_to_the_front_keeps_its_contacts_and_holds_where_from_abo
             contact=np.array([[-0.02, 0.15, 0.10]]), mu_a_hat=np.array([[0.0, 0.0, -1.0]]), kappa_a_hat=50 * one,
             mu_b=np.array([[1.0, 0.0, 0.0]]), kappa_b=50 * one, alpha=9 * one, beta=one, width=0.04 * one)
         got = {}
-        for mode in ("as-predicted", "front", "both"):
-            skill = GraspSkill(GraspConfig(predictor="geometric", approach_from=mode))  # type: ignore[arg-type]
+        for turn_to in ((), ("front",), ("sides",), ("front", "sides")):
+            skill = GraspSkill(GraspConfig(predictor="geometric", turn_to=turn_to))  # type: ignore[arg-type]
             skill.buffer.update(from_above)
             stages: dict[str, int] = {}
-            got[mode] = skill.executable(belief, scene.shelf, stages, WORKSPACE.classes)
-            assert stages["from_front"] == (2 if mode == "both" else 1)
-        # closing along the depth: no twin from the front (turned, it would come from the side)
-        deep = GraspSkill(GraspConfig(predictor="geometric", approach_from="both"))
-        deep.buffer.update(dataclasses.replace(from_above, contact=np.array([[0.0, 0.105, 0.10]]),
-                                               mu_b=np.array([[0.0, 1.0, 0.0]]), width=0.09 * one))
-        stages = {}
-        deep.executable(belief, scene.shelf, stages, WORKSPACE.classes)
-        assert stages["from_front"] == 1
-        assert got["as-predicted"] == []
-        assert len(got["front"]) == 1
-        assert got["both"] == got["front"]  # the predicted one does not fit, its turned twin does
-        g = got["front"][0]
+            got[turn_to] = skill.executable(belief, scene.shelf, stages, WORKSPACE.classes)
+            # closing along x: a twin from the front, none from the sides
+            assert stages["from_front"] == (2 if "front" in turn_to else 1)
+        assert got[()] == got[("sides",)] == []
+        assert len(got[("front",)]) == 1
+        assert got[("front", "sides")] == got[("front",)]  # the predicted one does not fit, its turned twin does
+        g = got[("front",)][0]
         np.testing.assert_allclose(g.matrix[:3, 2], [0.0, 1.0, 0.0], atol=1e-12)  # straight into the shelf
         np.testing.assert_allclose(g.matrix[:3, 0], [1.0, 0.0, 0.0], atol=1e-12)  # the same closing axis
         np.testing.assert_allclose(g.matrix[:3, 3], [0.0, 0.15, 0.10], atol=1e-12)  # and centre
         assert g.contact_m == pytest.approx((-0.02, 0.15, 0.10))
+        # closing along the depth: twins from both sides, none from the front
+        deep = GraspSkill(GraspConfig(predictor="geometric", turn_to=("front", "sides")))  # type: ignore[arg-type]
+        deep.buffer.update(dataclasses.replace(from_above, contact=np.array([[0.0, 0.105, 0.10]]),
+                                               mu_b=np.array([[0.0, 1.0, 0.0]]), width=0.09 * one))
+        stages = {}
+        deep.executable(belief, scene.shelf, stages, WORKSPACE.classes)
+        assert stages["from_front"] == 3
         out = execute_measured(GraspSkill(GraspConfig(predictor="geometric")), sim, g,
                                SimpleNamespace(shelf=scene.shelf))  # type: ignore[arg-type]
         assert out.success

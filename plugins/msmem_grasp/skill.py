@@ -108,23 +108,24 @@ _SIN15 = math.sin(math.radians(15.0))
 _WARNED: set[str] = set()
 
 
-FRONT_TURN_DEG = 45.0
-"""A grasp is turned to the front only if its turned approach comes within this of straight into the shelf."""
+TURN_DEG = 45.0
+"""A grasp is turned towards a direction only if its turned approach comes within this of it."""
+TURN_DIRECTIONS: dict[str, tuple[tuple[float, float, float], ...]] = {
+    "front": ((0.0, 1.0, 0.0),), "sides": ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0))}
+"""The approach directions ``GraspConfig.turn_to`` names: straight into the shelf; along the shelf either way."""
 
 
-def front_about(b: F64, a: F64) -> tuple[F64, NDArray[np.bool_]]:
-    """Grasps with closing axes ``b`` [N, 3] turned about them to approach as straight into the shelf (+y)
-    as each axis allows: +y with its component along b taken out, normalised. Returns (approaches [N, 3],
-    turned [N]): a grasp is turned only where that approach is within ``FRONT_TURN_DEG`` of +y (its
-    closing axis at least 45 deg off the y axis); elsewhere the approach ``a`` given is kept (a closing axis
-    along the depth has no approach from the front)."""
+def turn_about(b: F64, direction: tuple[float, float, float] | F64) -> tuple[F64, NDArray[np.bool_]]:
+    """Grasps with closing axes ``b`` [N, 3] turned about them to approach as nearly along the unit
+    ``direction`` as each axis allows: the direction with its component along b taken out, normalised.
+    Returns (approaches [N, 3], turned [N]): only where that approach is within ``TURN_DEG`` of the
+    direction (the closing axis at least 45 deg off it) is a grasp turned; its other rows are zero."""
     b = b / np.linalg.norm(b, axis=-1, keepdims=True)
-    t = np.zeros_like(b)
-    t[:, 1] = 1.0
-    t -= b[:, 1:2] * b
-    n = np.linalg.norm(t, axis=-1, keepdims=True)  # = the turned approach's y component
-    ok = n[:, 0] >= math.cos(math.radians(FRONT_TURN_DEG)) - 1e-12
-    out = np.array(a, dtype=np.float64, copy=True)
+    d = np.asarray(direction, dtype=np.float64)
+    t = d[None, :] - (b @ d)[:, None] * b
+    n = np.linalg.norm(t, axis=-1, keepdims=True)  # = the turned approach's component along the direction
+    ok = n[:, 0] >= math.cos(math.radians(TURN_DEG)) - 1e-12
+    out = np.zeros_like(b)
     out[ok] = t[ok] / n[ok]
     return out, ok
 
@@ -314,15 +315,13 @@ class GraspConfig(BaseModel):
     """Largest angle between a grasp's approach and straight into the shelf (+y); 180: any approach the
     open front allows (step 3). An arm whose hand cannot come from above in the shelf needs a small
     one (docs/explanation/robots.md)."""
-    approach_from: Literal["as-predicted", "front", "both"] = "as-predicted"
-    """``front``: every grasp is turned about its closing axis until its approach points as straight into
-    the shelf (+y) as that axis allows (+y with its component along the axis taken out): the same
-    contacts, width and evidence, reached through the open front rather than from where the predictor
-    proposed it. ``both``: every grasp as predicted and turned (the turned one right after it); the
-    collision, reach and exit tests keep what fits. A grasp is turned only if its turned approach comes
-    within 45 deg of +y (its closing axis at least 45 deg off the depth axis); the others keep their
-    predicted approach (``front``) or have no twin (``both``).
-    docs/explanation/grasp.md, "Turning grasps to the front"."""
+    turn_to: tuple[Literal["front", "sides"], ...] = ()
+    """Each grasp is also proposed turned about its closing axis to approach from these directions (right
+    after it): ``front`` straight into the shelf (+y), ``sides`` along the shelf either way (+x, -x),
+    horizontal. The same contacts, width and evidence, reached another way; the collision, reach and exit
+    tests keep what fits. A grasp is turned towards a direction only if its turned approach comes within
+    45 deg of it (its closing axis at least 45 deg off it). docs/explanation/grasp.md, "Grasps turned
+    about their closing axis"."""
     funnel: Literal["until-full", "every-candidate"] = "until-full"
     """How far the tests after ``free_at_grasp`` go. until-full: a candidate is planned only while its object
     has fewer than ``max_per_object`` proposals and fewer than ``top_k`` are found, so ``collision_free``,
@@ -479,15 +478,15 @@ class GraspSkill(Skill):
         g = h.subset(idx)
         a, _ = g.approach()
         b = g.mu_b
-        if cfg.approach_from != "as-predicted":
-            turned, ok = front_about(b, a)
-            if cfg.approach_from == "front":
-                a = turned
-            else:  # each grasp, then its turned twin where it has one
-                twin = np.stack([np.ones(len(g), dtype=bool), ok], axis=1).reshape(-1)
-                both = np.repeat(np.arange(len(g)), 2)[twin]
-                a = np.stack([a, turned], axis=1).reshape(-1, 3)[twin]
-                g, b = g.subset(both), b[both]
+        if cfg.turn_to:  # each grasp, then its turned twins where it has them
+            dirs = [d for name in dict.fromkeys(cfg.turn_to) for d in TURN_DIRECTIONS[name]]
+            turned = [turn_about(b, d) for d in dirs]
+            rows = np.concatenate([a[:, None], np.stack([t for t, _ in turned], axis=1)], axis=1).reshape(-1, 3)
+            has = np.concatenate([np.ones((len(g), 1), dtype=bool), np.stack([ok for _, ok in turned], axis=1)],
+                                 axis=1).reshape(-1)
+            which = np.repeat(np.arange(len(g)), 1 + len(dirs))[has]
+            a = rows[has]
+            g, b = g.subset(which), b[which]
         keep = (a[:, 1] >= -_SIN15) & (a[:, 2] <= _SIN15) & (g.width >= cfg.min_width_m)
         if cfg.max_approach_deg < 180.0:
             keep &= a[:, 1] >= math.cos(math.radians(cfg.max_approach_deg)) - 1e-12
