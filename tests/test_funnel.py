@@ -7,7 +7,6 @@ from __future__ import annotations
 import itertools
 from typing import Any, ClassVar, Literal
 
-import numpy as np
 import pytest
 from msmem_view.skill import ViewSkill
 
@@ -64,8 +63,10 @@ def test_a_negative_count_is_refused_naming_the_stage_and_the_skill() -> None:
 
 
 def _non_increasing(stages: dict[str, int]) -> bool:
-    counts = list(stages.values())
-    return all(a >= b for a, b in itertools.pairwise(counts))
+    """Each count at most the one before, but at a stage that adds candidates (the grasp skill's
+    ``turned``: its twins), which at least keeps them."""
+    pairs = itertools.pairwise(stages.items())
+    return all(a >= b if k != "turned" else a <= b for (_, a), (k, b) in pairs)
 
 
 @pytest.mark.slow  # about 20 s
@@ -160,8 +161,8 @@ def test_the_grasp_funnel_counts_every_candidate_past_top_k_when_asked(top_k: in
     for stages in (every, until):
         assert list(stages) == list(FUNNEL_STAGES)
         assert _non_increasing(stages)
-        assert np.all(np.diff(list(stages.values())) <= 0)
     assert len(out) < every["clear_exit"]
     assert until["clear_exit"] == len(out)  # every candidate tested was proposed: nothing was left over
     assert until["collision_free"] < every["collision_free"]
-    assert {k: until[k] for k in FUNNEL_STAGES[:6]} == {k: every[k] for k in FUNNEL_STAGES[:6]}
+    assert {k: until[k] for k in FUNNEL_STAGES[:7]} == {k: every[k] for k in FUNNEL_STAGES[:7]}
+    assert every["turned"] > every["preselected"]  # the default turns grasps to the front and the sides

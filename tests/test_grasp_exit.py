@@ -183,12 +183,13 @@ def test_another_class_inside_the_objects_own_columns_is_not_in_its_way() -> Non
 
 @pytest.mark.slow
 def test_the_default_belief_of_a_hard_scene_leaves_grasps_of_its_front_row(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    """``hard25`` scene 0 under the library defaults, 10 views of a grasp-only episode (manipulation
-    held off): with a 3 cm lift, the front row's sugar box (17.5 cm) and mustard bottle (19 cm) can be
-    grasped from above and carried out; with the lift shrunk to the room under the shelf top, the whole
-    front row, and by default all of it but the cracker box. Under the rule before, which counted every
-    believed-occupied voxel outside the fingers' region as in the way, it proposed none (the boxes'
-    own surface voxels of class background, and their own parts beyond the region, stopped them)."""
+    """``hard25`` scene 0 under the library defaults, 10 views of a grasp-only episode (manipulation held off),
+    the grasps as predicted (``turn_to`` empty): with a 3 cm lift, the front row's sugar box (17.5 cm) and
+    mustard bottle (19 cm) can be grasped from above and carried out; with the lift shrunk to the room under
+    the shelf top, the whole front row, and by default all of it but the cracker box. Under the rule before,
+    which counted every believed-occupied voxel outside the fingers' region as in the way, it proposed none
+    (the boxes' own surface voxels of class background, and their own parts beyond the region, stopped
+    them)."""
     from msmem_core.config import load_config
     from msmem_core.map.belief import EvidentialMap as Map
     from msmem_core.plugins import get_plugin_manager
@@ -204,7 +205,7 @@ def test_the_default_belief_of_a_hard_scene_leaves_grasps_of_its_front_row(tmp_p
     def targets(**params: object) -> set[int]:
         """The objects nearest the contacts of the executable grasps, the skill's parameters changed
         (the same fused buffer)."""
-        skill.config = skill.config.model_copy(update=params)
+        skill.config = skill.config.model_copy(update={"turn_to": (), **params})
         stages: dict[str, int] = {}
         grasps = skill.executable(belief, ep.scene.shelf, stages, ep.workspace.classes)
         assert grasps, stages
@@ -218,3 +219,6 @@ def test_the_default_belief_of_a_hard_scene_leaves_grasps_of_its_front_row(tmp_p
     # by default only where the fingers have their 2 cm margin around the object: not the cracker box,
     # grasped across its 6 cm side or wider
     assert targets(min_lift_m=0.0, short_lift_margin_m=0.02) == {0, 1, 3, 4, 5}
+    # (the grasps as predicted, above; the default also turns them to the front and the sides)
+    # with a 3 cm lift they add the cracker box, grasped across its 6 cm depth from the side
+    assert targets(turn_to=("front", "sides"), min_lift_m=0.03) == {1, 2, 4}
