@@ -19,7 +19,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from numpy.typing import NDArray
 from scipy import ndimage
 
@@ -114,6 +114,18 @@ def path_offsets(waypoints: F64, spacing: float) -> F64:
     return np.concatenate(out)
 
 
+def segment_paths(starts: F64, ends: F64, spacing: float) -> tuple[F64, I64]:
+    """``path_offsets`` of many segments at once: the positions along ``starts[q]`` -> ``ends[q]`` [Q, 3],
+    concatenated [T, 3], and pointers [Q + 1] (segment q's positions are ``ptr[q]:ptr[q + 1]``)."""
+    a = np.asarray(starts, dtype=np.float64).reshape(-1, 3)
+    b = np.asarray(ends, dtype=np.float64).reshape(-1, 3)
+    n = np.maximum(1, np.ceil(np.linalg.norm(b - a, axis=1) / spacing)).astype(np.int64)
+    ptr = np.concatenate([[0], np.cumsum(n + 1)])
+    q = np.repeat(np.arange(len(n)), n + 1)
+    t = (np.arange(ptr[-1]) - ptr[q]) / n[q]
+    return a[q] + t[:, None] * (b[q] - a[q]), ptr
+
+
 def swept_indices(grid: GridSpec, rotation: F64, local_points: F64, positions: F64) -> I64:
     """Flat indices (sorted, unique) of the voxels holding the body's points (``local_points`` in a
     frame with ``rotation``) at every origin of ``positions``; points outside the grid are dropped.
@@ -152,12 +164,13 @@ def _mark_swept(mask, g0, s, n, local, positions):  # type: ignore[no-untyped-de
                 mask[(i * ny + j) * nz + k] = True
 
 
-@njit(cache=True, fastmath=False)
+@njit(cache=True, fastmath=False, parallel=True)
 def _sweep_hits(blocked, labels, g0, s, n, local, positions, ptr, body, label, frame, half_x, radius, depth):
-    """The kernel of :func:`sweep_hits` (arguments as there, grid as ``raycast.grid_params``)."""
+    """The kernel of :func:`sweep_hits` (arguments as there, grid as ``raycast.grid_params``); the tests
+    run in parallel over numba's threads."""
     nx, ny, nz = n[0], n[1], n[2]
     out = np.zeros(len(body), dtype=np.bool_)
-    for q in range(len(body)):
+    for q in prange(len(body)):
         b, lab = body[q], label[q]
         hit = False
         for t in range(ptr[q], ptr[q + 1]):
