@@ -549,7 +549,9 @@ def _skill(kind: str, seed: int) -> Any:
         return PushSkill(PushConfig())
     from msmem_grasp.skill import GraspConfig, GraspSkill
 
-    return GraspSkill(GraspConfig(seed=seed))
+    # the grasps as predicted, without the turned twins (``turn_to``) the skill proposes by default: the
+    # data the shipped networks were trained on came from these, and regenerating it must give it again
+    return GraspSkill(GraspConfig(seed=seed, turn_to=()))
 
 
 def _propose(kind: str, skill: Any, belief: Any, shelf: Any, viewpoints: NDArray[np.float64], visited: list[int],
