@@ -550,7 +550,7 @@ def _skill(kind: str, seed: int) -> Any:
     from msmem_grasp.skill import GraspConfig, GraspSkill
 
     # the grasps as predicted, without the turned twins (``turn_to``) the skill proposes by default: the
-    # data the shipped networks were trained on came from these, and regenerating it must give it again
+    # data the shipped networks were trained on came from grasps as predicted
     return GraspSkill(GraspConfig(seed=seed, turn_to=()))
 
 
