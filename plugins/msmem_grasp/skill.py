@@ -600,8 +600,13 @@ class GraspSkill(Skill):
         return out
 
     def _plan_approaches(self, grid: GridSpec, c: Candidates, local: F64, idx: NDArray[np.int64]) -> dict[int, F64]:
-        """``_plan_approach`` of candidates ``idx`` of ``c``, batched: one kernel call per leg and
-        distance. Returns candidate -> gripper origins [2, 3]; candidates with no free way in are absent."""
+        """The ways in of candidates ``idx`` of ``c`` (``local``: their open grippers' points, rotated):
+        in front of the shelf, then the pre-grasp pose ``d`` back along a, for the first d of
+        ``approach_distances_m`` at which the open gripper touches no blocked voxel. On the way in and at
+        the pre-grasp pose anything blocked counts; on the final stretch along a the target's region
+        (``Objects.region``) does not; the test at the grasp itself is done before, in :meth:`executable`.
+        Batched: one kernel call per leg and distance. Returns candidate -> gripper origins [2, 3];
+        candidates with no free way in are absent."""
         cfg = self.config
         s = grid.voxel_m
         out: dict[int, F64] = {}
@@ -629,36 +634,6 @@ class GraspSkill(Skill):
                 out[int(rest[j])] = np.stack([outside[j], pre[j]])
             rest = rest[~ok]
         return out
-
-    def _plan_approach(self, grid: GridSpec, blocked: NDArray[np.bool_], objects: Objects, local: F64, i: int,
-                       pose: F64, label: int, opening: float) -> F64 | None:
-        """Gripper origins [2, 3] before the grasp (in front of the shelf, then the pre-grasp pose
-        ``d`` back along a, for the first d of ``approach_distances_m`` that works), or None if the
-        open gripper (candidate ``i``'s points ``local[i]``, rotated) would touch a blocked voxel: on
-        the way in and at the pre-grasp pose anything blocked counts; on the final stretch along a
-        the target's region (``Objects.region`` of ``label``) does not. The test at the grasp itself
-        is done for all candidates at once in :meth:`executable`."""
-        cfg = self.config
-        grasp = pose[:3, 3]
-        for d in cfg.approach_distances_m:
-            pre = grasp - d * pose[:3, 2]
-            outside = pre.copy()
-            outside[1] = min(cfg.outside_y_m, pre[1])
-            if self._hits(grid, blocked, objects, local, i, pose, 0, opening, np.stack([outside, pre])):
-                continue
-            if self._hits(grid, blocked, objects, local, i, pose, label, opening, np.stack([pre, grasp])):
-                continue
-            return np.stack([outside, pre])
-        return None
-
-    def _hits(self, grid: GridSpec, blocked: NDArray[np.bool_], objects: Objects, local: F64, i: int, pose: F64,
-              label: int, opening: float, waypoints: F64) -> bool:
-        """Does candidate ``i``'s open gripper, swept along ``waypoints`` (sampled every half voxel),
-        touch a blocked voxel other than the region of ``label`` (0: none) or blocked space outside
-        the grid (``planning.sweep_hits``)?"""
-        path = path_offsets(waypoints, grid.voxel_m / 2)
-        return bool(sweep_hits(grid, blocked, objects.labels, local, path, np.array([0, len(path)]), np.array([i]),
-                               np.array([label]), pose[None], np.array([opening]), self.config.max_object_radius_m)[0])
 
     def _lift(self, grid: GridSpec, p: NDArray[np.floating], objects: Objects, label: int, region: NDArray[np.int64],
               pose: F64, width: float, top: float, stages: dict[str, int] | None = None,
