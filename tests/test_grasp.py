@@ -169,7 +169,10 @@ class _ReferenceGraspSkill(GraspSkill):
         grid = belief.grid
         out: list[GraspAction] = []
         per_object: dict[int, int] = {}
-        for i in range(len(c.grasps)):
+        order = np.arange(len(c.grasps))
+        if c.twin is not None:  # the grasps as predicted, then the turned twins
+            order = np.concatenate([order[~c.twin], order[c.twin]])
+        for i in order:
             lab = int(c.label[i])
             if lab <= 0 or per_object.get(lab, 0) >= cfg.max_per_object:
                 continue
@@ -830,6 +833,29 @@ def test_turned_approaches_are_orthogonal_to_the_closing_axis_and_within_45_deg_
         np.testing.assert_allclose((a[ok] * b[ok]).sum(1), 0.0, atol=1e-12)
         np.testing.assert_allclose(a[ok] @ np.asarray(d), np.sqrt(1.0 - along[ok] ** 2))  # the most of d left
         assert not a[~ok].any()
+
+
+@pytest.mark.parametrize(("max_per_object", "top_k"), [(1, 40), (2, 40), (4, 40), (300, 300)])
+def test_turned_twins_only_fill_the_places_the_predicted_grasps_leave(max_per_object: int, top_k: int) -> None:
+    """Every grasp the skill proposes without twins is proposed with them, first and in the same order;
+    a twin is proposed only for an object that the predicted grasps leave short of ``max_per_object``."""
+    belief = box_belief([TARGET, BYSTANDER])
+    got = {}
+    for turn_to in ((), ("front", "sides")):
+        skill = GraspSkill(GraspConfig(predictor="geometric", max_per_object=max_per_object, top_k=top_k,
+                                       turn_to=turn_to))  # type: ignore[arg-type]
+        got[turn_to] = skill.propose(ctx(belief))
+    base, out = got[()], got[("front", "sides")]
+    assert base
+    assert out[: len(base)] == base
+    twins = out[len(base):]
+    per_class = {k: sum(g.target_class == k for g in base) for k in {g.target_class for g in out}}
+    for g in twins:
+        assert per_class[g.target_class] < max_per_object
+        per_class[g.target_class] += 1
+    assert all(n <= max_per_object for n in per_class.values())
+    if top_k == 300:
+        assert twins  # where there is room, twins are proposed
 
 
 def test_a_grasp_turned_to_the_front_keeps_its_contacts_and_holds_where_from_above_the_hand_does_not_fit() -> None:
