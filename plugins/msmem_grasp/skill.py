@@ -321,12 +321,13 @@ class GraspConfig(BaseModel):
     turn_to: tuple[Literal["front", "sides"], ...] = ("front", "sides")
     """Each grasp is also proposed turned about its closing axis to approach from these directions:
     ``front`` straight into the shelf (+y), ``sides`` along the shelf either way (+x, -x), horizontal.
-    The twins are tested after every grasp as predicted, so they only fill the places (``max_per_object``,
-    ``top_k``) those leave: every grasp proposed without twins is proposed with them. The same contacts, width and evidence, reached another way; the collision, reach and exit
-    tests keep what fits. A grasp is turned towards a direction only if its turned approach comes within
-    45 deg of it (its closing axis at least 45 deg off it). Empty: the predicted approaches only. Chosen on
-    ``tune10`` (grasp-only and ``ours``, 40 steps): 41 of 43 grasps held against 32 of 41 without, two
-    episodes of 20 with a fall against four, 2-D semantic mIoU +0.020 and +0.015 per scene.
+    The same contacts, width and evidence, reached another way; the collision, reach and exit tests keep
+    what fits. A grasp is turned towards a direction only if its turned approach comes within 45 deg of it
+    (its closing axis at least 45 deg off it). The twins are tested after every grasp as predicted, so
+    they only fill the places (``max_per_object``, ``top_k``) those leave: every grasp proposed without
+    twins is proposed with them. Empty: the predicted approaches only. Chosen on ``tune10`` (grasp-only
+    and ``ours``, 40 steps): 41 of 43 grasps held against 32 of 41 without, two episodes of 20 with a
+    fall against four, 2-D semantic mIoU +0.020 and +0.015 per scene.
     docs/explanation/grasp.md, "Grasps turned about their closing axis"."""
     funnel: Literal["until-full", "every-candidate"] = "until-full"
     """How far the tests after ``free_at_grasp`` go. until-full: a candidate is planned only while its object
