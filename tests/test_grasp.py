@@ -170,8 +170,9 @@ class _ReferenceGraspSkill(GraspSkill):
         out: list[GraspAction] = []
         per_object: dict[int, int] = {}
         order = np.arange(len(c.grasps))
-        if c.twin is not None:  # the grasps as predicted, then the turned twins
-            order = np.concatenate([order[~c.twin], order[c.twin]])
+        if c.twin is not None and cfg.twins != "interleaved":  # the turned twins after or before the others
+            first = c.twin if cfg.twins == "first" else ~c.twin
+            order = np.concatenate([order[first], order[~first]])
         for i in order:
             lab = int(c.label[i])
             if lab <= 0 or per_object.get(lab, 0) >= cfg.max_per_object:
@@ -248,8 +249,10 @@ def _seeded_belief(seed: int) -> EvidentialMap:
 def test_batched_collision_tests_equal_the_per_grasp_loop(seed: int) -> None:
     belief = _seeded_belief(seed)
     found = []
+    proposed: list[list[GraspAction]] = []
     every = {"top_k": 300, "max_per_object": 300, "turn_to": ()}  # every candidate: the twins only in the first
-    for params in ({}, every, *([{**every, "hand_m": PANDA_HAND}] if seed == 0 else [])):  # the hand: one seed
+    others = [{"twins": "first"}, {"twins": "last"}] if seed else [{**every, "hand_m": PANDA_HAND}]  # one seed each
+    for params in ({}, every, *others):
         cfg = GraspConfig(predictor="geometric", seed=seed, **params)  # type: ignore[arg-type]
         skill, reference = GraspSkill(cfg), _ReferenceGraspSkill(cfg)
         skill.track(ctx(belief))
@@ -259,6 +262,9 @@ def test_batched_collision_tests_equal_the_per_grasp_loop(seed: int) -> None:
         found.append(len(got))
         if params:
             assert len(got) > 4
+        if "twins" in params:
+            assert got != proposed[0]  # the order changes what is proposed
+        proposed.append(got)
     if seed == 0:
         assert found[2] < found[1]  # the 20 cm hand fits fewer places than the palm
 
@@ -836,14 +842,15 @@ def test_turned_approaches_are_orthogonal_to_the_closing_axis_and_within_45_deg_
 
 
 @pytest.mark.parametrize(("max_per_object", "top_k"), [(1, 40), (2, 40), (4, 40), (300, 300)])
-def test_turned_twins_only_fill_the_places_the_predicted_grasps_leave(max_per_object: int, top_k: int) -> None:
-    """Every grasp the skill proposes without twins is proposed with them, first and in the same order;
-    a twin is proposed only for an object that the predicted grasps leave short of ``max_per_object``."""
+def test_turned_twins_last_only_fill_the_places_the_predicted_grasps_leave(max_per_object: int, top_k: int) -> None:
+    """``twins: last``: every grasp the skill proposes without twins is proposed with them, first and in the
+    same order; a twin is proposed only for an object that the predicted grasps leave short of
+    ``max_per_object``."""
     belief = box_belief([TARGET, BYSTANDER])
     got = {}
     for turn_to in ((), ("front", "sides")):
         skill = GraspSkill(GraspConfig(predictor="geometric", max_per_object=max_per_object, top_k=top_k,
-                                       turn_to=turn_to))  # type: ignore[arg-type]
+                                       turn_to=turn_to, twins="last"))  # type: ignore[arg-type]
         got[turn_to] = skill.propose(ctx(belief))
     base, out = got[()], got[("front", "sides")]
     assert base

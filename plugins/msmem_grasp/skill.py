@@ -319,16 +319,19 @@ class GraspConfig(BaseModel):
     open front allows (step 3). An arm whose hand cannot come from above in the shelf needs a small
     one (docs/explanation/robots.md)."""
     turn_to: tuple[Literal["front", "sides"], ...] = ("front", "sides")
-    """Each grasp is also proposed turned about its closing axis to approach from these directions:
-    ``front`` straight into the shelf (+y), ``sides`` along the shelf either way (+x, -x), horizontal.
-    The same contacts, width and evidence, reached another way; the collision, reach and exit tests keep
-    what fits. A grasp is turned towards a direction only if its turned approach comes within 45 deg of it
-    (its closing axis at least 45 deg off it). The twins are tested after every grasp as predicted, so
-    they only fill the places (``max_per_object``, ``top_k``) those leave: every grasp proposed without
-    twins is proposed with them. Empty: the predicted approaches only. Chosen on ``tune10`` (grasp-only
-    and ``ours``, 40 steps): 41 of 43 grasps held against 32 of 41 without, two episodes of 20 with a
-    fall against four, 2-D semantic mIoU +0.020 and +0.015 per scene.
+    """Each grasp is also proposed turned about its closing axis to approach from these directions (right
+    after it): ``front`` straight into the shelf (+y), ``sides`` along the shelf either way (+x, -x),
+    horizontal. The same contacts, width and evidence, reached another way; the collision, reach and exit
+    tests keep what fits. A grasp is turned towards a direction only if its turned approach comes within
+    45 deg of it (its closing axis at least 45 deg off it). Empty: the predicted approaches only. Chosen on
+    ``tune10`` (grasp-only and ``ours``, 40 steps): 41 of 43 grasps held against 32 of 41 without, two
+    episodes of 20 with a fall against four, 2-D semantic mIoU +0.020 and +0.015 per scene.
     docs/explanation/grasp.md, "Grasps turned about their closing axis"."""
+    twins: Literal["interleaved", "last", "first"] = "interleaved"
+    """Where the turned twins stand in the order the tests after ``free_at_grasp`` take (and so which fill
+    ``max_per_object`` and ``top_k``): ``interleaved``, each right after its grasp, best E[q] first;
+    ``last``, after every grasp as predicted, so that every grasp proposed without twins is proposed with
+    them; ``first``, before every grasp as predicted. docs/explanation/grasp.md."""
     funnel: Literal["until-full", "every-candidate"] = "until-full"
     """How far the tests after ``free_at_grasp`` go. until-full: a candidate is planned only while its object
     has fewer than ``max_per_object`` proposals and fewer than ``top_k`` are found, so ``collision_free``,
@@ -582,10 +585,11 @@ class GraspSkill(Skill):
         per_object: dict[int, int] = {}
         every = cfg.funnel == "every-candidate"
         free = np.flatnonzero(on_object & ~at_grasp)
-        if c.twin is not None:  # the grasps as predicted first: turned twins only fill the places they leave
-            free = np.concatenate([free[~c.twin[free]], free[c.twin[free]]])
+        if c.twin is not None and cfg.twins != "interleaved":  # the twins after or before the grasps as predicted
+            twin = c.twin[free] if cfg.twins == "first" else ~c.twin[free]
+            free = np.concatenate([free[twin], free[~twin]])
         approaches = self._plan_approaches(grid, c, local, free)  # the ways in, for all at once
-        for i in free:  # candidates in order of E[q], the predicted before the twins
+        for i in free:  # candidates in order of E[q] (``twins``)
             lab = int(c.label[i])
             full = per_object.get(lab, 0) >= cfg.max_per_object or len(out) >= cfg.top_k
             if full and not every:
