@@ -4,6 +4,13 @@ A refactor that is meant to preserve behaviour must leave these unchanged; see
 ``tests/golden/episodes.py`` for how they were recorded and how to regenerate them on purpose.
 Every metric in a golden record must still be reported, with the same value; metrics added later
 (e.g. the paper's ``occupancy_miou``) are additive and not compared.
+
+Actions and outcomes must be identical; metrics agree to ``METRIC_ATOL``. Episodes are exactly
+reproducible on one machine, not across CPUs: numpy picks its SIMD kernels by CPU, and the last bits
+they differ in move the physics. On a machine whose numpy found AVX2 but not AVX-512, the episodes
+recorded on another machine of the same kind kept every action and outcome, and their metrics moved by
+up to 8.3e-4 (a push's Position Change 0.43392 against 0.43475). With numpy's AVX2 kernels switched off
+(``NPY_DISABLE_CPU_FEATURES=X86_V3``) the push-only episode takes another action at step 3.
 """
 
 from __future__ import annotations
@@ -13,6 +20,10 @@ import json
 import pytest
 
 from tests.golden.episodes import DEFAULTS_EPISODE, GOLDEN_DIR, NAMES, record
+
+METRIC_ATOL = 2e-3
+"""How far a golden episode's metrics may move between CPUs (module docstring); a change of behaviour
+moves them further, or changes an action."""
 
 
 # the library defaults' episode guards every fast run; the presets' episodes (on the analytic models) run in
@@ -29,6 +40,6 @@ def test_golden_episode(method: str) -> None:
         missing = set(w["metrics"]) - set(g["metrics"])
         assert not missing, f"step {w['step']}: metrics {sorted(missing)} are gone"
         recorded = {k: g["metrics"][k] for k in w["metrics"]}  # metrics added since recording are not compared
-        assert recorded == pytest.approx(w["metrics"], abs=2e-5), f"step {w['step']}: metrics differ"
-        assert g["objective"] == pytest.approx(w["objective"], rel=1e-4, abs=1e-4), f"step {w['step']}"
+        assert recorded == pytest.approx(w["metrics"], abs=METRIC_ATOL), f"step {w['step']}: metrics differ"
+        assert g["objective"] == pytest.approx(w["objective"], rel=1e-3, abs=1e-3), f"step {w['step']}"
     assert got["actions"] == want["actions"]
