@@ -161,6 +161,7 @@ def test_a_long_rollout_keeps_evidence_at_least_one_and_bounded(shard):
 
 
 # ------------------------------------------------------------------------------ training
+@pytest.mark.slow  # training; the fast suite keeps test_train_map_writes_loadable_weights_with_a_sidecar (one batch)
 def test_rollout_training_lowers_the_loss_on_its_scene(shard, tmp_path):
     """Real training on one recorded scene: its rollout loss falls."""
     torch.manual_seed(0)

@@ -13,9 +13,9 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import open3d as o3d
 import trimesh
 from numpy.typing import NDArray
 
@@ -24,6 +24,17 @@ from msmem_core.world.grid import GridSpec
 from msmem_core.world.meshes import object_mesh, shelf_meshes
 from msmem_core.world.scene import ObjectSpec, ShelfSpec
 from msmem_core.world.voxelize import Poses, current_pose, voxelize
+
+if TYPE_CHECKING:
+    import open3d as o3d
+
+
+def _tensor(a: NDArray[Any]) -> o3d.core.Tensor:
+    """``a`` as an open3d tensor. open3d is imported on first use: importing it takes about 0.7 s, which
+    every command that never casts a ray (``--help``, a refused input) would otherwise pay."""
+    import open3d
+
+    return open3d.core.Tensor.from_numpy(np.ascontiguousarray(a))
 
 HIT_NUDGE_VOXELS = 1e-4
 """Hits are pushed this fraction of a voxel along the ray before picking their voxel (see module doc)."""
@@ -60,12 +71,11 @@ def _rays_at(
 
 
 def _raycasting_scene(meshes: Sequence[trimesh.Trimesh]) -> tuple[o3d.t.geometry.RaycastingScene, list[int]]:
-    scene = o3d.t.geometry.RaycastingScene()
+    import open3d
+
+    scene = open3d.t.geometry.RaycastingScene()
     ids = [
-        scene.add_triangles(
-            o3d.core.Tensor.from_numpy(np.ascontiguousarray(m.vertices, dtype=np.float32)),
-            o3d.core.Tensor.from_numpy(np.ascontiguousarray(m.faces, dtype=np.uint32)),
-        )
+        scene.add_triangles(_tensor(m.vertices.astype(np.float32)), _tensor(m.faces.astype(np.uint32)))
         for m in meshes
     ]
     return scene, ids
@@ -75,7 +85,7 @@ def _cast(
     scene: o3d.t.geometry.RaycastingScene, rays: NDArray[np.float32], max_t: float
 ) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
     """t_hit and geometry id (-1 for no hit within max_t) of rays (N, 6)."""
-    ans = scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)))
+    ans = scene.cast_rays(_tensor(rays))
     t = ans["t_hit"].numpy()
     gid = ans["geometry_ids"].numpy().astype(np.int64)
     gid[~(t <= max_t)] = -1  # inf (miss) and beyond far
@@ -239,7 +249,7 @@ class InsertionProbe:
         t_obj, g_obj = _cast(alone, rays, self._camera.far_m - self._camera.near_m)
         hit = rays[g_obj >= 0]
         hit[:, 3:] *= t_obj[g_obj >= 0, None]  # the object's surface point is now at t = 1
-        occluded = self._scene.test_occlusions(o3d.core.Tensor.from_numpy(hit), tnear=0.0, tfar=1.0).numpy()
+        occluded = self._scene.test_occlusions(_tensor(hit), tnear=0.0, tfar=1.0).numpy()
         return int(np.count_nonzero(~occluded))
 
 
@@ -312,7 +322,7 @@ def count_views_seeing(
             continue
         vi, pi = np.nonzero(in_view)
         rays = np.concatenate([pts[pi], -rel[vi, pi]], axis=1).astype(np.float32)
-        occluded = scene.test_occlusions(o3d.core.Tensor.from_numpy(rays), tnear=1e-6, tfar=1.0).numpy()
+        occluded = scene.test_occlusions(_tensor(rays), tnear=1e-6, tfar=1.0).numpy()
         counts += np.bincount(pi[~occluded], minlength=len(pts))
     return counts
 
