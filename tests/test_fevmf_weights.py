@@ -44,6 +44,7 @@ def heldout(tmp_path_factory: pytest.TempPathFactory):
     return out
 
 
+@pytest.mark.slow  # held-out scenes simulated and labelled (about 14 s)
 def test_shipped_weights_beat_the_geometric_heuristic_on_held_out_scenes(heldout):
     m = evaluate(heldout, threads=1)
     model, heur = m["fe_vmf"], m["heuristic"]
@@ -93,6 +94,7 @@ def test_an_empty_cloud_gives_an_empty_prediction():
     assert pred.affordance.shape == (0,)
 
 
+@pytest.mark.slow  # held-out scenes simulated and labelled (about 14 s)
 def test_held_out_clouds_get_confident_grasp_points(heldout):
     from msmem_grasp.learn.datagen import load_shard, shard_path
 

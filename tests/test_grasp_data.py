@@ -29,6 +29,7 @@ def dataset(tmp_path_factory: pytest.TempPathFactory):
     return out, summary
 
 
+@pytest.mark.slow  # data generation (about 16 s for the module's data set)
 def test_each_scene_becomes_one_consistent_shard(dataset):
     out, summary = dataset
     assert sorted(g["seed"] for g in summary.generated) == SEEDS
@@ -54,6 +55,7 @@ def test_each_scene_becomes_one_consistent_shard(dataset):
         assert len(np.unique(s.positive_index)) == p
 
 
+@pytest.mark.slow  # data generation (about 16 s for the module's data set)
 def test_a_rerun_skips_finished_shards(dataset):
     out, _ = dataset
     before = {s: shard_path(out, s).stat().st_mtime_ns for s in SEEDS}
@@ -65,6 +67,7 @@ def test_a_rerun_skips_finished_shards(dataset):
     assert not list(out.glob(".*.tmp"))
 
 
+@pytest.mark.slow  # data generation (about 16 s for the module's data set)
 def test_a_corrupt_shard_is_named_then_regenerated(dataset, tmp_path):
     out, _ = dataset
     broken = tmp_path / "data"
@@ -98,6 +101,7 @@ def test_run_tasks_keeps_order_and_reports_failures_without_stopping():
     assert "ValueError: boom" in res[1].error
 
 
+@pytest.mark.slow  # data generation (about 16 s for the module's data set)
 def test_one_training_epoch_runs_and_lowers_the_loss(dataset, tmp_path):
     out, _ = dataset
     torch.manual_seed(0)

@@ -123,6 +123,7 @@ def test_the_mesh_tuned_weights_load_as_plain_tensors_stay_small_and_record_thei
     assert meta["seeds"][-1] < 690000  # the held-out shards are seeds 690000 and up
 
 
+@pytest.mark.slow  # held-out mesh scenes simulated (about 6 s)
 def test_the_mesh_tuned_weights_beat_the_analytic_update_and_the_untuned_weights_on_heldout_mesh_scenes(mesh_heldout):
     tuned, analytic, untuned = mesh_heldout["cnabu-map"], mesh_heldout["analytic-observation"], mesh_heldout["untuned"]
     assert tuned["occ_nll"] + tuned["sem_nll"] < analytic["occ_nll"] + analytic["sem_nll"], (tuned, analytic)
