@@ -169,11 +169,7 @@ class _ReferenceGraspSkill(GraspSkill):
         grid = belief.grid
         out: list[GraspAction] = []
         per_object: dict[int, int] = {}
-        order = np.arange(len(c.grasps))
-        if c.twin is not None and cfg.twins != "interleaved":  # the turned twins after or before the others
-            first = c.twin if cfg.twins == "first" else ~c.twin
-            order = np.concatenate([order[first], order[~first]])
-        for i in order:
+        for i in self.test_order(c, np.arange(len(c.grasps))):  # the order is the skill's (twins)
             lab = int(c.label[i])
             if lab <= 0 or per_object.get(lab, 0) >= cfg.max_per_object:
                 continue

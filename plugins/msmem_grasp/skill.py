@@ -362,8 +362,8 @@ class Candidates:
     """Expected occupancy."""
     top: float
     """Highest z the lifted object and gripper may reach."""
-    twin: NDArray[np.bool_] | None = None
-    """Which candidates are turned twins (``turn_to``); None: none is."""
+    twin: NDArray[np.bool_]
+    """Which candidates are turned twins (``turn_to``)."""
 
 
 class GraspSkill(Skill):
@@ -584,10 +584,7 @@ class GraspSkill(Skill):
         out: list[GraspAction] = []
         per_object: dict[int, int] = {}
         every = cfg.funnel == "every-candidate"
-        free = np.flatnonzero(on_object & ~at_grasp)
-        if c.twin is not None and cfg.twins != "interleaved":  # the twins after or before the grasps as predicted
-            twin = c.twin[free] if cfg.twins == "first" else ~c.twin[free]
-            free = np.concatenate([free[twin], free[~twin]])
+        free = self.test_order(c, np.flatnonzero(on_object & ~at_grasp))
         approaches = self._plan_approaches(grid, c, local, free)  # the ways in, for all at once
         for i in free:  # candidates in order of E[q] (``twins``)
             lab = int(c.label[i])
@@ -610,6 +607,14 @@ class GraspSkill(Skill):
             out.append(self.action(c, i, approach, lift_m, shelf))
             per_object[lab] = per_object.get(lab, 0) + 1
         return out
+
+    def test_order(self, c: Candidates, idx: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Candidates ``idx`` of ``c`` (in E[q] order) in the order the tests take them (``twins``): as
+        they are, or the turned twins after or before the grasps as predicted."""
+        if self.config.twins == "interleaved":
+            return idx
+        ahead = c.twin[idx] if self.config.twins == "first" else ~c.twin[idx]
+        return np.concatenate([idx[ahead], idx[~ahead]])
 
     def _plan_approaches(self, grid: GridSpec, c: Candidates, local: F64, idx: NDArray[np.int64]) -> dict[int, F64]:
         """The ways in of candidates ``idx`` of ``c`` (``local``: their open grippers' points, rotated):
