@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from msmem_core.errors import UserError
@@ -29,7 +30,7 @@ from msmem_core.run.bench import (
     table_markdown,
 )
 from msmem_core.run.executors import run_tasks
-from msmem_core.run.metrics import PAPER_COUNT_KEYS, PAPER_METRIC_KEYS, paper_metrics_from_counts
+from msmem_core.run.metrics import PAPER_COUNT_KEYS, PAPER_METRIC_KEYS, paper_metrics_from_counts, sum_paper_counts
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {"steps": 2, "camera": {"width_px": 160, "height_px": 120}, "ig": {"ray_stride_px": 8}}
@@ -165,6 +166,40 @@ def test_cumulative_difference_is_paired_and_summed_before_dividing():
     again = cumulative_difference(a, b, "occupancy_miou")
     assert again == (d, lo, hi)  # seeded
 
+
+
+def test_the_bootstrap_draws_equal_the_one_draw_at_a_time_reference():
+    """The vectorised bootstrap against one ``paper_metrics_from_counts`` per draw, on counts with
+    classes absent from a draw's scenes (union 0) and scenes without calibration samples."""
+    rng = np.random.default_rng(3)
+
+    def scene(empty: bool) -> dict[str, list[float]]:
+        c = {k: rng.integers(0, 50, 6 if "ece" in k else 4).astype(float).tolist() for k in PAPER_COUNT_KEYS}
+        for k in ("occupancy_union", "semantic_2d_union"):
+            c[k] = [max(u, i) for u, i in zip(c[k], c[k.replace("union", "intersection")], strict=True)]
+        c["semantic_2d_intersection"][3] = c["semantic_2d_union"][3] = 0.0  # never seen in this scene
+        if empty:
+            c["semantic_ece_count"] = [0.0] * 6
+            c["semantic_ece_confidence_sum"] = c["semantic_ece_correct_sum"] = [0.0] * 6
+        return c
+
+    a = {i: scene(i == 0) for i in range(6)}
+    b = {i: scene(i in (0, 1)) for i in range(6)}
+    scenes = sorted(a)
+    for key in PAPER_METRIC_KEYS:
+        draw = np.random.default_rng(5)
+        boot = []
+        for _ in range(300):
+            times = np.bincount(draw.integers(0, 6, 6), minlength=6)
+            pa, pb = ({k: np.sum([t * np.asarray(side[s][k]) for t, s in zip(times, scenes, strict=True)], axis=0)
+                       for k in PAPER_COUNT_KEYS} for side in (a, b))
+            boot.append(paper_metrics_from_counts(pa)[key] - paper_metrics_from_counts(pb)[key])
+        whole = (paper_metrics_from_counts(sum_paper_counts(a.values()))[key]
+                 - paper_metrics_from_counts(sum_paper_counts(b.values()))[key])
+        lo, hi = np.nanpercentile(boot, [2.5, 97.5])
+        assert cumulative_difference(a, b, key, resamples=300, seed=5) == pytest.approx((whole, lo, hi), abs=1e-12)
+    uncalibrated = {i: scene(True) for i in range(6)}  # no semantic calibration sample anywhere: no ECE
+    assert all(math.isnan(v) for v in cumulative_difference(a, uncalibrated, "semantic_ece", resamples=50))
 
 def test_paper_metrics_per_scene_and_suite_cumulative():
     a0 = _counts(([99, 1], [99, 1]), ([5, 2, 0], [5, 2, 0]))  # perfect: mIoUs 1

@@ -415,18 +415,46 @@ def cumulative_difference(a: dict[int, dict[str, Any]], b: dict[int, dict[str, A
     if not scenes:
         return float("nan"), float("nan"), float("nan")
 
-    stacked = [{k: np.stack([np.asarray(side[s][k], dtype=np.float64) for s in scenes]) for k in PAPER_COUNT_KEYS}
+    needed = _METRIC_COUNTS[key]
+    stacked = [{k: np.stack([np.asarray(side[s][k], dtype=np.float64) for s in scenes]) for k in needed}
                for side in (a, b)]  # [scene, ...] per count, so a draw sums by its scene multiplicities
 
-    def diff(times: NDArray[np.float64]) -> float:
-        sa, sb = ({k: np.tensordot(times, v, axes=1) for k, v in side.items()} for side in stacked)
-        return paper_metrics_from_counts(sa)[key] - paper_metrics_from_counts(sb)[key]
+    def diff(times: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The difference for every row of ``times`` (draws x scenes: how often each scene is drawn)."""
+        sa, sb = ({k: times @ v.reshape(len(scenes), -1) for k, v in side.items()} for side in stacked)
+        return _metric_rows(key, sa) - _metric_rows(key, sb)
 
     rng = np.random.default_rng(seed)
     n = len(scenes)
-    boot = [diff(np.bincount(rng.integers(0, n, n), minlength=n).astype(np.float64)) for _ in range(resamples)]
-    lo, hi = np.nanpercentile(boot, [2.5, 97.5])
-    return diff(np.ones(n)), float(lo), float(hi)
+    draws = rng.integers(0, n, (resamples, n))  # the same stream as one draw of n at a time
+    times = np.zeros((resamples, n))
+    np.add.at(times, (np.arange(resamples)[:, None], draws), 1.0)
+    boot = diff(times)
+    lo, hi = np.nanpercentile(boot, [2.5, 97.5]) if not np.isnan(boot).all() else (np.nan, np.nan)
+    return float(diff(np.ones((1, n)))[0]), float(lo), float(hi)
+
+
+_METRIC_COUNTS = {
+    "occupancy_miou": ("occupancy_intersection", "occupancy_union"),
+    "semantic_miou_2d": ("semantic_2d_intersection", "semantic_2d_union"),
+    "occupancy_ece": ("occupancy_ece_count", "occupancy_ece_confidence_sum", "occupancy_ece_correct_sum"),
+    "semantic_ece": ("semantic_ece_count", "semantic_ece_confidence_sum", "semantic_ece_correct_sum"),
+}
+"""The counts each paper metric is computed from (``paper_metrics_from_counts``)."""
+
+
+def _metric_rows(key: str, counts: dict[str, NDArray[np.float64]]) -> NDArray[np.float64]:
+    """``paper_metrics_from_counts(...)[key]`` for every row of ``counts`` (rows x classes or bins)."""
+    if key.endswith("_ece"):
+        count, conf, correct = (counts[k] for k in _METRIC_COUNTS[key])
+        total = count.sum(axis=1)
+        gap = np.abs(correct - conf).sum(axis=1)
+        return np.divide(gap, total, out=np.full(len(total), np.nan), where=total > 0)
+    inter, union = (counts[k] for k in _METRIC_COUNTS[key])
+    seen = union > 0
+    ratio = np.divide(inter, union, out=np.zeros_like(inter), where=seen)
+    k = seen.sum(axis=1)
+    return np.divide(ratio.sum(axis=1), k, out=np.full(len(k), np.nan), where=k > 0)
 
 
 def read_paper_counts(folder: Path, method: str | None = None) -> dict[int, dict[str, Any]]:
