@@ -19,7 +19,9 @@ import json
 
 import pytest
 
-from tests.golden.episodes import DEFAULTS_EPISODE, GOLDEN_DIR, NAMES, record
+from msmem_core.world.scene import SceneSpec
+from msmem_core.world.scenegen import generate_scene
+from tests.golden.episodes import DEFAULTS_EPISODE, GOLDEN_DIR, NAMES, SCENE_FILE, SCENE_SEED, record
 
 METRIC_ATOL = 2e-3
 """How far a golden episode's metrics may move between CPUs (module docstring); a change of behaviour
@@ -43,3 +45,9 @@ def test_golden_episode(method: str) -> None:
         assert recorded == pytest.approx(w["metrics"], abs=METRIC_ATOL), f"step {w['step']}: metrics differ"
         assert g["objective"] == pytest.approx(w["objective"], rel=1e-3, abs=1e-3), f"step {w['step']}"
     assert got["actions"] == want["actions"]
+
+
+@pytest.mark.slow
+def test_the_golden_scene_is_the_generated_one() -> None:
+    """The episodes read their scene from a file; it must be what the generator makes of the seed."""
+    assert SceneSpec.from_json(SCENE_FILE) == generate_scene(SCENE_SEED)

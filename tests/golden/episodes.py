@@ -19,13 +19,17 @@ import numpy as np
 from msmem_core.config import METHODS, deep_merge, load_config, read_config_file
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.run.runner import build_episode, run_episode
+from msmem_core.world.scenegen import generate_scene
 
 ROOT = Path(__file__).resolve().parents[2]
 GOLDEN_DIR = ROOT / "tests" / "data" / "golden"
 STEPS = 5
 SCENE_SEED = 3
+SCENE_FILE = GOLDEN_DIR / "scene.json"
+"""``generate_scene(SCENE_SEED)`` as written by ``main`` (generating it takes 15-20 s; the slow
+``test_the_golden_scene_is_the_generated_one`` checks that it still is)."""
 # manipulation may start at step 1, so five steps exercise every skill of a preset
-OVERRIDES: dict[str, Any] = {"steps": STEPS, "scene": {"seed": SCENE_SEED, "file": None},
+OVERRIDES: dict[str, Any] = {"steps": STEPS, "scene": {"file": str(SCENE_FILE)},
                              "msas": {"manipulation_window": [1, 38]}, "report_steps": []}
 PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
     # with the default blocked_exit (skip) no grasp of this scene leaves without meeting a believed object
@@ -77,6 +81,7 @@ def record(name: str) -> dict[str, Any]:
 
 def main(argv: list[str]) -> None:
     GOLDEN_DIR.mkdir(parents=True, exist_ok=True)
+    generate_scene(SCENE_SEED).to_json(SCENE_FILE)
     for name in argv or NAMES:
         rec = record(name)
         (GOLDEN_DIR / f"{name}.json").write_text(json.dumps(rec, indent=1) + "\n")
