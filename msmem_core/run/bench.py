@@ -30,7 +30,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
 
 from msmem_core.errors import IncompleteError, UserError
 from msmem_core.run.funnel import funnel_counts, funnel_markdown, sum_funnels
@@ -389,6 +388,7 @@ def _counts(v: Any) -> bool:
 
 def mean_ci(x: list[float]) -> tuple[float, float]:
     """Mean and the half-width of its 95% t-interval (nan-safe)."""
+    from scipy import stats
     a = np.asarray([v for v in x if not (isinstance(v, float) and math.isnan(v))], dtype=float)
     if len(a) == 0:
         return float("nan"), float("nan")

@@ -9,13 +9,16 @@ ground truth voxelises.
 from __future__ import annotations
 
 from functools import cache
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 from numpy.typing import NDArray
 
 from msmem_core.world.geometry import pose_matrix
 from msmem_core.world.scene import ObjectClass, ObjectSpec, Part, ShelfSpec, object_class, parts_centroid
+
+if TYPE_CHECKING:
+    import trimesh  # imported on first use: it takes a third of a second (the CLI starts without it)
 
 CYLINDER_SECTIONS = 48
 
@@ -27,6 +30,7 @@ def part_mesh_own_frame(part: Part) -> trimesh.Trimesh:
 
 def part_mesh_local(part: Part) -> trimesh.Trimesh:
     """Watertight mesh of one part in the object frame."""
+    import trimesh
     transform = pose_matrix(part.position_m, part.quat_xyzw)
     if part.kind == "box":
         return trimesh.creation.box(extents=part.size_m, transform=transform)
@@ -44,6 +48,7 @@ def _class_part_meshes(cls: ObjectClass) -> tuple[trimesh.Trimesh, ...]:
 
 @cache
 def _class_mesh(cls: ObjectClass) -> trimesh.Trimesh:
+    import trimesh
     mesh = trimesh.util.concatenate(list(_class_part_meshes(cls)))
     assert isinstance(mesh, trimesh.Trimesh)
     return mesh
@@ -117,6 +122,7 @@ def object_mesh(obj: ObjectSpec, pose: NDArray[np.float64] | None = None) -> tri
 
 def shelf_meshes(shelf: ShelfSpec) -> list[trimesh.Trimesh]:
     """The shelf's boards (bottom, top, left, right, back) as boxes in the world frame."""
+    import trimesh
     out = []
     for centre, half in shelf.boards():
         t = np.eye(4)

@@ -27,8 +27,6 @@ from functools import cache, lru_cache
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
-from scipy.signal import fftconvolve
-from scipy.spatial import ConvexHull
 
 from msmem_core.errors import UserError
 from msmem_core.util.validation import FROZEN_MODEL_CONFIG, Bool, Int
@@ -134,6 +132,7 @@ def _part_outline(part: Part) -> tuple[NDArray[np.float64], NDArray[np.float64]]
 
     Half-planes are rows (n_x, n_y, c) with n . p + c <= 0 inside (scipy's ``ConvexHull.equations``).
     """
+    from scipy.spatial import ConvexHull
     xy = np.asarray(part_mesh_local(part).vertices)[:, :2]
     return xy, ConvexHull(xy).equations
 
@@ -218,6 +217,7 @@ class _Floor:
 
     def feasible(self, fp: _Footprint) -> NDArray[np.bool_]:
         """Padded cells where the object's origin may go: no overlap (with gap), clearance kept."""
+        from scipy.signal import fftconvolve
         hit_obj = fftconvolve(self.occupied.astype(np.float32), fp.grown[::-1, ::-1].astype(np.float32), mode="same")
         hit_wall = fftconvolve(self.blocked.astype(np.float32), fp.foot[::-1, ::-1].astype(np.float32), mode="same")
         ok: NDArray[np.bool_] = (hit_obj < 0.5) & (hit_wall < 0.5) & ~self.blocked
@@ -461,6 +461,7 @@ class _Placer:
         ``HIDE_CANDIDATES`` of the darkest and counts exactly how many pixels of all views would
         see the object at each.
         """
+        from scipy.signal import fftconvolve
         best: tuple[float, float, _Footprint, NDArray[np.float64]] | None = None
         seen = self.shadows.views_seeing(float(self.heights[c]), self.objects)
         for _ in range(HIDE_YAW_TRIES):

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import trimesh
 from numpy.typing import NDArray
 
 from msmem_core.world.camera import CameraConfig
@@ -27,6 +26,7 @@ from msmem_core.world.voxelize import Poses, current_pose, voxelize
 
 if TYPE_CHECKING:
     import open3d as o3d
+    import trimesh
 
 
 def _tensor(a: NDArray[Any]) -> o3d.core.Tensor:

@@ -21,10 +21,10 @@ import json
 import os
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import fcl
 import numpy as np
-import trimesh
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -34,6 +34,9 @@ from msmem_core.world.gripper import GripperSpec
 from msmem_core.world.meshes import class_mesh
 from msmem_core.world.scene import ObjectClass, Part, SceneSpec, object_class
 from msmem_grasp.fevmf import executable_grasp
+
+if TYPE_CHECKING:
+    import trimesh
 
 CACHE_VERSION = 1
 """Bump when the generator changes so stale cache files are not reused."""
@@ -132,6 +135,7 @@ class Solids:
 
     @classmethod
     def from_parts(cls, parts: tuple[Part, ...] | list[Part], pose: F64 | None = None) -> Solids:
+        import trimesh
         pose = np.eye(4) if pose is None else pose
         rots, cens, halves, cyl, hulls = [], [], [], [], []
         for p in parts:
@@ -307,6 +311,7 @@ def _first_exit(
 
 def sample_antipodal(cls: ObjectClass, config: AntipodalConfig, gripper: GripperSpec) -> GraspSet:
     """Antipodal, collision-free grasps of one class in its object frame (no cache)."""
+    import trimesh
     rng = np.random.default_rng([config.seed, cls.class_id])
     mesh = class_mesh(cls)
     solids = Solids.from_parts(cls.parts)

@@ -35,7 +35,6 @@ import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
-from scipy import ndimage
 
 from msmem_core.map import raycast
 from msmem_core.map.belief import EvidentialMap
@@ -110,6 +109,7 @@ def virtual_front_views(viewpoints: ViewpointConfig | None = None) -> NDArray[np
 def _trilinear(field: NDArray[np.floating], grid: GridSpec, points: NDArray[np.float64]) -> NDArray[np.float64]:
     """Trilinear interpolation of a voxel field [X, Y, Z] (values at voxel centres) at world points
     [..., 3]; outside the outermost centres the border value is held."""
+    from scipy import ndimage
     coords = (points - grid.origin) / grid.voxel_m - 0.5
     flat = coords.reshape(-1, 3).T
     out = ndimage.map_coordinates(np.asarray(field, dtype=np.float64), flat, order=1, mode="nearest")
@@ -118,6 +118,7 @@ def _trilinear(field: NDArray[np.floating], grid: GridSpec, points: NDArray[np.f
 
 def occupancy_normals(p: NDArray[np.floating], sigma_voxels: float) -> NDArray[np.float64]:
     """Negative Gaussian-derivative gradient of p, [3, X, Y, Z] (per voxel, unnormalised, in 1/voxel)."""
+    from scipy import ndimage
     p64 = np.asarray(p, dtype=np.float64)
     grads = [
         -ndimage.gaussian_filter(p64, sigma_voxels, order=tuple(int(a == b) for b in range(3)), mode="nearest")

@@ -37,8 +37,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
-from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from msmem_core.world.geometry import F64
 
@@ -211,6 +209,7 @@ class GraspBuffer:
     # ---------------------------------------------------------------------------------- updating
     def _match(self, new: GraspHypotheses) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
         """Per new grasp: index of the buffered grasp it joins (-1: none) and whether it is flipped."""
+        from scipy.spatial import cKDTree
         cfg = self.config
         n = len(new)
         target = np.full(n, -1, np.int64)
@@ -296,6 +295,7 @@ class GraspBuffer:
         """[N]: the contact's voxel neighbourhood (radius ``surface_radius_voxels``) holds a voxel with
         expected occupancy above ``surface_threshold`` (believed occupied); contacts outside the grid
         are not on it."""
+        from scipy import ndimage
         if not len(self):
             return np.zeros(0, dtype=bool)
         cfg = self.config

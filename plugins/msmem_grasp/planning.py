@@ -21,7 +21,6 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.map.ig import shelf_wall_mask
@@ -254,6 +253,7 @@ class Objects:
     @classmethod
     def of(cls, belief: EvidentialMap, interior: tuple[float, ...], occupied_threshold: float = 0.5) -> Objects:
         """The components of ``belief`` inside ``interior`` = (x_lo, y_lo, z_lo, x_hi, y_hi, z_hi)."""
+        from scipy import ndimage
         grid = belief.grid
         c = grid.centers()
         inside = np.all((c > np.asarray(interior[:3])) & (c < np.asarray(interior[3:])), axis=-1)
@@ -309,6 +309,7 @@ class Objects:
         of ``vox``'s footprint (sorted flat indices): the whole object a grasp of ``vox`` carries out
         (the region the fingers close on is clipped to the opening; the object goes on above it, and
         believed objects are up to about 2 cm fatter than the width a grasp measures)."""
+        from scipy import ndimage
         vox = np.asarray(vox, dtype=np.int64)
         if not len(vox) or label <= 0:
             return np.unique(vox)
@@ -327,6 +328,7 @@ def under_top(grid: GridSpec, body: I64) -> NDArray[np.bool_]:
     """Flat mask of the voxels below ``body``'s top in each of its columns, and at any height in the
     columns its footprint surrounds. Objects stand on the shelf floor, so nothing else stands there:
     on the default belief, believed-occupied voxels there are the object's own, of another class."""
+    from scipy import ndimage
     nx, ny, nz = grid.shape
     cols = np.asarray(body, dtype=np.int64) // nz
     foot = np.zeros(nx * ny, dtype=bool)

@@ -47,7 +47,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
-from scipy import ndimage
 
 from msmem_core.interfaces import Action, EffectModel, Prediction, Workspace
 from msmem_core.map.belief import BeliefDelta, EvidentialMap
@@ -93,6 +92,7 @@ class AnalyticPushEffect(EffectModel):
         self.config = config or PushEffectConfig()
 
     def _scene(self, belief: EvidentialMap, interior: tuple[float, ...]) -> _Scene:
+        from scipy import ndimage
         grid = belief.grid
         c = grid.centers()
         lo, hi = np.asarray(interior[:3]), np.asarray(interior[3:])

@@ -60,7 +60,6 @@ from pydantic import (
     field_validator,
     model_validator,
 )
-from scipy import ndimage
 
 from msmem_core.interfaces import Action, Category, DecisionContext, Outcome, Simulator, Skill, Workspace
 from msmem_core.map.ig import shelf_wall_mask
@@ -324,6 +323,7 @@ class _Target:
     @functools.cached_property
     def own(self) -> NDArray[np.bool_]:
         """The footprint and its 8 neighbours: its believed contour, or an object touching it."""
+        from scipy import ndimage
         return ndimage.binary_dilation(self.foot, structure=np.ones((3, 3), dtype=bool))
 
 
@@ -478,6 +478,7 @@ class PushSkill(Skill):
     def _trace(self, seeds: NDArray[np.float64], conf: NDArray[np.bool_], conf_bev: NDArray[np.bool_],
                cls: NDArray[np.int64], grid: Any, shelf: ShelfSpec) -> list[_Target]:
         """The first confident object on the lines from the shelf front to each seed (deduplicated)."""
+        from scipy import ndimage
         cfg = self.config
         s = grid.voxel_m
         o = grid.origin
@@ -568,6 +569,7 @@ class PushSkill(Skill):
         of thin, tall objects a chain must not reach: with ``max_height_ratio`` those whose believed
         height is above that multiple of the footprint's narrowest width, and those ``standing`` judges
         thin by their class's shape (``class_height_ratio``)."""
+        from scipy import ndimage
         labels = np.zeros(conf.shape[:2], dtype=np.int32)
         fragile: set[int] = set()
         heights: dict[int, float] = {}

@@ -21,7 +21,6 @@ from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from msmem_core.errors import PluginError
 from msmem_core.interfaces import Reach, Robot, RobotModel, densify
@@ -82,6 +81,7 @@ class PybulletArm(Robot):
         raise NotImplementedError
 
     def __init__(self, config: ArmConfig) -> None:
+        from scipy.spatial.transform import Rotation
         self.config = config
         self._client: Any = None
         self._shelf: ShelfSpec | None = None
@@ -232,6 +232,7 @@ class PybulletArm(Robot):
     def tool_mount(self) -> NDArray[np.float64]:
         """The gripper frame at the fingertips: the flange's turned ``tool_yaw_deg`` about its z,
         ``fingertip_m`` out along z."""
+        from scipy.spatial.transform import Rotation
         m = np.eye(4)
         m[:3, :3] = Rotation.from_euler("z", self.tool_yaw_deg, degrees=True).as_matrix()
         m[2, 3] = self.fingertip_m
