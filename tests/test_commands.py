@@ -21,6 +21,9 @@ from tests.support.recording_sim import built
 
 ROOT = Path(__file__).resolve().parents[1]
 MSMEM = str(Path(sys.executable).with_name("msmem"))
+SCENE = str(ROOT / "msmem_core" / "suites" / "hard25" / "scene_01.json")
+"""A scene file for runs that test something else than the scene (loads in under a second, where
+generating a hard scene takes 2-20 s)."""
 PYTHONPATH = os.pathsep.join(str(ROOT / d) for d in ("", "plugins", "simulators"))
 
 

@@ -24,7 +24,7 @@ from msmem_core.run.executors import TaskFailure, run_tasks
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ObjectSpec, SceneSpec, ShelfSpec
 from tests.support.tasks import square_or_die
-from tests.test_commands import run_cli
+from tests.test_commands import SCENE, run_cli
 
 SMALL = "camera: {width_px: 160, height_px: 120}\nig: {ray_stride_px: 8}\n"
 ENOSPC = os.strerror(errno.ENOSPC)  # "No space left on device"
@@ -80,7 +80,7 @@ def test_a_full_disk_names_the_file_and_the_partial_run_folder(tmp_path, monkeyp
     config.write_text(SMALL)
     out = tmp_path / "run"
     full_disk_for(monkeypatch, name)
-    monkeypatch.setattr(sys, "argv", ["msmem", "run", "-m", "view-only", "-c", str(config), "--scene-seed", "1",
+    monkeypatch.setattr(sys, "argv", ["msmem", "run", "-m", "view-only", "-c", str(config), "--scene", SCENE,
                                       "--steps", "2", "-q", "--no-report", "--out", str(out)])
     with pytest.raises(SystemExit) as exit_:
         app.main()

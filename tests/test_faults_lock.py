@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from msmem_core.run.lock import LOCK_NAME, FolderLocked, folder_lock, run_lock_file
-from tests.test_commands import MSMEM, PYTHONPATH, ROOT, run_cli
+from tests.test_commands import MSMEM, PYTHONPATH, ROOT, SCENE, run_cli
 
 HOLD = str(ROOT / "tests" / "support" / "hold_lock.py")
 SMALL = "camera: {width_px: 160, height_px: 120}\nig: {ray_stride_px: 8}\n"
@@ -127,7 +127,7 @@ def test_two_runs_started_together_into_one_folder_one_runs_the_other_is_refused
     config = tmp_path / "small.yaml"
     config.write_text(SMALL)
     out = tmp_path / "run"
-    args = [MSMEM, "run", "-m", "view-only", "-c", str(config), "--scene-seed", "1", "--steps", "1", "-q",
+    args = [MSMEM, "run", "-m", "view-only", "-c", str(config), "--scene", SCENE, "--steps", "1", "-q",
             "--no-report", "--out", str(out)]
     env = {**os.environ, "PYTHONPATH": PYTHONPATH}
     procs = [subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -14,7 +14,7 @@ from msmem_view.skill import ViewAction
 from msmem_core.errors import ComponentFailure
 from msmem_core.plugins import ComponentRef, get_plugin_manager
 from msmem_core.plugins.manager import Component, failed_component
-from tests.test_commands import run_cli
+from tests.test_commands import SCENE, run_cli
 
 FAILING = {"MSMEM_PLUGINS": "failing=tests.support.failing_plugin"}
 SMALL = "camera: {width_px: 160, height_px: 120}\nig: {ray_stride_px: 8}\n"
@@ -27,7 +27,7 @@ def test_a_component_that_raises_mid_run_is_one_line_naming_it_and_the_partial_f
     config = tmp_path / "flaky.yaml"
     config.write_text(FLAKY)
     out = tmp_path / "run"
-    res = run_cli("run", "-m", "view-only", "-c", str(config), "--scene-seed", "1", "--steps", "3", "-q",
+    res = run_cli("run", "-m", "view-only", "-c", str(config), "--scene", SCENE, "--steps", "3", "-q",
                   "--no-report", "--out", str(out), env=FAILING)
     assert res.returncode == 3, res.stdout + res.stderr
     [partial] = tmp_path.glob("run.partial-*")

@@ -16,7 +16,7 @@ import pytest
 from typer.testing import CliRunner
 
 from msmem_core.cli import build_app
-from tests.test_commands import MSMEM, PYTHONPATH, ROOT, run_cli
+from tests.test_commands import MSMEM, PYTHONPATH, ROOT, SCENE, run_cli
 
 SMALL = "camera: {width_px: 160, height_px: 120}\nig: {ray_stride_px: 8}\n"
 
@@ -29,7 +29,7 @@ def small_config(tmp_path) -> Path:
 
 
 def _run(config: Path, out: Path, *args: str):
-    return CliRunner().invoke(build_app(), ["run", "-m", "view-only", "-c", str(config), "--scene-seed", "1",
+    return CliRunner().invoke(build_app(), ["run", "-m", "view-only", "-c", str(config), "--scene", SCENE,
                                             "-q", "--no-report", "--out", str(out), *args])
 
 
@@ -104,7 +104,7 @@ def _default_sigint() -> None:
 def test_ctrl_c_names_the_step_and_the_partial_run_and_exits_130(tmp_path, small_config):
     out = tmp_path / "run"
     env = {"PYTHONPATH": PYTHONPATH, "PATH": "/usr/bin:/bin"}
-    proc = subprocess.Popen([MSMEM, "run", "-m", "view-only", "-c", str(small_config), "--scene-seed", "1", "-q",
+    proc = subprocess.Popen([MSMEM, "run", "-m", "view-only", "-c", str(small_config), "--scene", SCENE, "-q",
                              "--steps", "40", "--out", str(out)], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
     deadline = time.time() + 300
