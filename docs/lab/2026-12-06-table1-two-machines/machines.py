@@ -11,8 +11,6 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
 from msmem_core.run.bench import cumulative
 
 KEYS = ("semantic_miou_2d", "occupancy_miou")
@@ -35,7 +33,8 @@ def same_episode(a: dict, b: dict) -> bool:
 def main(fa: str, fb: str) -> None:
     a, b = load(fa), load(fb)
     methods = sorted({m for m, _ in a} & {m for m, _ in b})
-    print("| method | scenes | same episode | largest move, 2-D semantic / occupancy | pooled 2-D semantic A / B | pooled occupancy A / B |")
+    print("| method | scenes | same episode | largest move, 2-D semantic / occupancy "
+          "| pooled 2-D semantic A / B | pooled occupancy A / B |")
     print("|---|---|---|---|---|---|")
     for m in methods:
         scenes = sorted({s for mm, s in a if mm == m} & {s for mm, s in b if mm == m})
