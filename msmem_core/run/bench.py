@@ -33,7 +33,13 @@ from numpy.typing import NDArray
 
 from msmem_core.errors import IncompleteError, UserError
 from msmem_core.run.funnel import funnel_counts, funnel_markdown, sum_funnels
-from msmem_core.run.metrics import PAPER_COUNT_KEYS, PAPER_METRIC_KEYS, paper_metrics_from_counts, sum_paper_counts
+from msmem_core.run.metrics import (
+    PAPER_COUNT_KEYS,
+    PAPER_METRIC_COUNTS,
+    PAPER_METRIC_KEYS,
+    paper_metrics_from_counts,
+    sum_paper_counts,
+)
 from msmem_core.util.jsonable import dumps, nan_from_null
 from msmem_core.world.scene import SceneSpec
 from msmem_core.world.viewpoints import read_poses_file
@@ -415,7 +421,7 @@ def cumulative_difference(a: dict[int, dict[str, Any]], b: dict[int, dict[str, A
     if not scenes:
         return float("nan"), float("nan"), float("nan")
 
-    needed = _METRIC_COUNTS[key]
+    needed = PAPER_METRIC_COUNTS[key]
     stacked = [{k: np.stack([np.asarray(side[s][k], dtype=np.float64) for s in scenes]) for k in needed}
                for side in (a, b)]  # [scene, ...] per count, so a draw sums by its scene multiplicities
 
@@ -434,23 +440,14 @@ def cumulative_difference(a: dict[int, dict[str, Any]], b: dict[int, dict[str, A
     return float(diff(np.ones((1, n)))[0]), float(lo), float(hi)
 
 
-_METRIC_COUNTS = {
-    "occupancy_miou": ("occupancy_intersection", "occupancy_union"),
-    "semantic_miou_2d": ("semantic_2d_intersection", "semantic_2d_union"),
-    "occupancy_ece": ("occupancy_ece_count", "occupancy_ece_confidence_sum", "occupancy_ece_correct_sum"),
-    "semantic_ece": ("semantic_ece_count", "semantic_ece_confidence_sum", "semantic_ece_correct_sum"),
-}
-"""The counts each paper metric is computed from (``paper_metrics_from_counts``)."""
-
-
 def _metric_rows(key: str, counts: dict[str, NDArray[np.float64]]) -> NDArray[np.float64]:
     """``paper_metrics_from_counts(...)[key]`` for every row of ``counts`` (rows x classes or bins)."""
     if key.endswith("_ece"):
-        count, conf, correct = (counts[k] for k in _METRIC_COUNTS[key])
+        count, conf, correct = (counts[k] for k in PAPER_METRIC_COUNTS[key])
         total = count.sum(axis=1)
         gap = np.abs(correct - conf).sum(axis=1)
         return np.divide(gap, total, out=np.full(len(total), np.nan), where=total > 0)
-    inter, union = (counts[k] for k in _METRIC_COUNTS[key])
+    inter, union = (counts[k] for k in PAPER_METRIC_COUNTS[key])
     seen = union > 0
     ratio = np.divide(inter, union, out=np.zeros_like(inter), where=seen)
     k = seen.sum(axis=1)

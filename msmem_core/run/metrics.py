@@ -128,6 +128,14 @@ PAPER_COUNT_KEYS = (
     "semantic_ece_count", "semantic_ece_confidence_sum", "semantic_ece_correct_sum",
 )
 """The additive counts behind :data:`PAPER_METRIC_KEYS` (see :func:`paper_counts`)."""
+PAPER_METRIC_COUNTS = {
+    "occupancy_miou": ("occupancy_intersection", "occupancy_union"),
+    "semantic_miou_2d": ("semantic_2d_intersection", "semantic_2d_union"),
+    "occupancy_ece": ("occupancy_ece_count", "occupancy_ece_confidence_sum", "occupancy_ece_correct_sum"),
+    "semantic_ece": ("semantic_ece_count", "semantic_ece_confidence_sum", "semantic_ece_correct_sum"),
+}
+"""The counts each of :data:`PAPER_METRIC_KEYS` is computed from (an mIoU: intersection, union; an ECE:
+count, confidence sum, correct sum)."""
 
 
 def class_iou_counts(
@@ -315,14 +323,8 @@ def sum_paper_counts(counts: Iterable[Mapping[str, ArrayLike]]) -> dict[str, lis
 def paper_metrics_from_counts(counts: Mapping[str, ArrayLike]) -> dict[str, float]:
     """``occupancy_miou``, ``semantic_miou_2d``, ``occupancy_ece`` and ``semantic_ece`` from
     :func:`paper_counts` of one scene (per-scene values) or their sum over scenes (suite-cumulative)."""
-    return {
-        "occupancy_miou": miou_from_counts(counts["occupancy_intersection"], counts["occupancy_union"]),
-        "semantic_miou_2d": miou_from_counts(counts["semantic_2d_intersection"], counts["semantic_2d_union"]),
-        "occupancy_ece": ece_from_bins(counts["occupancy_ece_count"], counts["occupancy_ece_confidence_sum"],
-                                       counts["occupancy_ece_correct_sum"]),
-        "semantic_ece": ece_from_bins(counts["semantic_ece_count"], counts["semantic_ece_confidence_sum"],
-                                      counts["semantic_ece_correct_sum"]),
-    }
+    return {key: (ece_from_bins if key.endswith("_ece") else miou_from_counts)(*(counts[c] for c in names))
+            for key, names in PAPER_METRIC_COUNTS.items()}
 
 
 OBJECT_COUNT_KEYS = ("correctly_found", "misclassified", "not_found", "hallucinated")
