@@ -125,3 +125,47 @@ def test_never_observed_prior_credits_the_prior_and_leaves_how_far_rays_get() ->
     full = svc.prepare(after, before=f)
     np.testing.assert_array_equal(sparse.p, full.p)
     np.testing.assert_allclose(sparse.H, full.H, rtol=1e-6, atol=1e-7)
+
+
+def _numpy_information(alpha, beta, eta, p, walls, w):  # type: ignore[no-untyped-def]
+    """The default voxel value from the numpy functions, as ``IGService._information_numpy`` composes them."""
+    sure = (p <= 0.0) | (p >= 1.0)
+    h = np.where(sure, 0.0, occupancy_reduction(alpha, beta, w)) + p * class_reduction(eta[1:], w)
+    return np.where(walls, 0.0, h).astype(np.float32)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from(["C", "F", "strided"]), st.integers(2, 20), st.integers(1, 300))
+def test_the_information_kernel_is_numpys_result_in_every_memory_layout(seed: int, layout: str, classes: int,
+                                                                       n: int) -> None:
+    # numpy sums over the classes one after the other or pairwise, by the memory layout: the kernel must
+    # give the same float32 values; prior evidence (1), p clamped to 0 or 1 and walls take short cuts
+    from msmem_core.map.gain import voxel_information
+    rng = np.random.default_rng(seed)
+    alpha = rng.uniform(1.0, 60.0, n).astype(np.float32)
+    beta = rng.uniform(1.0, 60.0, n).astype(np.float32)
+    eta = rng.uniform(1.0, 40.0, (classes, n)).astype(np.float32)
+    eta[rng.random((classes, n)) < 0.4] = 1.0
+    p = (alpha / (alpha + beta)).astype(np.float32)
+    p[rng.random(n) < 0.2] = 0.0
+    p[rng.random(n) < 0.2] = 1.0
+    walls = rng.random(n) < 0.1
+    if layout == "F":
+        eta = np.asfortranarray(eta)
+    elif layout == "strided":
+        eta = np.repeat(eta, 2, axis=1)[:, ::2]
+    want = _numpy_information(alpha, beta, eta, p, walls, 10.0)
+    got = voxel_information(alpha, beta, eta, p, walls, 10.0, True)
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, want)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from(["C", "F", "strided", "column"]), st.integers(1, 40))
+def test_the_kernels_class_sums_add_in_numpys_order(seed: int, layout: str, rows: int) -> None:
+    from msmem_core.map.gain import _sum, sums_pairwise
+    a = np.random.default_rng(seed).uniform(-1.0, 1.0, (rows, 1 if layout == "column" else 50))
+    a = {"F": np.asfortranarray(a), "strided": np.repeat(a, 2, axis=1)[:, ::2]}.get(layout, a)
+    want = a.sum(axis=0)
+    got = np.array([_sum(np.ascontiguousarray(a[:, j]), rows, sums_pairwise(a)) for j in range(a.shape[1])])
+    np.testing.assert_array_equal(got, want)

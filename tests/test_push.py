@@ -14,6 +14,8 @@ from msmem_objectives.entropy import SemanticEntropyTerm
 from msmem_objectives.ig import IGTerm, IGTermConfig
 from msmem_push.effect import AnalyticPushEffect
 from msmem_push.geometry import (
+    box_corners,
+    corners_extent,
     footprint_sweep_hits,
     gripper_pose,
     leading_half_depth,
@@ -900,3 +902,15 @@ def test_a_forward_push_moves_the_box_in_as_the_effect_model_predicts(sim) -> No
     inside = interior_mask(SHELF, GRID)
     ys = [float(GRID.centers()[(m.expected_occupancy() > 0.5) & inside][:, 1].mean()) for m in (belief, predicted)]
     assert abs((ys[1] - ys[0]) - moved[1]) < 0.015
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.sampled_from(["along", "across", "forward"]), st.floats(-0.4, 0.4), st.floats(-0.3, 0.5),
+       st.floats(-np.pi, np.pi))
+def test_the_tools_corner_extent_is_that_of_its_corner_arrays(palm: str, x: float, y: float, ang: float) -> None:
+    # the sampler's room along u reads this extent: it must be the arrays' values to the last bit
+    u = np.array([np.cos(ang), np.sin(ang)])
+    boxes = tool_boxes(GripperSpec(), palm, (0.204, 0.063, 0.066) if palm == "forward" else None, u)
+    corners = np.concatenate([box_corners(np.array([x, y]), u, b) for b in boxes])
+    want = (corners[:, 0].min(), corners[:, 0].max(), corners[:, 1].min(), corners[:, 1].max())
+    assert corners_extent(np.array([x, y]), u, boxes) == tuple(float(v) for v in want)

@@ -22,6 +22,7 @@ from pydantic import BaseModel, Field
 
 from msmem_core.map import raycast
 from msmem_core.map.belief import BeliefDelta, EvidentialMap, _xlogx, bernoulli_entropy, categorical_entropy
+from msmem_core.map.gain import voxel_information
 from msmem_core.util.interrupt import deferred_interrupt
 from msmem_core.util.trace import span
 from msmem_core.util.validation import MODEL_CONFIG, Int
@@ -261,6 +262,16 @@ class IGService:
         """Per voxel what a ray reaching it gains (``gain``, ``information``), from its evidence and its
         clamped occupancy ``p``; 0 on walls and where ``p`` is clamped to 0, and no occupancy part where
         ``p`` is clamped to 1."""
+        cfg = self.config
+        if cfg.gain == "expected-reduction":  # the default: one numba pass (gain.py), numpy's result
+            return voxel_information(alpha, beta, eta, p, walls, cfg.observation_evidence,
+                                     cfg.information == "occupancy-and-class")
+        return self._information_numpy(alpha, beta, eta, p, walls)
+
+    def _information_numpy(self, alpha: NDArray[np.floating], beta: NDArray[np.floating], eta: NDArray[np.floating],
+                           p: NDArray[np.float32], walls: NDArray[np.bool_]) -> NDArray[np.float32]:
+        """:meth:`_information` in numpy, from :func:`occupancy_reduction` and :func:`class_reduction`
+        (the reference of :func:`~msmem_core.map.gain.voxel_information`, and the ``entropy`` gain)."""
         cfg = self.config
         sure = (p <= 0.0) | (p >= 1.0)
         if cfg.gain == "entropy":

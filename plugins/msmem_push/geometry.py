@@ -133,6 +133,25 @@ def box_corners(start: NDArray[np.float64], u: NDArray[np.float64], box: Box) ->
     return centre + _SIGNS[:, :1] * (b[0] * u) + _SIGNS[:, 1:] * (b[1] * w)
 
 
+def corners_extent(start: NDArray[np.float64], u: NDArray[np.float64], boxes: Sequence[Box]
+                   ) -> tuple[float, float, float, float]:
+    """(x min, x max, y min, y max) over the corners of the tool's parts at ``start``: the corners of
+    :func:`box_corners`, by the same arithmetic in Python floats (the same values, without arrays)."""
+    sx, sy = float(start[0]), float(start[1])
+    ux, uy = float(u[0]), float(u[1])
+    wx, wy = -uy, ux
+    xs: list[float] = []
+    ys: list[float] = []
+    for box in boxes:
+        b0, b1, _, _, b4, b5 = box6(box)
+        cx, cy = sx + b4 * ux + b5 * wx, sy + b4 * uy + b5 * wy
+        ax, ay, bx, by = b0 * ux, b0 * uy, b1 * wx, b1 * wy
+        for sa, sb in ((-1.0, -1.0), (-1.0, 1.0), (1.0, -1.0), (1.0, 1.0)):
+            xs.append(cx + sa * ax + sb * bx)
+            ys.append(cy + sa * ay + sb * by)
+    return min(xs), max(xs), min(ys), max(ys)
+
+
 def sweep_halfplanes(
     start: NDArray[np.float64], u: NDArray[np.float64], box: Box, v: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:

@@ -68,10 +68,10 @@ from msmem_core.world.meshes import stance_ratio
 from msmem_core.world.scene import ObjectClass, ShelfSpec
 from msmem_push.geometry import (
     Box,
+    corners_extent,
     footprint_sweep_hits,
     gripper_pose,
     leading_half_depth,
-    sweep_halfplanes,
     swept_extent,
     swept_voxels,
     tool_boxes,
@@ -674,13 +674,14 @@ class PushSkill(Skill):
         if not (x_lo <= start[0] <= x_hi and y_lo - START_FRONT_MARGIN_M <= start[1] <= y_hi):
             return None
         # longest push whose tool stays inside the shelf (the wall test in _valid is then rarely hit)
-        corners = np.concatenate([sweep_halfplanes(start, u, b, np.zeros(2))[2][:4] for b in tool])
+        cx_lo, cx_hi, _, cy_hi = corners_extent(start, u, tool)
         room = np.inf
-        for axis, lo_b, hi_b in ((0, x_lo, x_hi), (1, None, y_hi)):  # in front of the shelf is open
-            if u[axis] > 1e-9:
-                room = min(room, float((hi_b - corners[:, axis].max()) / u[axis]))
-            elif u[axis] < -1e-9 and lo_b is not None:
-                room = min(room, float((corners[:, axis].min() - lo_b) / -u[axis]))
+        if u[0] > 1e-9:
+            room = min(room, float((x_hi - cx_hi) / u[0]))
+        elif u[0] < -1e-9:
+            room = min(room, float((cx_lo - x_lo) / -u[0]))
+        if u[1] > 1e-9:  # in front of the shelf is open
+            room = min(room, float((y_hi - cy_hi) / u[1]))
         hi_len = min(cfg.max_length_m, room)
         if cfg.max_height_ratio is not None and t.top_z - interior_m[2] > cfg.max_height_ratio * t.width_cells * s:
             return None
