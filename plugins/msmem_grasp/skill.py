@@ -113,9 +113,14 @@ _WARNED: set[str] = set()
 
 TURN_DEG = 45.0
 """A grasp is turned towards a direction only if its turned approach comes within this of it."""
+TILT_DEG = (20.0, 40.0)
+"""How far below horizontal the ``sides-down`` approaches point."""
 TURN_DIRECTIONS: dict[str, tuple[tuple[float, float, float], ...]] = {
-    "front": ((0.0, 1.0, 0.0),), "sides": ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0))}
-"""The approach directions ``GraspConfig.turn_to`` names: straight into the shelf; along the shelf either way."""
+    "front": ((0.0, 1.0, 0.0),), "sides": ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0)),
+    "sides-down": tuple((x * math.cos(math.radians(t)), 0.0, -math.sin(math.radians(t)))
+                        for t in TILT_DEG for x in (1.0, -1.0))}
+"""The approach directions ``GraspConfig.turn_to`` names: straight into the shelf; along the shelf either way;
+along the shelf and tilted down by each of ``TILT_DEG``."""
 
 
 def turn_about(b: F64, direction: tuple[float, float, float] | F64) -> tuple[F64, NDArray[np.bool_]]:
@@ -254,6 +259,13 @@ class GraspConfig(BaseModel):
     """The gripper's boxes are shrunk by this in the collision test (voxelisation slack)."""
     approach_distances_m: tuple[float, ...] = (0.03, 0.05, 0.08)
     """The pre-grasp pose is the first of these distances back along the approach that is free."""
+    move_in_clearance_m: float | None = Field(None, ge=0.0, le=0.03)
+    """The open gripper's boxes are grown by this (instead of shrunk by ``tolerance_m``) in the test of
+    its way in, straight into the shelf to the pre-grasp pose, where it passes over and beside the objects
+    in front at full travel speed; None: shrunk by ``tolerance_m`` as in every other test. A tilted
+    gripper under the shelf top has a few millimetres between a box's top edge and the board: with the
+    shrunk boxes a finger corner that catches the edge, or a palm that meets the board, passes the test
+    (docs/lab/2026-12-06-tilted-grasps)."""
     outside_y_m: float = Field(-0.12, lt=0.0, ge=-1.0)
     """The approach starts this far in front of the shelf opening (y = 0)."""
     lift_m: float = Field(0.03, ge=0.0, le=0.2)
@@ -318,10 +330,12 @@ class GraspConfig(BaseModel):
     """Largest angle between a grasp's approach and straight into the shelf (+y); 180: any approach the
     open front allows (step 3). An arm whose hand cannot come from above in the shelf needs a small
     one (docs/explanation/robots.md)."""
-    turn_to: tuple[Literal["front", "sides"], ...] = ("front", "sides")
+    turn_to: tuple[Literal["front", "sides", "sides-down"], ...] = ("front", "sides")
     """Each grasp is also proposed turned about its closing axis to approach from these directions (right
     after it): ``front`` straight into the shelf (+y), ``sides`` along the shelf either way (+x, -x),
-    horizontal. The same contacts, width and evidence, reached another way; the collision, reach and exit
+    horizontal, ``sides-down`` the same tilted down by 20 and by 40 deg (past the neighbours beside the
+    target; the open gripper is then taller on its way in: see ``move_in_clearance_m``). The same contacts,
+    width and evidence, reached another way; the collision, reach and exit
     tests keep what fits. A grasp is turned towards a direction only if its turned approach comes within
     45 deg of it (its closing axis at least 45 deg off it). Empty: the predicted approaches only. Chosen on
     ``tune10`` (grasp-only and ``ours``, 40 steps): 41 of 43 grasps held against 32 of 41 without, two
@@ -585,7 +599,11 @@ class GraspSkill(Skill):
         per_object: dict[int, int] = {}
         every = cfg.funnel == "every-candidate"
         free = self.test_order(c, np.flatnonzero(on_object & ~at_grasp))
-        approaches = self._plan_approaches(grid, c, local, free)  # the ways in, for all at once
+        local_in = local
+        if cfg.move_in_clearance_m is not None:  # the way in with grown boxes
+            grown = gripper_points_batch(cfg.gripper, c.opening, s / 2, -cfg.move_in_clearance_m, cfg.hand_m)
+            local_in = np.stack([grown[i] @ c.poses[i, :3, :3].T for i in range(n)])
+        approaches = self._plan_approaches(grid, c, local, free, local_in)  # the ways in, for all at once
         for i in free:  # candidates in order of E[q] (``twins``)
             lab = int(c.label[i])
             full = per_object.get(lab, 0) >= cfg.max_per_object or len(out) >= cfg.top_k
@@ -616,8 +634,10 @@ class GraspSkill(Skill):
         ahead = c.twin[idx] if self.config.twins == "first" else ~c.twin[idx]
         return np.concatenate([idx[ahead], idx[~ahead]])
 
-    def _plan_approaches(self, grid: GridSpec, c: Candidates, local: F64, idx: NDArray[np.int64]) -> dict[int, F64]:
-        """The ways in of candidates ``idx`` of ``c`` (``local``: their open grippers' points, rotated):
+    def _plan_approaches(self, grid: GridSpec, c: Candidates, local: F64, idx: NDArray[np.int64],
+                         local_in: F64 | None = None) -> dict[int, F64]:
+        """The ways in of candidates ``idx`` of ``c`` (``local``: their open grippers' points, rotated;
+        ``local_in``: the same for the way in to the pre-grasp pose, ``local`` if None):
         in front of the shelf, then the pre-grasp pose ``d`` back along a, for the first d of
         ``approach_distances_m`` at which the open gripper touches no blocked voxel. On the way in and at
         the pre-grasp pose anything blocked counts; on the final stretch along a the target's region
@@ -641,8 +661,8 @@ class GraspSkill(Skill):
             ok = np.zeros(len(rest), dtype=bool)
             path, ptr = segment_paths(outside, pre, s / 2)
             none = np.zeros(len(rest), np.int64)
-            first = ~sweep_hits(grid, c.blocked, c.objects.labels, local, path, ptr, rest, none, poses, c.opening[rest],
-                                cfg.max_object_radius_m)
+            first = ~sweep_hits(grid, c.blocked, c.objects.labels, local if local_in is None else local_in, path, ptr,
+                                rest, none, poses, c.opening[rest], cfg.max_object_radius_m)
             f = np.flatnonzero(first)
             path, ptr = segment_paths(pre[f], grasp[f], s / 2)
             ok[f] = ~sweep_hits(grid, c.blocked, c.objects.labels, local, path, ptr, rest[f], c.label[rest[f]],
