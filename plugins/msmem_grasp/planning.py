@@ -324,10 +324,9 @@ class Objects:
         return np.union1d(vox, own[near.reshape(-1)[own // nz]])
 
 
-def under_top(grid: GridSpec, body: I64) -> NDArray[np.bool_]:
-    """Flat mask of the voxels below ``body``'s top in each of its columns, and at any height in the
-    columns its footprint surrounds. Objects stand on the shelf floor, so nothing else stands there:
-    on the default belief, believed-occupied voxels there are the object's own, of another class."""
+def _column_tops(grid: GridSpec, body: I64) -> I64:
+    """Per column (flat [X * Y]) how many voxels from the floor :func:`under_top` covers: up to ``body``'s
+    top in its columns, all in the columns its footprint surrounds, none elsewhere (-1)."""
     from scipy import ndimage
     nx, ny, nz = grid.shape
     cols = np.asarray(body, dtype=np.int64) // nz
@@ -337,7 +336,25 @@ def under_top(grid: GridSpec, body: I64) -> NDArray[np.bool_]:
     np.maximum.at(top, cols, np.asarray(body, dtype=np.int64) % nz)
     foot2 = foot.reshape(nx, ny)
     top[(ndimage.binary_fill_holes(foot2) & ~foot2).reshape(-1)] = nz
-    return (np.arange(nz)[None, :] < top[:, None]).reshape(-1)
+    return top
+
+
+def under_top(grid: GridSpec, body: I64) -> NDArray[np.bool_]:
+    """Flat mask of the voxels below ``body``'s top in each of its columns, and at any height in the
+    columns its footprint surrounds. Objects stand on the shelf floor, so nothing else stands there:
+    on the default belief, believed-occupied voxels there are the object's own, of another class."""
+    nz = grid.shape[2]
+    return (np.arange(nz)[None, :] < _column_tops(grid, body)[:, None]).reshape(-1)
+
+
+def clear_under_top(grid: GridSpec, body: I64, mask: NDArray[np.bool_]) -> None:
+    """``mask &= ~under_top(grid, body)`` in place (flat ``mask``), touching only the body's columns."""
+    nz = grid.shape[2]
+    top = _column_tops(grid, body)
+    cols = np.flatnonzero(top > 0)
+    block = mask.reshape(-1, nz)[cols]
+    block &= ~(np.arange(nz)[None, :] < top[cols, None])
+    mask.reshape(-1, nz)[cols] = block
 
 
 def shift_voxels(grid: GridSpec, vox: I64, di: int, dj: int, dk: int) -> tuple[I64, NDArray[np.bool_]]:

@@ -87,6 +87,7 @@ from msmem_grasp.geometric import GeometricConfig, predict_geometric
 from msmem_grasp.planning import (
     Objects,
     blocked_mask,
+    clear_under_top,
     fill_down,
     gripper_points,
     gripper_points_batch,
@@ -95,7 +96,6 @@ from msmem_grasp.planning import (
     segment_paths,
     sweep_hits,
     swept_indices,
-    under_top,
     voxel_centres,
     way_out,
 )
@@ -604,6 +604,7 @@ class GraspSkill(Skill):
             grown = gripper_points_batch(cfg.gripper, c.opening, s / 2, -cfg.move_in_clearance_m, cfg.hand_m)
             local_in = np.stack([grown[i] @ c.poses[i, :3, :3].T for i in range(n)])
         approaches = self._plan_approaches(grid, c, local, free, local_in)  # the ways in, for all at once
+        occupied_objects = None  # what may stop a carried object (_carried), once
         for i in free:  # candidates in order of E[q] (``twins``)
             lab = int(c.label[i])
             full = per_object.get(lab, 0) >= cfg.max_per_object or len(out) >= cfg.top_k
@@ -615,8 +616,10 @@ class GraspSkill(Skill):
                 continue
             stages["collision_free"] += 1
             region = c.objects.region(grid, lab, pose, c.opening[i], cfg.max_object_radius_m)
+            if occupied_objects is None:
+                occupied_objects = self.believed_objects(c.p, c.objects)
             lift_m = self._lift(grid, c.p, c.objects, lab, region, pose, float(c.width[i]), c.top, stages,
-                                self._class_shape(classes, int(c.objects.classes[lab])))
+                                self._class_shape(classes, int(c.objects.classes[lab])), occupied_objects)
             if lift_m is None:
                 continue  # the lifted object or gripper would hit the shelf top, or its way out is blocked
             stages["clear_exit"] += 1
@@ -674,7 +677,8 @@ class GraspSkill(Skill):
 
     def _lift(self, grid: GridSpec, p: NDArray[np.floating], objects: Objects, label: int, region: NDArray[np.int64],
               pose: F64, width: float, top: float, stages: dict[str, int] | None = None,
-              extents: tuple[float, float, float] | None = None) -> float | None:
+              extents: tuple[float, float, float] | None = None,
+              occupied_objects: NDArray[np.bool_] | None = None) -> float | None:
         """The lift: ``lift_m`` if at that height the grasped object (the body ``_carried`` carries, its
         sides one voxel in) and the closed gripper, carried straight out of the front, meet no voxel in
         its way (``_carried``: of another believed object); else one voxel above the lowest height (in
@@ -691,7 +695,7 @@ class GraspSkill(Skill):
         pts = gripper_points(cfg.gripper, width, s / 2, cfg.tolerance_m, cfg.hand_m)
         r = pose[:3, :3]
         grip_top = float((pts @ r.T)[:, 2].max()) + pose[2, 3]
-        body, occupied = self._carried(grid, p, objects, label, region)
+        body, occupied = self._carried(grid, p, objects, label, region, occupied_objects)
         obj_top = float(voxel_centres(grid, body)[:, 2].max()) + s / 2 if len(body) else pose[2, 3]
         if extents is not None:
             floor = float(grid.origin[2] + s * np.unravel_index(body, grid.shape)[2].min()) if len(body) else 0.0
@@ -735,10 +739,16 @@ class GraspSkill(Skill):
 
         return class_extents_m(classes[cls - 1])
 
+    def believed_objects(self, p: NDArray[np.floating], objects: Objects) -> NDArray[np.bool_]:
+        """Flat mask of the believed-occupied voxels of believed objects (what may stop a carried object)."""
+        return (p.reshape(-1) > self.config.occupied_threshold) & (objects.labels.reshape(-1) > 0)
+
     def _carried(self, grid: GridSpec, p: NDArray[np.floating], objects: Objects, label: int,
-                 region: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+                 region: NDArray[np.int64], occupied_objects: NDArray[np.bool_] | None = None
+                 ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
         """What leaves the shelf with a grasp of ``region`` (of component ``label``) and what may stop it:
-        (flat indices of the carried body, flat mask of the voxels in its way).
+        (flat indices of the carried body, flat mask of the voxels in its way). ``occupied_objects``:
+        :meth:`believed_objects` of ``p`` and ``objects``, if the caller has it.
 
         The body: the region, the hidden voxels below it (``planning.fill_down``) and the voxels of its
         own component in the columns within ``exit_margin_m`` of its footprint, at any height: the
@@ -753,12 +763,12 @@ class GraspSkill(Skill):
         that rays labelled background."""
         cfg = self.config
         body = fill_down(grid, p, objects.labels, region, label, cfg.geometric.free_threshold)
-        way = (p.reshape(-1) > cfg.occupied_threshold) & (objects.labels.reshape(-1) > 0)
+        way = (self.believed_objects(p, objects) if occupied_objects is None else occupied_objects).copy()
         if len(body):
             body = objects.carried(grid, label, body, cfg.exit_margin_m)
             # under its top in its own columns, and in the columns it surrounds, nothing else stands: the
             # belief's voxels there are its own (of another class), not in its way
-            way &= ~under_top(grid, body)
+            clear_under_top(grid, body, way)
         way[body] = False
         return body, way
 

@@ -306,6 +306,18 @@ def narrowest_width_cells(cells: NDArray[np.int64]) -> float:
     return float((along.max(axis=0) - along.min(axis=0)).min() + 1.0)
 
 
+@functools.lru_cache(maxsize=8)
+def _line_steps(s: float) -> NDArray[np.float64]:
+    """Distances back along a push line at which ``_candidate`` looks for the footprint (read only)."""
+    out = np.arange(0.0, 0.6, s / 8)
+    out.flags.writeable = False
+    return out
+
+
+_leading_half_depth = functools.lru_cache(maxsize=1024)(leading_half_depth)
+"""``leading_half_depth`` of a (hashable) tool, remembered: a proposal asks it for the same few heights."""
+
+
 class _Target:
     """An occluder met by a trace: its BEV footprint, class, contact cell and the seed behind it."""
 
@@ -319,6 +331,11 @@ class _Target:
     def width_cells(self) -> float:
         """The footprint's narrowest extent (cells) over 36 directions, 5 degrees apart."""
         return narrowest_width_cells(self.cells)
+
+    @functools.cached_property
+    def mean_cell(self) -> NDArray[np.float64]:
+        """The footprint's mean cell (grid indices)."""
+        return self.cells.mean(axis=0)
 
     @functools.cached_property
     def own(self) -> NDArray[np.bool_]:
@@ -338,6 +355,8 @@ class _Chain:
     """Each label's believed height above the shelf floor (m)."""
     cells: dict[int, NDArray[np.int64]] = field(default_factory=dict)
     """Each label's cells [N, 2], filled as chains reach them (shared by all candidates of a proposal)."""
+    owners: dict[tuple[int, int], set[int]] = field(default_factory=dict)
+    """Per target (``_Target.key``), the labels of its footprint (filled as targets are sampled)."""
 
     def cells_of(self, k: int) -> NDArray[np.int64]:
         if k not in self.cells:
@@ -608,7 +627,9 @@ class PushSkill(Skill):
         far = min(cfg.max_length_m, cap) + float(cfg.chain_clearance_m or 0.0) + s
         steps = np.arange(s / 2, far, s / 2)
         start: dict[int, float] = {}  # object label -> target travel at which it starts moving
-        own = set(np.unique(labels[t.foot]).tolist()) - {0}  # the target (its component)
+        if t.key not in chain.owners:
+            chain.owners[t.key] = set(np.unique(labels[t.foot]).tolist()) - {0}
+        own = chain.owners[t.key]  # the target (its component)
         queue: list[tuple[float, int]] = [(0.0, 0)]
         room = np.inf
         while queue:
@@ -641,7 +662,7 @@ class PushSkill(Skill):
         cfg = self.config
         s = grid.voxel_m
         o = grid.origin
-        centre = o[:2] + (t.cells.mean(axis=0) + 0.5) * s
+        centre = o[:2] + (t.mean_cell + 0.5) * s
         # the forward tool pushes exactly along the shelf's axes (its parts stay boxes of the push frame)
         forward = cfg.palm == "forward"
         max_a = math.radians(cfg.max_angle_deg)
@@ -657,7 +678,7 @@ class PushSkill(Skill):
         if forward:
             u = np.round(u)
         # follow the line through the object's centre back (against u) to where it enters the footprint
-        ts = np.arange(0.0, 0.6, s / 8)
+        ts = _line_steps(s)
         pts = q[None, :] - ts[:, None] * u[None, :]
         ij = np.floor((pts - o[:2]) / s).astype(np.int64)
         ok = (ij[:, 0] >= 0) & (ij[:, 0] < grid.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < grid.shape[1])
@@ -668,7 +689,7 @@ class PushSkill(Skill):
         t_entry = ts[np.flatnonzero(inside).max()] + s / 8
         height = max(cfg.min_tool_height_m, min(cfg.tool_height_m, cfg.low_object_fraction * t.top_z))
         tool = self._tool(u)
-        half_depth = leading_half_depth(tool, height, t.top_z)
+        half_depth = _leading_half_depth(tool, height, t.top_z)
         start = q - (t_entry + cfg.standoff_m + half_depth) * u
         x_lo, y_lo, _, x_hi, y_hi, _ = interior_m
         if not (x_lo <= start[0] <= x_hi and y_lo - START_FRONT_MARGIN_M <= start[1] <= y_hi):
