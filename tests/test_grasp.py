@@ -192,6 +192,9 @@ class _ReferenceGraspSkill(GraspSkill):
         cfg = self.config
         s = grid.voxel_m
         pts = gripper_points(cfg.gripper, opening, s / 2, cfg.tolerance_m, cfg.hand_m)
+        # the way in: the boxes grown by move_in_clearance_m (None: shrunk as everywhere else)
+        pts_in = pts if cfg.move_in_clearance_m is None else gripper_points(
+            cfg.gripper, opening, s / 2, -cfg.move_in_clearance_m, cfg.hand_m)
         r = pose[:3, :3]
         grasp = pose[:3, 3]
         if _hits_reference(grid, blocked, region, r, pts, path_offsets(grasp[None], s)):
@@ -200,7 +203,7 @@ class _ReferenceGraspSkill(GraspSkill):
             pre = grasp - d * pose[:3, 2]
             outside = pre.copy()
             outside[1] = min(cfg.outside_y_m, pre[1])
-            if _hits_reference(grid, blocked, None, r, pts, path_offsets(np.stack([outside, pre]), s / 2)):
+            if _hits_reference(grid, blocked, None, r, pts_in, path_offsets(np.stack([outside, pre]), s / 2)):
                 continue
             if _hits_reference(grid, blocked, region, r, pts, path_offsets(np.stack([pre, grasp]), s / 2)):
                 continue
@@ -247,7 +250,8 @@ def test_batched_collision_tests_equal_the_per_grasp_loop(seed: int) -> None:
     found = []
     proposed: list[list[GraspAction]] = []
     every = {"top_k": 300, "max_per_object": 300, "turn_to": ()}  # every candidate: the twins only in the first
-    others = {0: [], 1: [{**every, "hand_m": PANDA_HAND}], 2: [{"twins": "first"}, {"twins": "last"}]}[seed]
+    others = {0: [], 1: [{**every, "hand_m": PANDA_HAND}],
+              2: [{"twins": "first"}, {"twins": "last"}, {"move_in_clearance_m": None}, {"move_in_clearance_m": 0.01}]}[seed]
     for params in ({}, every, *others):
         cfg = GraspConfig(predictor="geometric", seed=seed, **params)  # type: ignore[arg-type]
         skill, reference = GraspSkill(cfg), _ReferenceGraspSkill(cfg)
