@@ -603,9 +603,11 @@ class GraspSkill(Skill):
         every = cfg.funnel == "every-candidate"
         free = self.test_order(c, np.flatnonzero(on_object & ~at_grasp))
         local_in = local
-        if cfg.move_in_clearance_m is not None:  # the way in with grown boxes
-            grown = gripper_points_batch(cfg.gripper, c.opening, s / 2, -cfg.move_in_clearance_m, cfg.hand_m)
-            local_in = np.stack([grown[i] @ c.poses[i, :3, :3].T for i in range(n)])
+        if cfg.move_in_clearance_m is not None and len(free):  # the way in with grown boxes (those tested)
+            grown = gripper_points_batch(cfg.gripper, c.opening[free], s / 2, -cfg.move_in_clearance_m, cfg.hand_m)
+            local_in = np.zeros((n, *grown.shape[1:]))
+            for j, i in enumerate(free):
+                local_in[i] = grown[j] @ c.poses[i, :3, :3].T
         approaches = self._plan_approaches(grid, c, local, free, local_in)  # the ways in, for all at once
         occupied_objects = None  # what may stop a carried object (_carried), once
         for i in free:  # candidates in order of E[q] (``twins``)
