@@ -251,7 +251,8 @@ def test_batched_collision_tests_equal_the_per_grasp_loop(seed: int) -> None:
     proposed: list[list[GraspAction]] = []
     every = {"top_k": 300, "max_per_object": 300, "turn_to": ()}  # every candidate: the twins only in the first
     others = {0: [], 1: [{**every, "hand_m": PANDA_HAND}],
-              2: [{"twins": "first"}, {"twins": "last"}, {"move_in_clearance_m": None}, {"move_in_clearance_m": 0.01}]}[seed]
+              2: [{"twins": "first"}, {"twins": "last"}, {"move_in_clearance_m": None},
+                  {"move_in_clearance_m": 0.01}]}[seed]
     for params in ({}, every, *others):
         cfg = GraspConfig(predictor="geometric", seed=seed, **params)  # type: ignore[arg-type]
         skill, reference = GraspSkill(cfg), _ReferenceGraspSkill(cfg)

@@ -113,6 +113,8 @@ _WARNED: set[str] = set()
 
 TURN_DEG = 45.0
 """A grasp is turned towards a direction only if its turned approach comes within this of it."""
+APPROACH_BATCH = 64
+"""Candidates whose ways in ``GraspSkill.executable`` plans at once (in test order, as they are reached)."""
 TILT_DEG = (20.0, 40.0)
 """How far below horizontal the ``sides-down`` approaches point."""
 TURN_DIRECTIONS: dict[str, tuple[tuple[float, float, float], ...]] = {
@@ -341,8 +343,8 @@ class GraspConfig(BaseModel):
     ``tune10`` (grasp-only and ``ours``, 40 steps): ``front`` and ``sides`` against none, 41 of 43 grasps
     held against 32 of 41, two episodes of 20 with a fall against four, 2-D semantic mIoU +0.020 and
     +0.015 per scene; ``sides-down`` added (with ``move_in_clearance_m`` 0), grasp candidates at 93-95 %
-    of the allowed steps against 68-74 %, 71 of 73 grasps took their object out, no episode with a fall,
-    2-D semantic mIoU +0.152 and +0.126 per scene (docs/lab/2026-12-06-tilted-grasps).
+    of the allowed steps against 68-75 %, 71 of 73 grasps took their object out, no episode with a fall,
+    2-D semantic mIoU +0.165 and +0.139 per scene (docs/lab/2026-12-06-tilted-grasps).
     docs/explanation/grasp.md, "Grasps turned about their closing axis"."""
     twins: Literal["interleaved", "last", "first"] = "interleaved"
     """Where the turned twins stand in the order the tests after ``free_at_grasp`` take (and so which fill
@@ -602,19 +604,27 @@ class GraspSkill(Skill):
         per_object: dict[int, int] = {}
         every = cfg.funnel == "every-candidate"
         free = self.test_order(c, np.flatnonzero(on_object & ~at_grasp))
-        local_in = local
-        if cfg.move_in_clearance_m is not None and len(free):  # the way in with grown boxes (those tested)
-            grown = gripper_points_batch(cfg.gripper, c.opening[free], s / 2, -cfg.move_in_clearance_m, cfg.hand_m)
-            local_in = np.zeros((n, *grown.shape[1:]))
-            for j, i in enumerate(free):
-                local_in[i] = grown[j] @ c.poses[i, :3, :3].T
-        approaches = self._plan_approaches(grid, c, local, free, local_in)  # the ways in, for all at once
+        grown = None
+        if cfg.move_in_clearance_m is not None and len(free):  # the way in is tested with grown boxes
+            grown = np.zeros((n, *gripper_points(cfg.gripper, 0.0, s / 2, -cfg.move_in_clearance_m, cfg.hand_m).shape))
+        approaches: dict[int, F64] = {}
+        planned: set[int] = set()
         occupied_objects = None  # what may stop a carried object (_carried), once
-        for i in free:  # candidates in order of E[q] (``twins``)
+        for pos, i in enumerate(free):  # candidates in order of E[q] (``twins``)
             lab = int(c.label[i])
             full = per_object.get(lab, 0) >= cfg.max_per_object or len(out) >= cfg.top_k
             if full and not every:
                 continue  # it would not be proposed: the tests below are the skill's costliest
+            if int(i) not in planned:  # the ways in of the next candidates still to be tested, batched
+                chunk = np.array([j for j in free[pos:] if every or per_object.get(int(c.label[j]), 0)
+                                  < cfg.max_per_object][:APPROACH_BATCH], dtype=np.int64)
+                if grown is not None:
+                    points = gripper_points_batch(cfg.gripper, c.opening[chunk], s / 2, -cfg.move_in_clearance_m,
+                                                  cfg.hand_m)
+                    for j, k in enumerate(chunk):
+                        grown[k] = points[j] @ c.poses[k, :3, :3].T
+                approaches.update(self._plan_approaches(grid, c, local, chunk, grown))
+                planned.update(chunk.tolist())
             pose = c.poses[i]
             approach = approaches.get(int(i))
             if approach is None:
