@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from msmem_grasp.planning import Objects, clear_under_top, under_top
+from msmem_grasp.planning import Objects, clear_under_top, under_top, way_out, way_out_meets
 from msmem_grasp.skill import GraspAction, GraspConfig, GraspSkill
 
 from msmem_core.map.belief import EvidentialMap
@@ -186,7 +186,8 @@ def test_another_class_inside_the_objects_own_columns_is_not_in_its_way() -> Non
 @pytest.mark.slow
 def test_the_default_belief_of_a_hard_scene_leaves_grasps_of_its_front_row(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """``hard25`` scene 0 under the library defaults, 10 views of a grasp-only episode (manipulation held off),
-    the grasps as predicted (``turn_to`` empty): with a 3 cm lift, the front row's sugar box (17.5 cm) and
+    the grasps as predicted (``turn_to`` empty), the way in tested as every other leg (``move_in_clearance_m``
+    None): with a 3 cm lift, the front row's sugar box (17.5 cm) and
     mustard bottle (19 cm) can be grasped from above and carried out; with the lift shrunk to the room under
     the shelf top, the whole front row, and by default all of it but the cracker box. Under the rule before,
     which counted every believed-occupied voxel outside the fingers' region as in the way, it proposed none
@@ -207,7 +208,7 @@ def test_the_default_belief_of_a_hard_scene_leaves_grasps_of_its_front_row(tmp_p
     def targets(**params: object) -> set[int]:
         """The objects nearest the contacts of the executable grasps, the skill's parameters changed
         (the same fused buffer)."""
-        skill.config = skill.config.model_copy(update={"turn_to": (), **params})
+        skill.config = skill.config.model_copy(update={"turn_to": (), "move_in_clearance_m": None, **params})
         stages: dict[str, int] = {}
         grasps = skill.executable(belief, ep.scene.shelf, stages, ep.workspace.classes)
         assert grasps, stages
@@ -224,6 +225,9 @@ def test_the_default_belief_of_a_hard_scene_leaves_grasps_of_its_front_row(tmp_p
     # (the grasps as predicted, above; the default also turns them to the front and the sides)
     # with a 3 cm lift they add the cracker box, grasped across its 6 cm depth from the side
     assert targets(turn_to=("front", "sides"), min_lift_m=0.03) == {1, 2, 4}
+    # the way in tested with the gripper's exact boxes (the default): the cracker box's grasps from above,
+    # whose way in passes the shelf top by less than the collision tolerance, are no longer proposed
+    assert targets(min_lift_m=0.0, short_lift_margin_m=None, move_in_clearance_m=0.0) == {0, 1, 3, 4, 5}
 
 
 @settings(max_examples=40, deadline=None)
@@ -241,3 +245,19 @@ def test_clearing_under_a_bodys_top_in_place_is_the_mask_and_not_its_complement(
     want = mask & ~under_top(GRID, body)
     clear_under_top(GRID, body, mask)
     np.testing.assert_array_equal(mask, want)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 40), st.integers(0, 12))
+def test_a_way_out_meets_a_voxel_exactly_when_it_sweeps_it(seed: int, n: int, lift: int) -> None:
+    # one masked voxel on the swept path, then one off it: every voxel of the sweep counts, and no other
+    rng = np.random.default_rng(seed)
+    body = np.unique(rng.integers(0, GRID.size, n))
+    path = way_out(GRID, body, lift)[0]
+    on = np.zeros(GRID.size, dtype=bool)
+    if len(path):
+        on[rng.choice(path)] = True
+    assert way_out_meets(GRID, body, lift, on) == bool(len(path))
+    off = np.zeros(GRID.size, dtype=bool)
+    off[rng.choice(np.setdiff1d(np.arange(GRID.size), path))] = True
+    assert not way_out_meets(GRID, body, lift, off)

@@ -382,10 +382,40 @@ def way_out(grid: GridSpec, vox: I64, lift: int) -> tuple[I64, I64]:
         parts.append(f[ok])
         steps.append(np.full(int(ok.sum()), lift + m - 1))
     flat, step = np.concatenate(parts), np.concatenate(steps)
+    if not len(flat):  # no lift, and nothing in front of the body's voxels (all in the first row)
+        return flat.astype(np.int64), step.astype(np.int64)
     order = np.lexsort((step, flat))
     flat, step = flat[order], step[order]
     first = np.r_[True, flat[1:] != flat[:-1]]
     return flat[first], step[first]
+
+
+@njit(cache=True, fastmath=False)
+def _way_out_meets(vox, lift, nj, nk, mask):  # type: ignore[no-untyped-def]
+    for v in vox:  # lifted one voxel at a time
+        base = v - v % nk
+        for dk in range(1, lift + 1):
+            kk = v % nk + dk
+            if kk < nk and mask[base + kk]:
+                return True
+    for v in vox:  # then carried along -y at the lift
+        kk = v % nk + lift
+        if kk >= nk:
+            continue
+        j = (v // nk) % nj
+        for m in range(1, j + 1):
+            if mask[v - m * nk + lift]:
+                return True
+    return False
+
+
+def way_out_meets(grid: GridSpec, vox: I64, lift: int, mask: NDArray[np.bool_]) -> bool:
+    """Whether the voxels :func:`way_out` gives (``vox`` lifted by ``lift`` voxels, then carried along -y
+    out of the grid) meet ``mask`` (flat), ``mask[way_out(grid, vox, lift)[0]].any()``, without listing them."""
+    if not len(vox):
+        return False
+    return bool(_way_out_meets(np.asarray(vox, dtype=np.int64), int(lift), int(grid.shape[1]), int(grid.shape[2]),
+                               np.asarray(mask, dtype=np.bool_).reshape(-1)))
 
 
 def fill_down(grid: GridSpec, p: NDArray[np.floating], labels: NDArray[np.int32], vox: I64, label: int,

@@ -97,7 +97,7 @@ from msmem_grasp.planning import (
     sweep_hits,
     swept_indices,
     voxel_centres,
-    way_out,
+    way_out_meets,
 )
 
 log = logging.getLogger("msmem.grasp")
@@ -732,8 +732,7 @@ class GraspSkill(Skill):
         first = max(0, math.ceil(low / s - 1e-9))
         last = min(int(np.floor(min(room, cfg.max_lift_m) / s + 1e-9)), first + 20)
         for k in range(first, max(first, last) + 1):
-            path, _ = way_out(grid, core, k)
-            if occupied[path].any():
+            if way_out_meets(grid, core, k, occupied):
                 continue
             lifted = pose[:3, 3] + np.array([0.0, 0.0, k * s])
             out = lifted.copy()
