@@ -32,7 +32,8 @@ Executable grasps (``GraspSkill.propose``, only when manipulation is allowed), f
    0: the object slides out), and only for an object the fingers open ``short_lift_margin_m`` (2 cm)
    wider than.
 4. *Collision-free in the belief*: the gripper's fingers and palm (``GripperSpec`` boxes, shrunk
-   by ``tolerance_m``), at the grasp and swept along the approach path (sampled every half voxel),
+   by ``tolerance_m``; on the way in to the pre-grasp pose as they are, ``move_in_clearance_m``), at
+   the grasp and swept along the approach path (sampled every half voxel),
    may not touch a voxel that is believed occupied (p > 0.5), unknown (vacuity >= 0.9 and
    |p - 0.5| < 0.1), a shelf board, or outside the grid other than in front of the shelf. On the
    final stretch along a and at the grasp, the target's own region (its class's connected component
