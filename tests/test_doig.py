@@ -151,3 +151,31 @@ def test_bev_mapped_fraction_follows_the_belief() -> None:
     left = GRID.centers()[..., 0] < 0.0
     half.alpha[left], half.beta[left], half.eta[:, left] = 1.0, 1.0, 1.0
     assert 0.4 < mapped_fraction(half, interior, 0.85) < 0.6
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from(["C", "F", "strided"]), st.booleans())
+def test_the_counting_kernel_is_the_numpy_rule(seed: int, layout: str, with_excluded: bool) -> None:
+    """``count_disturbed`` (one numba pass, what the term uses) counts what ``disturbed_voxels`` marks,
+    with thresholds set at voxels' own vacuities (where the order of the float32 class sums decides),
+    ties between classes, and the changed evidence in any memory layout."""
+    from msmem_objectives.cdc import count_disturbed
+
+    rng = np.random.default_rng(seed)
+    n, m = 500, 120
+    eta = (1.0 + rng.gamma(0.5, 10.0, (C, n))).astype(np.float32)
+    eta[:, :20] = np.float32(7.25)  # every class tied
+    idx = rng.choice(n, m, replace=False)
+    after = (1.0 + rng.gamma(0.5, 10.0, (C, m))).astype(np.float32)
+    after[:, rng.random(m) < 0.3] = eta[:, idx][:, rng.random(m) < 0.3][:, :1]
+    if layout == "F":
+        after = np.asfortranarray(after)
+    elif layout == "strided":
+        after = np.repeat(after, 2, axis=1)[:, ::2]
+    excluded = rng.random(m) < 0.3 if with_excluded else None
+    chi = np.concatenate([C / eta[:, idx].sum(axis=0), C / after.sum(axis=0)])
+    for tau in [*rng.choice(chi, 6), 0.5, 1.0]:
+        # the threshold as numpy compares it with float32 vacuities: rounded to float32 (1e-12 above is the same)
+        for t in (float(tau), float(tau) * (1.0 + 1e-12), float(np.nextafter(np.float32(tau), np.float32(2.0)))):
+            want = int(disturbed_voxels(eta[:, idx], after, t, excluded).sum())
+            assert count_disturbed(eta, idx, after, t, excluded) == want, (t, layout)

@@ -261,3 +261,65 @@ def test_a_way_out_meets_a_voxel_exactly_when_it_sweeps_it(seed: int, n: int, li
     off = np.zeros(GRID.size, dtype=bool)
     off[rng.choice(np.setdiff1d(np.arange(GRID.size), path))] = True
     assert not way_out_meets(GRID, body, lift, off)
+
+
+# ------------------------------------------------------------------------------ the fused pass
+def _carried_reference(skill: GraspSkill, p: np.ndarray, objects: Objects, label: int, region: np.ndarray,
+                       occupied: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``GraspSkill._carried`` (numpy) and the body's sides one voxel in, as ``_lift`` had them."""
+    body, way = skill._carried(GRID, p, objects, label, region, occupied)
+    stride = GRID.shape[1] * GRID.shape[2]
+    return body, way, body[np.isin(body - stride, body) & np.isin(body + stride, body)]
+
+
+def _random_objects(rng: np.random.Generator) -> tuple[np.ndarray, Objects]:
+    """Random occupancy and random components: blobs, rings (a footprint with a hole), objects on the
+    floor, at the grid's border and floating, touching one another; ``p`` float32 with values at the
+    free threshold."""
+    nx, ny, nz = GRID.shape
+    labels = np.zeros(GRID.shape, np.int32)
+    for lab in range(1, int(rng.integers(2, 7))):
+        x0, y0 = int(rng.integers(0, nx - 3)), int(rng.integers(0, ny - 3))
+        x1, y1 = min(nx, x0 + int(rng.integers(2, 9))), min(ny, y0 + int(rng.integers(2, 9)))
+        z0 = int(rng.integers(0, 4))
+        z1 = min(nz, z0 + int(rng.integers(1, 15)))
+        block = np.zeros(GRID.shape, bool)
+        block[x0:x1, y0:y1, z0:z1] = True
+        if rng.random() < 0.4 and x1 - x0 >= 3 and y1 - y0 >= 3:  # a ring
+            block[x0 + 1:x1 - 1, y0 + 1:y1 - 1] = False
+        labels[block & (rng.random(GRID.shape) < 0.9)] = lab
+    p = rng.choice(np.array([0.0, 0.1, 0.3, 0.5, 0.9], np.float32), size=GRID.shape)
+    p[labels > 0] = 0.9
+    classes = np.arange(labels.max() + 1, dtype=np.int64)
+    return p, Objects(labels, classes, labels.astype(np.int64))
+
+
+def test_the_fused_carried_pass_equals_the_numpy_rules() -> None:
+    """``carried_way`` (one numba pass, what ``_lift`` uses) gives ``_carried``'s body and way and the
+    body's core, array for array, on random components, regions, margins and occupancy."""
+    from msmem_grasp.planning import carried_way
+
+    rng = np.random.default_rng(7)
+    compared = 0
+    for case in range(60):
+        p, objects = _random_objects(rng)
+        margin = float(rng.choice([0.0, 0.004, 0.01, 0.02, 0.03]))
+        skill = GraspSkill(GraspConfig(predictor="geometric", exit_margin_m=margin))
+        occupied = rng.random(GRID.size) < 0.2
+        for label in range(1, int(objects.labels.max()) + 1):
+            own = objects.voxels_of(label)
+            if not len(own):
+                continue
+            region = own[rng.random(len(own)) < float(rng.choice([0.05, 0.3, 1.0]))]
+            want = _carried_reference(skill, p, objects, label, region, occupied)
+            got = carried_way(GRID, p, objects, label, region, skill.config.geometric.free_threshold, margin,
+                              occupied)
+            for name, w, g in zip(("body", "way", "core"), want, got, strict=True):
+                assert g.dtype == w.dtype, (case, label, name)
+                assert np.array_equal(g, w), (case, label, name)
+            compared += 1
+    assert compared > 150
+    empty = carried_way(GRID, p, objects, 1, np.zeros(0, np.int64), 0.3, 0.02, occupied)
+    assert len(empty[0]) == 0
+    assert np.array_equal(empty[1], occupied)
+    assert empty[1] is not occupied

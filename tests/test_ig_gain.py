@@ -169,3 +169,67 @@ def test_the_kernels_class_sums_add_in_numpys_order(seed: int, layout: str, rows
     want = a.sum(axis=0)
     got = np.array([_sum(np.ascontiguousarray(a[:, j]), rows, sums_pairwise(a)) for j in range(a.shape[1])])
     np.testing.assert_array_equal(got, want)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from(["C", "F", "strided", "column"]), st.integers(1, 40),
+       st.integers(0, 300))
+def test_the_class_entropy_kernel_is_numpys_categorical_entropy_in_every_memory_layout(
+        seed: int, layout: str, classes: int, n: int) -> None:
+    # the float32 class sums and the float64 x log x sums add in numpy's order for the layout (one
+    # after the other, or pairwise): the same float64 values, bit for bit
+    from msmem_core.map.gain import class_entropy
+    rng = np.random.default_rng(seed)
+    n = 1 if layout == "column" else n
+    eta = rng.uniform(1.0, 40.0, (classes, n)).astype(np.float32)
+    eta[rng.random((classes, n)) < 0.4] = 1.0  # the prior's evidence
+    eta[rng.random((classes, n)) < 0.05] = 1e6  # one class nearly certain
+    if layout == "F":
+        eta = np.asfortranarray(eta)
+    elif layout == "strided":
+        eta = np.repeat(eta, 2, axis=1)[:, ::2]
+    got = class_entropy(eta)
+    assert got.dtype == np.float64
+    assert got.shape == (n,)
+    np.testing.assert_array_equal(got, categorical_entropy(eta))
+
+
+@settings(max_examples=12, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from(["expected-reduction", "entropy"]), st.booleans())
+def test_the_batched_deltas_are_the_per_candidate_ones(seed: int, gain: str, no_gain: bool) -> None:
+    # the candidates' voxel values in one pass: every candidate's change exactly as belief_delta gives it,
+    # with its class evidence in either memory layout, one voxel or none changed, and walls among them
+    from msmem_core.map.belief import BeliefDelta
+
+    svc = IGService(GRID, CAM, small_views(), SHELF,
+                    IGConfig(gain=gain, predicted_entropy="no-gain" if no_gain else "as-predicted"))  # type: ignore[arg-type]
+    b = random_belief(seed)
+    base = svc.prepare(b)
+    rng = np.random.default_rng(seed)
+    f32 = np.float32
+    deltas = []
+    for k in range(7):
+        n = [0, 1, 2, 30, 400, 1200, 57][k]
+        idx = np.unique(rng.integers(0, GRID.size, n))
+        # large evidence: the class part is a small difference of logarithms, where the order of the
+        # class sums shows in float32
+        eta = rng.uniform(1, 3e4, (b.num_classes, len(idx))).astype(f32)
+        eta[rng.random(eta.shape) < 0.3] = 1.0
+        same = rng.random(len(idx)) < 0.2  # some voxels keep the base's evidence: no change
+        occ_only = rng.random(len(idx)) < 0.2  # others keep its occupancy evidence: only the class changes
+        alpha = rng.uniform(1, 30, len(idx)).astype(f32)
+        alpha[rng.random(len(idx)) < 0.2] = 1.0  # the prior: more to gain than the base (no-gain caps it)
+        beta = np.where(alpha == 1.0, f32(1.0), rng.uniform(1, 30, len(idx))).astype(f32)
+        alpha = np.where(same | occ_only, b.alpha.ravel()[idx], alpha).astype(f32)
+        beta = np.where(same | occ_only, b.beta.ravel()[idx], beta).astype(f32)
+        eta = np.where(same[None], b.eta.reshape(b.num_classes, -1)[:, idx], eta)
+        if k % 2:
+            eta = np.ascontiguousarray(eta.T).T
+        deltas.append(BeliefDelta(idx, alpha, beta, eta))
+    want = [svc.belief_delta(base, d) for d in deltas]
+    got = svc.belief_deltas(base, deltas)
+    assert len(got) == len(want)
+    for w, g in zip(want, got, strict=True):
+        for name in ("idx", "p", "H"):
+            assert getattr(g, name).dtype == getattr(w, name).dtype
+            np.testing.assert_array_equal(getattr(g, name), getattr(w, name))

@@ -442,3 +442,114 @@ def fill_down(grid: GridSpec, p: NDArray[np.floating], labels: NDArray[np.int32]
     ii, kk = np.nonzero(run)
     extra = (ci[ii] * grid.shape[1] + cj[ii]) * grid.shape[2] + kk
     return np.union1d(vox, extra)
+
+
+@njit(cache=True, fastmath=False)
+def _carried_way(region, label, p, labels, thr, k_floor, own, margin, nx, ny, nz, way):  # type: ignore[no-untyped-def]
+    ncol = nx * ny
+    low = np.full(ncol, nz, dtype=np.int64)  # per column, the region's lowest voxel (nz: none)
+    inb = np.zeros(ncol * nz, dtype=np.bool_)
+    for v in region:
+        c = v // nz
+        low[c] = min(low[c], v - c * nz)
+        inb[v] = True
+    near = np.zeros(ncol, dtype=np.bool_)
+    for c in range(ncol):
+        if low[c] == nz:
+            continue
+        k = low[c] - 1  # fill_down: the run of solid voxels of no other object right below, above the floor
+        while k >= k_floor:
+            lv = labels[c * nz + k]
+            if p[c * nz + k] >= thr and (lv == 0 or lv == label):
+                inb[c * nz + k] = True
+                k -= 1
+            else:
+                break
+        i, j = c // ny, c % ny  # Objects.carried: the columns within margin (a square: iterated 3x3 dilation)
+        for a in range(max(0, i - margin), min(nx, i + margin + 1)):
+            for b in range(max(0, j - margin), min(ny, j + margin + 1)):
+                near[a * ny + b] = True
+    if label > 0:
+        for v in own:
+            if near[v // nz]:
+                inb[v] = True
+    # the body, sorted; its top per column; its footprint
+    count = 0
+    top = np.full(ncol, -1, dtype=np.int64)
+    for c in range(ncol):
+        if not near[c]:
+            continue
+        for k in range(nz):
+            if inb[c * nz + k]:
+                count += 1
+                top[c] = k
+    body = np.empty(count, dtype=np.int64)
+    m = 0
+    for c in range(ncol):
+        if top[c] < 0:
+            continue
+        for k in range(top[c] + 1):
+            if inb[c * nz + k]:
+                body[m] = c * nz + k
+                m += 1
+    # the footprint's holes (binary_fill_holes, 4-connected background): background not reached from the border
+    reached = np.zeros(ncol, dtype=np.bool_)
+    stack = np.empty(ncol, dtype=np.int64)
+    ns = 0
+    for c in range(ncol):
+        i, j = c // ny, c % ny
+        if top[c] < 0 and (i == 0 or i == nx - 1 or j == 0 or j == ny - 1):
+            reached[c] = True
+            stack[ns] = c
+            ns += 1
+    while ns > 0:
+        ns -= 1
+        c = stack[ns]
+        i, j = c // ny, c % ny
+        for a, b in ((i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1)):
+            if 0 <= a < nx and 0 <= b < ny:
+                d = a * ny + b
+                if top[d] < 0 and not reached[d]:
+                    reached[d] = True
+                    stack[ns] = d
+                    ns += 1
+    for c in range(ncol):  # clear_under_top: under the top in its columns, all of the columns it surrounds
+        upto = top[c] if top[c] >= 0 else (nz if not reached[c] else 0)
+        for k in range(upto):
+            way[c * nz + k] = False
+    for v in body:
+        way[v] = False
+    # the body's sides one voxel in: voxels both of whose x neighbours are the body's
+    stride = ny * nz
+    keep = np.zeros(count, dtype=np.bool_)
+    for q in range(count):
+        v = body[q]
+        keep[q] = v >= stride and inb[v - stride] and v + stride < ncol * nz and inb[v + stride]
+    return body, body[keep]
+
+
+def carried_way(grid: GridSpec, p: NDArray[np.floating], objects: Objects, label: int, region: I64,
+                free_threshold: float, margin_m: float,
+                occupied: NDArray[np.bool_]) -> tuple[I64, NDArray[np.bool_], I64]:
+    """The grasp skill's carried body and what may stop it, in one pass: ``(body, way, core)`` with
+    ``body = objects.carried(grid, label, fill_down(grid, p, objects.labels, region, label, free_threshold),
+    margin_m)``, ``way`` a copy of the flat mask ``occupied`` with ``clear_under_top(grid, body, .)``
+    applied and the body's voxels cleared, and ``core`` the body's voxels both of whose x neighbours are
+    the body's (the same arrays as those numpy calls; a test compares them). An empty ``region``
+    carries nothing: ``(region, occupied.copy(), region)``."""
+    way = np.array(occupied, dtype=np.bool_).reshape(-1)  # a copy
+    region = np.asarray(region, dtype=np.int64)
+    if not len(region):
+        return region, way, region
+    nx, ny, nz = grid.shape
+    z = np.arange(nz)
+    above = np.flatnonzero(grid.origin[2] + (z + 0.5) * grid.voxel_m > 0.0)
+    k_floor = int(above[0]) if len(above) else nz
+    pf = np.asarray(p).reshape(-1)
+    # the threshold as numpy compares it: a Python float against a float32 array is a float32
+    thr = pf.dtype.type(free_threshold)
+    own = objects.voxels_of(label) if label > 0 else np.zeros(0, np.int64)
+    margin = math.floor(margin_m / grid.voxel_m + 1e-9)
+    body, core = _carried_way(region, int(label), pf, np.asarray(objects.labels, dtype=np.int32).reshape(-1), thr,
+                              k_floor, own, max(margin, 0), nx, ny, nz, way)
+    return body, way, core

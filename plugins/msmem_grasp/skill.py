@@ -88,6 +88,7 @@ from msmem_grasp.geometric import GeometricConfig, predict_geometric
 from msmem_grasp.planning import (
     Objects,
     blocked_mask,
+    carried_way,
     clear_under_top,
     fill_down,
     gripper_points,
@@ -97,7 +98,6 @@ from msmem_grasp.planning import (
     segment_paths,
     sweep_hits,
     swept_indices,
-    voxel_centres,
     way_out_meets,
 )
 
@@ -711,10 +711,15 @@ class GraspSkill(Skill):
         pts = gripper_points(cfg.gripper, width, s / 2, cfg.tolerance_m, cfg.hand_m)
         r = pose[:3, :3]
         grip_top = float((pts @ r.T)[:, 2].max()) + pose[2, 3]
-        body, occupied = self._carried(grid, p, objects, label, region, occupied_objects)
-        obj_top = float(voxel_centres(grid, body)[:, 2].max()) + s / 2 if len(body) else pose[2, 3]
+        if occupied_objects is None:
+            occupied_objects = self.believed_objects(p, objects)
+        # _carried's body and way in one pass, with the body's sides one voxel in (core, below)
+        body, occupied, core = carried_way(grid, p, objects, label, region, cfg.geometric.free_threshold,
+                                           cfg.exit_margin_m, occupied_objects)
+        heights = body % grid.shape[2]
+        obj_top = float(grid.origin[2] + (heights.max() + 0.5) * s) + s / 2 if len(body) else pose[2, 3]
         if extents is not None:
-            floor = float(grid.origin[2] + s * np.unravel_index(body, grid.shape)[2].min()) if len(body) else 0.0
+            floor = float(grid.origin[2] + s * heights.min()) if len(body) else 0.0
             taller = [e for e in extents if floor + e >= obj_top - s - 1e-9]
             obj_top = max(obj_top, floor + min(taller)) if taller else obj_top
         room = top - max(grip_top, obj_top)
@@ -726,10 +731,8 @@ class GraspSkill(Skill):
             return None  # a short lift, near the shelf top: only with the fingers' full margin around the object
         if stages is not None:
             stages["under_top"] = stages.get("under_top", 0) + 1
-        # its sides one voxel in (a voxel both of whose x neighbours are the body's): a neighbour whose
+        # core: its sides one voxel in (a voxel both of whose x neighbours are the body's): a neighbour whose
         # voxels overlap the body's silhouette by one voxel is within the voxels' slack of it, not in its way
-        stride = grid.shape[1] * grid.shape[2]
-        core = body[np.isin(body - stride, body) & np.isin(body + stride, body)]
         first = max(0, math.ceil(low / s - 1e-9))
         last = min(int(np.floor(min(room, cfg.max_lift_m) / s + 1e-9)), first + 20)
         for k in range(first, max(first, last) + 1):

@@ -57,7 +57,7 @@ def best_view(values: NDArray[np.float64], mask: NDArray[np.bool_] | None) -> ND
 def ig_deltas(ctx: DecisionContext, batch: CandidateBatch) -> list[IGDelta]:
     """The IG-field change of each manipulation candidate (from its ``Prediction.changes``)."""
     assert batch.prediction is not None
-    return [ctx.ig.belief_delta(ctx.field, d) for d in batch.prediction.changes]
+    return ctx.ig.belief_deltas(ctx.field, batch.prediction.changes)
 
 
 def _manipulation_state(ctx: DecisionContext, batch: CandidateBatch, cfg: IGTermConfig) -> dict[str, Any]:
