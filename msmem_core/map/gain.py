@@ -57,15 +57,15 @@ def _sum(x, n, pairwise):
     return r
 
 
-@njit(cache=True, fastmath=False, parallel=True)
-def _class_entropy(eta, pairwise, out):
+@njit(cache=True, fastmath=False)
+def _class_entropy(eta, pairwise, out):  # serial: the term calls it on a few hundred voxels at a time
     nc, m = eta.shape
-    for i in prange(m):
-        e = np.empty(nc, dtype=np.float32)
+    e = np.empty(nc, dtype=np.float32)
+    xl = np.empty(nc)
+    for i in range(m):
         for c in range(nc):
             e[c] = eta[c, i]
         s = _sum(e, nc, pairwise)
-        xl = np.empty(nc)
         for c in range(nc):
             xl[c] = _xlogx(np.float64(e[c] / s))
         out[i] = -_sum(xl, nc, pairwise)
@@ -74,7 +74,7 @@ def _class_entropy(eta, pairwise, out):
 def class_entropy(eta: NDArray[np.floating]) -> NDArray[np.float64]:
     """float64 [M]: ``belief.categorical_entropy`` of float32 Dirichlet evidence ``eta`` [C, M], the same
     values (float32 sums and division, float64 ``x log x`` summed in numpy's order for the array's
-    layout; tests/test_ig_gain.py) in one parallel pass instead of five temporary arrays. Other dtypes
+    layout; tests/test_ig_gain.py) in one pass instead of five temporary arrays. Other dtypes
     and shapes go to numpy."""
     eta = np.asarray(eta)
     if eta.dtype != np.float32 or eta.ndim != 2 or eta.shape[0] == 0:

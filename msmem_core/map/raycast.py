@@ -532,26 +532,27 @@ def ig_views_delta(p, h, stop, slot, pu, hu, cand_ptr, cand_k, origins, dirs, t_
                                 ag[nact] = ig
                                 nact += 1
                     if sl >= 0 or pv != 0.0 or hv != 0.0:
+                        # the candidates' rays, in step with the base ray: first every update (on a voxel
+                        # no candidate changes, one loop the compiler vectorises), then the finished ones out
+                        if sl >= 0:
+                            for a in range(nact):
+                                k = act[a]
+                                ag[a] = ag[a] + hu[sl, k] * atr[a]
+                                atr[a] = atr[a] * (1.0 - pu[sl, k])
+                        else:
+                            q = 1.0 - pv
+                            for a in range(nact):
+                                ag[a] = ag[a] + hv * atr[a]
+                                atr[a] = atr[a] * q
                         a = 0
-                        while a < nact:  # the candidates' rays, in step with the base ray
-                            k = act[a]
-                            if sl >= 0:
-                                pk = pu[sl, k]
-                                hk = hu[sl, k]
-                            else:
-                                pk = pv
-                                hk = hv
-                            g = ag[a] + hk * atr[a]
-                            tr = atr[a] * (1.0 - pk)
-                            if tr <= eps:  # this candidate's ray is finished
-                                fin[k] = g
+                        while a < nact:
+                            if atr[a] <= eps:  # this candidate's ray is finished
+                                fin[act[a]] = ag[a]
                                 nact -= 1
                                 act[a] = act[nact]
                                 atr[a] = atr[nact]
                                 ag[a] = ag[nact]
                             else:
-                                ag[a] = g
-                                atr[a] = tr
                                 a += 1
                     if not done:
                         ig += hv * trans
