@@ -914,3 +914,28 @@ def test_the_tools_corner_extent_is_that_of_its_corner_arrays(palm: str, x: floa
     corners = np.concatenate([box_corners(np.array([x, y]), u, b) for b in boxes])
     want = (corners[:, 0].min(), corners[:, 0].max(), corners[:, 1].min(), corners[:, 1].max())
     assert corners_extent(np.array([x, y]), u, boxes) == tuple(float(v) for v in want)
+
+
+def test_the_chain_room_kernel_is_the_python_rule() -> None:
+    """``geometry.chain_room`` (what proposals use) returns what ``_chain_room_reference`` does, float for
+    float, at every call of proposals on random shelves, with and without the fall rules, a chain's
+    travel limit and the trip rule, with its cap and without."""
+    calls = 0
+
+    class Both(PushSkill):
+        def _chain_room(self, t, u, grid, chain, cap=np.inf, floor_z=0.0):  # type: ignore[no-untyped-def]
+            nonlocal calls
+            fast = super()._chain_room(t, u, grid, chain, cap, floor_z)
+            for c in (cap, np.inf):
+                assert super()._chain_room(t, u, grid, chain, c, floor_z) == self._chain_room_reference(
+                    t, u, grid, chain, c, floor_z), (t.key, u, c)
+            calls += 1
+            return fast
+
+    configs = [PushConfig(), PushConfig(chain_travel_m=0.03), PushConfig(trip_height_ratio=2.0, max_height_ratio=4.0),
+               PushConfig(trip_height_ratio=None, max_pushes_per_object=None, chain_clearance_m=0.0)]
+    for seed in range(6):
+        belief = synthetic_belief(seed)
+        for cfg in configs:
+            Both(cfg).propose(_ctx(belief, seed=seed))
+    assert calls > 300

@@ -367,3 +367,53 @@ def footprint_sweep_hits(cells, u, steps, s, labels, wall):  # type: ignore[no-u
         if hit:
             return t, first
     return -1, first
+
+
+@njit(cache=True, fastmath=False)
+def chain_room(target_cells, target_height, u, steps, s, labels, wall, own, fragile, heights, cell_ptr, cell_ij,
+               clearance, trip_ratio, use_trip, travel, use_travel):  # type: ignore[no-untyped-def]
+    """``PushSkill._chain_room`` in one pass (the same rule and float arithmetic, a test compares them):
+    how far the target (``target_cells`` [N, 2], believed ``target_height`` above the floor) can be
+    pushed along ``u`` before a chain object enters ``wall`` or meets a fragile one (or trips over a
+    much lower one with ``use_trip``), less ``clearance``. Per label (index): ``own`` the target's own
+    labels, ``fragile``, ``heights`` above the floor, and its cells ``cell_ij[cell_ptr[k]:cell_ptr[k + 1]]``.
+    The objects are taken in order of the target travel at which they start moving (ties: lower label
+    first, the target, label 0, first of all)."""
+    n_lab = heights.shape[0]
+    queued = np.full(n_lab, np.inf)  # the travel at which a label waits in the queue (inf: not queued)
+    queued[0] = 0.0
+    start = np.full(n_lab, np.inf)
+    room = np.inf
+    while True:
+        k = -1
+        e = np.inf
+        for j in range(n_lab):  # the queue's smallest (travel, label)
+            if queued[j] < e:
+                e = queued[j]
+                k = j
+        if k < 0:
+            break
+        queued[k] = np.inf
+        if e >= room:
+            break
+        if k == 0:
+            at_wall, first = footprint_sweep_hits(target_cells, u, steps, s, labels, wall)
+            height = target_height
+        else:
+            at_wall, first = footprint_sweep_hits(cell_ij[cell_ptr[k]:cell_ptr[k + 1]], u, steps, s, labels, wall)
+            height = heights[k]
+        if at_wall >= 0:
+            room = min(room, e + (steps[at_wall] - s / 2))
+        for j in range(first.shape[0]):
+            if first[j] < 0 or own[j] or j == k:
+                continue
+            d = e + (steps[first[j]] - s / 2)
+            trips = use_trip and height > trip_ratio * heights[j]
+            if fragile[j] or trips:  # a thin, tall object would be pushed or trip the mover: stop before it
+                room = min(room, d)
+            elif d < start[j] and d < room:
+                start[j] = d
+                queued[j] = d
+                if use_travel:  # a driven object moves at most this far
+                    room = min(room, d + travel + clearance)
+    return room - clearance

@@ -68,6 +68,7 @@ from msmem_core.world.meshes import stance_ratio
 from msmem_core.world.scene import ObjectClass, ShelfSpec
 from msmem_push.geometry import (
     Box,
+    chain_room,
     corners_extent,
     footprint_sweep_hits,
     gripper_pose,
@@ -357,11 +358,41 @@ class _Chain:
     """Each label's cells [N, 2], filled as chains reach them (shared by all candidates of a proposal)."""
     owners: dict[tuple[int, int], set[int]] = field(default_factory=dict)
     """Per target (``_Target.key``), the labels of its footprint (filled as targets are sampled)."""
+    masks: dict[tuple[Any, ...], NDArray[np.bool_]] = field(default_factory=dict)
+    """``owners`` as masks over labels (``own_mask``)."""
 
     def cells_of(self, k: int) -> NDArray[np.int64]:
         if k not in self.cells:
             self.cells[k] = np.argwhere(self.labels == k)
         return self.cells[k]
+
+    @functools.cached_property
+    def tables(self) -> tuple[NDArray[np.bool_], NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]]:
+        """Per label (index, 0: none), for ``geometry.chain_room``: fragile, height (inf where none), and
+        every label's cells as ``cell_ij[cell_ptr[k]:cell_ptr[k + 1]]`` (in ``cells_of``'s order)."""
+        n = int(self.labels.max()) + 1
+        fragile = np.zeros(n, dtype=bool)
+        fragile[[k for k in self.fragile if 0 <= k < n]] = True
+        heights = np.full(n, np.inf)
+        for k, h in self.heights.items():
+            if 0 <= k < n:
+                heights[k] = h
+        flat = self.labels.reshape(-1)
+        order = np.argsort(flat, kind="stable")  # row-major within each label, as argwhere
+        ptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(flat, minlength=n), out=ptr[1:])
+        ij = np.stack(np.unravel_index(order, self.labels.shape), axis=-1).astype(np.int64)
+        return fragile, heights, ptr, ij
+
+    def own_mask(self, t: _Target) -> NDArray[np.bool_]:
+        """The labels of target ``t``'s footprint, as a mask over labels (cached per target)."""
+        key = ("mask", *t.key)
+        if key not in self.masks:
+            own = np.zeros(int(self.labels.max()) + 1, dtype=bool)
+            own[np.unique(self.labels[t.foot])] = True
+            own[0] = False
+            self.masks[key] = own
+        return self.masks[key]
 
 
 class PushSkill(Skill):
@@ -614,6 +645,20 @@ class PushSkill(Skill):
 
     def _chain_room(self, t: _Target, u: NDArray[np.float64], grid: Any, chain: _Chain, cap: float = np.inf,
                     floor_z: float = 0.0) -> float:
+        """:meth:`_chain_room_reference` in one numba pass (``geometry.chain_room``; a test compares them)."""
+        cfg = self.config
+        s = grid.voxel_m
+        far = min(cfg.max_length_m, cap) + float(cfg.chain_clearance_m or 0.0) + s
+        steps = np.arange(s / 2, far, s / 2)
+        fragile, heights, ptr, ij = chain.tables
+        return float(chain_room(
+            t.cells, float(t.top_z - floor_z), np.asarray(u, dtype=np.float64), steps, s, chain.labels, chain.wall,
+            chain.own_mask(t), fragile, heights, ptr, ij, float(cfg.chain_clearance_m or 0.0),
+            float(cfg.trip_height_ratio or 0.0), cfg.trip_height_ratio is not None, float(cfg.chain_travel_m or 0.0),
+            cfg.chain_travel_m is not None))
+
+    def _chain_room_reference(self, t: _Target, u: NDArray[np.float64], grid: Any, chain: _Chain,
+                              cap: float = np.inf, floor_z: float = 0.0) -> float:
         """How far the target can be pushed along ``u`` before an object of the chain it drives enters a
         wall cell or meets a thin, tall object (or, with ``trip_height_ratio``, a moving object meets a
         much lower one), minus ``chain_clearance_m``; ``floor_z`` is the shelf floor's height. Each moving object's
