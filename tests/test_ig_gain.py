@@ -233,3 +233,29 @@ def test_the_batched_deltas_are_the_per_candidate_ones(seed: int, gain: str, no_
         for name in ("idx", "p", "H"):
             assert getattr(g, name).dtype == getattr(w, name).dtype
             np.testing.assert_array_equal(getattr(g, name), getattr(w, name))
+
+
+def test_the_class_entropy_at_some_voxels_is_the_whole_arrays_there() -> None:
+    # at idx only, but with the sums of the whole array's layout (eta[:, idx] is column-major: its
+    # sums would be pairwise where the whole C-ordered array's are not)
+    from msmem_core.map.gain import class_entropy_at
+    rng = np.random.default_rng(5)
+    eta = rng.uniform(1.0, 3e4, (15, 4000)).astype(np.float32)
+    eta[rng.random(eta.shape) < 0.4] = 1.0
+    idx = np.unique(rng.integers(0, 4000, 900))
+    for a in (eta, np.asfortranarray(eta)):
+        np.testing.assert_array_equal(class_entropy_at(a, idx), categorical_entropy(a)[idx])
+    assert not np.array_equal(categorical_entropy(eta[:, idx]), categorical_entropy(eta)[idx])
+
+
+def test_the_batched_class_entropies_are_each_arrays_own() -> None:
+    from msmem_core.map.gain import class_entropies, class_entropy
+    rng = np.random.default_rng(9)
+    etas = []
+    for k, n in enumerate([0, 1, 2, 700, 33, 1500]):
+        e = rng.uniform(1.0, 3e4, (15, n)).astype(np.float32)
+        e[rng.random(e.shape) < 0.4] = 1.0
+        etas.append(np.ascontiguousarray(e.T).T if k % 2 else e)  # both layouts: pairwise and not
+    got = class_entropies(etas)
+    for e, g in zip(etas, got, strict=True):
+        np.testing.assert_array_equal(g, class_entropy(e))

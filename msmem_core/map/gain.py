@@ -12,10 +12,14 @@ of every push and grasp candidate.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numba import njit, prange
 from numpy.typing import NDArray
+
+_CHUNK = 256
+"""Voxels per task of the parallel kernels."""
 
 
 @njit(cache=True, fastmath=False, inline="always")
@@ -58,13 +62,15 @@ def _sum(x, n, pairwise):
 
 
 @njit(cache=True, fastmath=False)
-def _class_entropy(eta, pairwise, out):  # serial: the term calls it on a few hundred voxels at a time
-    nc, m = eta.shape
+def _class_entropy(eta, idx, pairwise, out):  # serial: the term calls it on a few hundred voxels at a time
+    nc = eta.shape[0]
+    m = out.shape[0]
     e = np.empty(nc, dtype=np.float32)
     xl = np.empty(nc)
     for i in range(m):
+        v = idx[i] if idx.shape[0] else i  # the voxel: idx[i], or i without idx
         for c in range(nc):
-            e[c] = eta[c, i]
+            e[c] = eta[c, v]
         s = _sum(e, nc, pairwise)
         for c in range(nc):
             xl[c] = _xlogx(np.float64(e[c] / s))
@@ -82,12 +88,50 @@ def class_entropy(eta: NDArray[np.floating]) -> NDArray[np.float64]:
 
         return categorical_entropy(eta)
     out = np.empty(eta.shape[1])
-    _class_entropy(eta, sums_pairwise(eta), out)
+    _class_entropy(eta, np.zeros(0, dtype=np.int64), sums_pairwise(eta), out)
     return out
 
 
-_CHUNK = 256
-"""Voxels per task of the parallel kernel."""
+@njit(cache=True, fastmath=False, parallel=True)
+def _class_entropy_flags(eta, pairwise, out):
+    nc = eta.shape[0]
+    m = out.shape[0]
+    for chunk in prange((m + _CHUNK - 1) // _CHUNK):
+        e = np.empty(nc, dtype=np.float32)
+        xl = np.empty(nc)
+        for i in range(chunk * _CHUNK, min(m, (chunk + 1) * _CHUNK)):
+            for c in range(nc):
+                e[c] = eta[c, i]
+            s = _sum(e, nc, pairwise[i])
+            for c in range(nc):
+                xl[c] = _xlogx(np.float64(e[c] / s))
+            out[i] = -_sum(xl, nc, pairwise[i])
+
+
+def class_entropies(etas: Sequence[NDArray[np.float32]]) -> list[NDArray[np.float64]]:
+    """``[class_entropy(e) for e in etas]`` (the same arrays: each voxel's sums in its own array's
+    order) from one parallel pass over all of them."""
+    etas = [np.asarray(e) for e in etas]
+    if len(etas) < 2 or any(e.dtype != np.float32 or e.ndim != 2 or e.shape[0] != etas[0].shape[0] or e.shape[0] == 0
+                            for e in etas):
+        return [class_entropy(e) for e in etas]
+    sizes = [e.shape[1] for e in etas]
+    flags = np.repeat(np.array([sums_pairwise(e) for e in etas], dtype=bool), sizes)
+    out = np.empty(int(sum(sizes)))
+    _class_entropy_flags(np.concatenate(etas, axis=1), flags, out)
+    return np.split(out, np.cumsum(sizes)[:-1])
+
+
+def class_entropy_at(eta: NDArray[np.float32], idx: NDArray[np.int64]) -> NDArray[np.float64]:
+    """``class_entropy(eta)[idx]`` for float32 ``eta`` [C, N], computed at ``idx`` only (with the sums
+    in the order numpy adds them over the whole of ``eta``, which differs from ``eta[:, idx]``'s)."""
+    eta = np.asarray(eta)
+    idx = np.asarray(idx, dtype=np.int64)
+    if eta.dtype != np.float32 or eta.ndim != 2 or eta.shape[0] == 0 or not len(idx):
+        return class_entropy(eta)[idx]
+    out = np.empty(len(idx))
+    _class_entropy(eta, idx, sums_pairwise(eta), out)
+    return out
 
 
 @njit(cache=True, fastmath=False, parallel=True)

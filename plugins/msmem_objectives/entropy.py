@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict
 
 from msmem_core.interfaces import CandidateBatch, Category, DecisionContext, Term
-from msmem_core.map.gain import class_entropy
+from msmem_core.map.gain import class_entropies, class_entropy, class_entropy_at
 
 
 class SemanticEntropyConfig(BaseModel):
@@ -54,11 +54,20 @@ class SemanticEntropyTerm(Term):
         eta0 = pred.base.eta.reshape(pred.base.num_classes, -1)
         out = np.zeros(len(pred))
         # the base belief's entropy per voxel: once for the whole grid where the changes cover more voxels
-        # (belief.categorical_entropy's values, from one numba pass: gain.class_entropy)
-        h0 = class_entropy(eta0) if sum(len(d.idx) for d in pred.changes) > eta0.shape[1] else None
+        # (belief.categorical_entropy's values, from one numba pass: gain.class_entropy; the whole grid's
+        # at the changed voxels only)
+        h0 = None
+        if sum(len(d.idx) for d in pred.changes) > eta0.shape[1]:
+            changed = np.zeros(eta0.shape[1], dtype=bool)
+            for d in pred.changes:
+                changed[d.idx] = True
+            union = np.flatnonzero(changed)
+            h0 = np.empty(eta0.shape[1])
+            h0[union] = class_entropy_at(eta0, union)
+        after = class_entropies([d.eta for d in pred.changes])
         for k, d in enumerate(pred.changes):
             before = h0[d.idx] if h0 is not None else class_entropy(eta0[:, d.idx])
-            dh = before - class_entropy(d.eta)
+            dh = before - after[k]
             gone = pred.excluded_among(k) if self.config.removal == "exempt" else None
             out[k] = float(dh.sum() if gone is None else dh[~gone].sum())
         return np.minimum(0.0, out) if self.config.clip else out
