@@ -593,7 +593,7 @@ class GraspSkill(Skill):
         n = len(c.grasps)
         # the open gripper's points of every candidate, rotated as the grasp holds them
         pts = gripper_points_batch(cfg.gripper, c.opening, s / 2, cfg.tolerance_m, cfg.hand_m)
-        local = np.stack([pts[i] @ c.poses[i, :3, :3].T for i in range(n)])
+        local = np.matmul(pts, c.poses[:, :3, :3].transpose(0, 2, 1))  # pts[i] @ R_i.T, one BLAS call per i
         # first test of step 4 for all candidates at once: the open gripper at the grasp
         at_grasp = sweep_hits(grid, c.blocked, c.objects.labels, local, c.poses[:, :3, 3], np.arange(n + 1),
                               np.arange(n), c.label, c.poses, c.opening, cfg.max_object_radius_m)
@@ -622,8 +622,7 @@ class GraspSkill(Skill):
                 if grown is not None:
                     points = gripper_points_batch(cfg.gripper, c.opening[chunk], s / 2, -cfg.move_in_clearance_m,
                                                   cfg.hand_m)
-                    for j, k in enumerate(chunk):
-                        grown[k] = points[j] @ c.poses[k, :3, :3].T
+                    grown[chunk] = np.matmul(points, c.poses[chunk, :3, :3].transpose(0, 2, 1))
                 approaches.update(self._plan_approaches(grid, c, local, chunk, grown))
                 planned.update(chunk.tolist())
             pose = c.poses[i]
