@@ -939,3 +939,32 @@ def test_the_chain_room_kernel_is_the_python_rule() -> None:
         for cfg in configs:
             Both(cfg).propose(_ctx(belief, seed=seed))
     assert calls > 300
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_where_a_push_line_last_crosses_the_footprint_is_the_array_rule(seed: int) -> None:
+    """``geometry.last_on_footprint`` (what ``_candidate`` uses) is the numpy rule it replaces: the
+    last of the points ``q - ts * u`` whose cell ``floor(((q - ts * u) - o) / s)`` is in the footprint."""
+    from msmem_push.geometry import last_on_footprint
+
+    rng = np.random.default_rng(seed)
+    s = 0.01
+    foot = rng.random((30, 20)) < 0.05
+    foot[rng.integers(0, 30), :] = True
+    ts = np.arange(0.0, 0.6, s / 8)
+    o = np.array([-0.15, -0.1])
+    for _ in range(50):
+        q = o + rng.uniform(-0.05, 0.35, 2)
+        if rng.random() < 0.5:  # on cell boundaries, where the order of the arithmetic decides the cell
+            q = o + rng.integers(0, 25, 2) * s
+        a = rng.uniform(0, 2 * np.pi)
+        u = np.array([np.cos(a), np.sin(a)])
+        if rng.random() < 0.3:
+            u = np.round(u)
+        ij = np.floor(((q[None, :] - ts[:, None] * u[None, :]) - o) / s).astype(np.int64)
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < 30) & (ij[:, 1] >= 0) & (ij[:, 1] < 20)
+        inside = np.zeros(len(ts), dtype=bool)
+        inside[ok] = foot[ij[ok, 0], ij[ok, 1]]
+        want = int(np.flatnonzero(inside).max()) if inside.any() else -1
+        assert last_on_footprint(q[0], q[1], u[0], u[1], ts, o[0], o[1], s, foot) == want

@@ -299,7 +299,10 @@ class Objects:
         if not len(vox) or label <= 0:
             return np.zeros(0, np.int64)
         s = grid.voxel_m
-        local = (voxel_centres(grid, vox) - pose[:3, 3]) @ pose[:3, :3]
+        centres = self.__dict__.setdefault("_centres", {})  # per label, cached as voxels_of
+        if label not in centres:
+            centres[label] = voxel_centres(grid, vox)
+        local = (centres[label] - pose[:3, 3]) @ pose[:3, :3]
         keep = (np.abs(local[:, 0]) <= opening_m / 2 + s / 2) & (np.abs(local[:, 1]) <= max_radius_m)
         keep &= (local[:, 2] >= -max_radius_m) & (local[:, 2] <= max_depth_m)
         return vox[keep]

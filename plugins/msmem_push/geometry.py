@@ -417,3 +417,18 @@ def chain_room(target_cells, target_height, u, steps, s, labels, wall, own, frag
                 if use_travel:  # a driven object moves at most this far
                     room = min(room, d + travel + clearance)
     return room - clearance
+
+
+@njit(cache=True, fastmath=False)
+def last_on_footprint(q0, q1, u0, u1, ts, o0, o1, s, foot):  # type: ignore[no-untyped-def]
+    """The largest index i of ``ts`` whose point ``q - ts[i] * u`` lies in a cell of ``foot`` [X, Y]
+    (cells of size ``s`` from the origin ``(o0, o1)``), -1 if none: where a push line through ``q``
+    along ``u``, followed back, last crosses the footprint. The same arithmetic as
+    ``floor(((q - ts * u) - o) / s)`` on arrays."""
+    nx, ny = foot.shape
+    for i in range(ts.shape[0] - 1, -1, -1):
+        x = math.floor(((q0 - ts[i] * u0) - o0) / s)
+        y = math.floor(((q1 - ts[i] * u1) - o1) / s)
+        if 0 <= x < nx and 0 <= y < ny and foot[x, y]:
+            return i
+    return -1

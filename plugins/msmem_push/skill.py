@@ -72,6 +72,7 @@ from msmem_push.geometry import (
     corners_extent,
     footprint_sweep_hits,
     gripper_pose,
+    last_on_footprint,
     leading_half_depth,
     swept_extent,
     swept_voxels,
@@ -724,14 +725,11 @@ class PushSkill(Skill):
             u = np.round(u)
         # follow the line through the object's centre back (against u) to where it enters the footprint
         ts = _line_steps(s)
-        pts = q[None, :] - ts[:, None] * u[None, :]
-        ij = np.floor((pts - o[:2]) / s).astype(np.int64)
-        ok = (ij[:, 0] >= 0) & (ij[:, 0] < grid.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < grid.shape[1])
-        inside = np.zeros(len(ts), dtype=bool)
-        inside[ok] = t.foot[ij[ok, 0], ij[ok, 1]]
-        if not inside.any():
+        last = last_on_footprint(float(q[0]), float(q[1]), float(u[0]), float(u[1]), ts, float(o[0]), float(o[1]), s,
+                                 t.foot)
+        if last < 0:
             return None
-        t_entry = ts[np.flatnonzero(inside).max()] + s / 8
+        t_entry = ts[last] + s / 8
         height = max(cfg.min_tool_height_m, min(cfg.tool_height_m, cfg.low_object_fraction * t.top_z))
         tool = self._tool(u)
         half_depth = _leading_half_depth(tool, height, t.top_z)
