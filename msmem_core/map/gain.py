@@ -127,7 +127,9 @@ def class_entropy_at(eta: NDArray[np.float32], idx: NDArray[np.int64]) -> NDArra
     in the order numpy adds them over the whole of ``eta``, which differs from ``eta[:, idx]``'s)."""
     eta = np.asarray(eta)
     idx = np.asarray(idx, dtype=np.int64)
-    if eta.dtype != np.float32 or eta.ndim != 2 or eta.shape[0] == 0 or not len(idx):
+    if not len(idx):
+        return np.zeros(0)
+    if eta.dtype != np.float32 or eta.ndim != 2 or eta.shape[0] == 0:
         return class_entropy(eta)[idx]
     out = np.empty(len(idx))
     _class_entropy(eta, idx, sums_pairwise(eta), out)
