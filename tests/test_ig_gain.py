@@ -233,6 +233,13 @@ def test_the_batched_deltas_are_the_per_candidate_ones(seed: int, gain: str, no_
         for name in ("idx", "p", "H"):
             assert getattr(g, name).dtype == getattr(w, name).dtype
             np.testing.assert_array_equal(getattr(g, name), getattr(w, name))
+    if gain == "expected-reduction" and not no_gain:  # each voxel's value as its own array gives it
+        from msmem_core.map.gain import voxel_information
+        for d, g in zip(deltas, got, strict=True):
+            walls = svc.walls[d.idx]
+            p, _ = svc._clamp((d.alpha / (d.alpha + d.beta)).astype(f32), walls)
+            h = voxel_information(d.alpha, d.beta, d.eta, p, walls, svc.config.observation_evidence, True)
+            np.testing.assert_array_equal(g.H, h[np.searchsorted(d.idx, g.idx)])
 
 
 def test_the_class_entropy_at_some_voxels_is_the_whole_arrays_there() -> None:

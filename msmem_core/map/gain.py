@@ -61,20 +61,24 @@ def _sum(x, n, pairwise):
     return r
 
 
+@njit(cache=True, fastmath=False, inline="always")
+def _entropy_at(eta, v, pairwise, e, xl):
+    """Column ``v``'s entropy (``e``: float32 scratch, ``xl``: float64 scratch, one per class)."""
+    nc = eta.shape[0]
+    for c in range(nc):
+        e[c] = eta[c, v]
+    s = _sum(e, nc, pairwise)
+    for c in range(nc):
+        xl[c] = _xlogx(np.float64(e[c] / s))
+    return -_sum(xl, nc, pairwise)
+
+
 @njit(cache=True, fastmath=False)
 def _class_entropy(eta, idx, pairwise, out):  # serial: the term calls it on a few hundred voxels at a time
-    nc = eta.shape[0]
-    m = out.shape[0]
-    e = np.empty(nc, dtype=np.float32)
-    xl = np.empty(nc)
-    for i in range(m):
-        v = idx[i] if idx.shape[0] else i  # the voxel: idx[i], or i without idx
-        for c in range(nc):
-            e[c] = eta[c, v]
-        s = _sum(e, nc, pairwise)
-        for c in range(nc):
-            xl[c] = _xlogx(np.float64(e[c] / s))
-        out[i] = -_sum(xl, nc, pairwise)
+    e = np.empty(eta.shape[0], dtype=np.float32)
+    xl = np.empty(eta.shape[0])
+    for i in range(out.shape[0]):
+        out[i] = _entropy_at(eta, idx[i] if idx.shape[0] else i, pairwise, e, xl)  # idx[i], or i without idx
 
 
 def class_entropy(eta: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -94,18 +98,12 @@ def class_entropy(eta: NDArray[np.floating]) -> NDArray[np.float64]:
 
 @njit(cache=True, fastmath=False, parallel=True)
 def _class_entropy_flags(eta, pairwise, out):
-    nc = eta.shape[0]
     m = out.shape[0]
     for chunk in prange((m + _CHUNK - 1) // _CHUNK):
-        e = np.empty(nc, dtype=np.float32)
-        xl = np.empty(nc)
+        e = np.empty(eta.shape[0], dtype=np.float32)
+        xl = np.empty(eta.shape[0])
         for i in range(chunk * _CHUNK, min(m, (chunk + 1) * _CHUNK)):
-            for c in range(nc):
-                e[c] = eta[c, i]
-            s = _sum(e, nc, pairwise[i])
-            for c in range(nc):
-                xl[c] = _xlogx(np.float64(e[c] / s))
-            out[i] = -_sum(xl, nc, pairwise[i])
+            out[i] = _entropy_at(eta, i, pairwise[i], e, xl)
 
 
 def class_entropies(etas: Sequence[NDArray[np.float32]]) -> list[NDArray[np.float64]]:

@@ -315,42 +315,35 @@ class IGService:
         Only the changed voxels are evaluated; voxels whose clamped ``p`` stays the same are dropped.
         Equal to ``field_delta(base, prepare(delta.apply(belief), before=base))``.
         """
-        idx = np.asarray(delta.idx, dtype=np.int64)
-        a = np.asarray(delta.alpha, dtype=np.float32)
-        p = (a / (a + np.asarray(delta.beta, dtype=np.float32))).astype(np.float32)
-        p, h = self._clamp(p, self.walls[idx])
-        if self._mem():
-            if base.observed_record:  # a predicted change clears the ray record where it writes
-                h = np.where(self.walls[idx], h, LN2).astype(np.float32)
-        elif base.observed_record:  # the prior's gain off the walls: one value, computed once
-            h = np.where(self.walls[idx], np.float32(0), self._prior_information(np.asarray(delta.eta).shape[0]))
-        else:
-            h = self._information(a, np.asarray(delta.beta, dtype=np.float32), np.asarray(delta.eta), p,
-                                  self.walls[idx])
-        if self.config.predicted_entropy == "no-gain":
-            h = np.minimum(h, base.H[idx])
-        keep = (p != base.p[idx]) | (h != base.H[idx])
-        return IGDelta(idx[keep], p[keep], h[keep])
+        return self.belief_deltas(base, [delta])[0]
 
     def belief_deltas(self, base: IGField, deltas: Sequence[BeliefDelta]) -> list[IGDelta]:
-        """``[belief_delta(base, d) for d in deltas]``, the same arrays (a test), with the voxel values of
-        all candidates from one parallel pass where ``belief_delta`` evaluates them per candidate (the
-        default: ``gain: expected-reduction``, a belief without a ray record)."""
-        if (len(deltas) < 2 or self._mem() or base.observed_record or self.config.gain != "expected-reduction"):
-            return [self.belief_delta(base, d) for d in deltas]
+        """:meth:`belief_delta` of each of ``deltas``, with every candidate's voxels evaluated together:
+        the default voxel values (``gain: expected-reduction``) of all of them in one parallel pass, each
+        voxel's class sums in the order numpy adds them in its own candidate's array."""
+        if not deltas:
+            return []
         sizes = np.array([len(d.idx) for d in deltas], dtype=np.int64)
         idx = np.concatenate([np.asarray(d.idx, dtype=np.int64) for d in deltas])
         a = np.concatenate([np.asarray(d.alpha, dtype=np.float32) for d in deltas])
         b = np.concatenate([np.asarray(d.beta, dtype=np.float32) for d in deltas])
         etas = [np.asarray(d.eta) for d in deltas]
-        eta = np.concatenate(etas, axis=1)
-        # each voxel's class sums in the order numpy adds them in its own candidate's array
-        pairwise = np.repeat(np.array([sums_pairwise(e) for e in etas], dtype=bool), sizes)
         p = (a / (a + b)).astype(np.float32)
         walls = self.walls[idx]
         p, h = self._clamp(p, walls)
-        h = voxel_information_of(a, b, eta, p, walls, self.config.observation_evidence,
-                                 self.config.information == "occupancy-and-class", pairwise)
+        if self._mem():
+            if base.observed_record:  # a predicted change clears the ray record where it writes
+                h = np.where(walls, h, LN2).astype(np.float32)
+        elif base.observed_record:  # the prior's gain off the walls: one value, computed once
+            h = np.where(walls, np.float32(0), self._prior_information(etas[0].shape[0]))
+        elif self.config.gain == "expected-reduction":
+            pairwise = np.repeat(np.array([sums_pairwise(e) for e in etas], dtype=bool), sizes)
+            h = voxel_information_of(a, b, np.concatenate(etas, axis=1), p, walls, self.config.observation_evidence,
+                                     self.config.information == "occupancy-and-class", pairwise)
+        else:  # numpy's sums follow each candidate's own array
+            bounds = np.concatenate([[0], np.cumsum(sizes)])
+            h = np.concatenate([self._information(a[lo:hi], b[lo:hi], e, p[lo:hi], walls[lo:hi])
+                                for lo, hi, e in zip(bounds[:-1], bounds[1:], etas, strict=True)])
         if self.config.predicted_entropy == "no-gain":
             h = np.minimum(h, base.H[idx])
         keep = (p != base.p[idx]) | (h != base.H[idx])
