@@ -25,7 +25,7 @@ from msmem_core.map import raycast
 from msmem_core.map.belief import EvidentialMap
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.scene import ShelfSpec
-from msmem_core.world.viewpoints import ViewpointConfig, generate_viewpoints
+from msmem_core.world.viewpoints import ViewpointConfig, front_views, generate_viewpoints
 
 GRID = GridSpec.around_box(ShelfSpec().interior_lower, ShelfSpec().interior_upper, 0.01, 1)
 SMALL = FPPConfig(ray_stride_px=8, num_points=2000)
@@ -230,3 +230,14 @@ def test_the_kernel_gives_the_reference_clouds(noisy: bool):
         _assert_same_cloud(project_surface(p, GRID, poses, cfg, bounds), ref)
     # frontier_points draws first and computes normals for the drawn points only: the same cloud
     _assert_same_cloud(frontier_points(belief, poses, cfg, shelf=ShelfSpec()), sample_cloud(ref, cfg.num_points, 5))
+
+
+def test_virtual_front_views_are_the_configs_front_views_and_a_callers_copy():
+    """Generated once per viewpoint config: the same poses as generating the set, and changing the
+    returned array does not change the next call's."""
+    for cfg in (ViewpointConfig(), ViewpointConfig(grid=3, radius_m=0.5)):
+        want = generate_viewpoints(cfg)[front_views(cfg)]
+        got = virtual_front_views(cfg)
+        np.testing.assert_array_equal(got, want)
+        got[:] = 0.0
+        np.testing.assert_array_equal(virtual_front_views(cfg), want)

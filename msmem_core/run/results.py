@@ -130,13 +130,31 @@ def table_one(folder: Path, root: Path,
                 cells.append(f"{diff:+.3f} [{lo:+.3f}, {hi:+.3f}]{_star(lo, hi)}")
             out.append(f"| {m} | " + " | ".join(cells) + " |")
     if full:
-        out += ["", claims(per, counts), "", table_two(folder, methods), "", tracking_section(folder),
-                "", funnel_section(folder)]
+        out += ["", claims(per, counts, same_episodes(folder, common)), "", table_two(folder, methods), "",
+                tracking_section(folder), "", funnel_section(folder)]
     return "\n".join(out)
 
 
-def claims(per: dict[str, dict[int, dict[str, Any]]], counts: dict[str, dict[int, Any]]) -> str:
-    """The targets of the paper's claims, each marked holds or fails on this folder."""
+def same_episodes(folder: Path, scenes: list[int]) -> dict[tuple[str, str], list[int]]:
+    """For each pair of methods, the scenes (of ``scenes``) on which both took the same episode: the
+    same skill at every step and the same map metrics after every step (``curves``), i.e. the methods
+    made the same choices there. A paired difference is 0 on those scenes by construction."""
+    eps = {(e["method"], e["scene_index"]): e for e in load_episodes(folder)}
+    methods = sorted({m for m, _ in eps})
+    out = {}
+    for a in methods:
+        for b in methods:
+            out[(a, b)] = [s for s in scenes if (a, s) in eps and (b, s) in eps
+                           and eps[(a, s)]["skills"] == eps[(b, s)]["skills"]
+                           and eps[(a, s)]["curves"] == eps[(b, s)]["curves"]]
+    return out
+
+
+def claims(per: dict[str, dict[int, dict[str, Any]]], counts: dict[str, dict[int, Any]],
+           same: dict[tuple[str, str], list[int]] | None = None) -> str:
+    """The targets of the paper's claims, each marked holds or fails on this folder; with ``same``
+    (:func:`same_episodes`), a comparison also says on how many scenes the two methods took the same
+    episode (where they did)."""
     def above(a: str, b: str, k: str) -> tuple[bool, str]:
         if a not in per or b not in per:
             return False, "not run"
@@ -144,10 +162,14 @@ def claims(per: dict[str, dict[int, dict[str, Any]]], counts: dict[str, dict[int
         mean, h = mean_ci([per[a][s][k] - per[b][s][k] for s in common])
         diff, lo, hi = cumulative_difference(counts[a], counts[b], k)
         ok = mean - h > 0 and lo > 0
-        return ok, f"per scene {mean:+.3f} ± {h:.3f}, pooled {diff:+.3f} [{lo:+.3f}, {hi:+.3f}]"
+        text = f"per scene {mean:+.3f} ± {h:.3f}, pooled {diff:+.3f} [{lo:+.3f}, {hi:+.3f}]"
+        if same is not None and same.get((a, b)):
+            text += f"; the same episode on {len(same[(a, b)])} of {len(common)} scenes"
+        return ok, text
 
-    lines = ["Claims (paired 95% intervals over scenes, per scene and pooled, both above 0 to hold):", "",
-             "| claim | holds | measured |", "|---|---|---|"]
+    lines = ["Claims (paired 95% intervals over scenes, per scene and pooled, both above 0 to hold; the same "
+             "episode: the same skill at every step and the same map metrics after it, i.e. the same choices):",
+             "", "| claim | holds | measured |", "|---|---|---|"]
     for a in ("grasp-only", "no-cdc", "ours"):
         ok, text = above(a, "view-only", "semantic_miou_2d")
         lines.append(f"| {a} above view-only, 2-D semantic mIoU | {'yes' if ok else 'no'} | {text} |")

@@ -28,6 +28,7 @@ Everything runs as array operations or numba kernels; no Python loop touches ray
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, fields
 
@@ -103,6 +104,15 @@ def virtual_front_views(viewpoints: ViewpointConfig | None = None) -> NDArray[np
     """Camera-to-world poses [G, 4, 4] of the virtual front cameras (``viewpoints.front_views``: each
     grid's centre view), used when no view has been visited (e.g. right after a manipulation)."""
     cfg = viewpoints or ViewpointConfig()
+    if cfg.poses_file is not None:  # read from a file each time: the file may change
+        return generate_viewpoints(cfg)[front_views(cfg)]
+    return _generated_front_views(cfg).copy()
+
+
+@functools.lru_cache(maxsize=8)
+def _generated_front_views(cfg: ViewpointConfig) -> NDArray[np.float64]:
+    """:func:`virtual_front_views` of a generated viewpoint set (the grasp skill asks every step; the
+    whole set takes 40 ms to generate)."""
     return generate_viewpoints(cfg)[front_views(cfg)]
 
 

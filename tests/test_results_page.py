@@ -1,0 +1,47 @@
+"""The generated results page's comparisons (``msmem_core.run.results``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from msmem_core.run.results import same_episodes
+from msmem_core.run.tracking import load_episodes
+
+TABLE1 = Path(__file__).resolve().parents[1] / "docs" / "results" / "table1"
+
+
+def _write(folder: Path, method: str, scene: int, skills: list[str], sem: list[float]) -> None:
+    (folder / "episodes").mkdir(parents=True, exist_ok=True)
+    episode = {"method": method, "scene_index": scene, "status": "ok", "skills": skills,
+               "curves": {"occupancy_miou": [0.8] * len(sem), "semantic_miou_2d": sem}}
+    (folder / "episodes" / f"{method}__scene{scene:02d}.json").write_text(json.dumps(episode))
+
+
+def test_same_episodes_need_the_same_skills_and_the_same_metrics_at_every_step(tmp_path: Path) -> None:
+    grasp = ["view", "grasp", "view"]
+    _write(tmp_path, "grasp-only", 0, grasp, [0.5, 0.6, 0.7])
+    _write(tmp_path, "ours", 0, grasp, [0.5, 0.6, 0.7])  # the same episode
+    _write(tmp_path, "grasp-only", 1, grasp, [0.5, 0.6, 0.7])
+    _write(tmp_path, "ours", 1, grasp, [0.5, 0.6, 0.71])  # another grasp: the same skills, other metrics
+    _write(tmp_path, "grasp-only", 2, grasp, [0.5, 0.6, 0.7])
+    _write(tmp_path, "ours", 2, ["view", "push", "view"], [0.5, 0.6, 0.7])  # another skill
+    _write(tmp_path, "grasp-only", 3, grasp, [0.5, 0.6, 0.7])  # ours did not run scene 3
+    same = same_episodes(tmp_path, [0, 1, 2, 3])
+    assert same[("ours", "grasp-only")] == [0]
+    assert same[("grasp-only", "ours")] == [0]
+    assert same[("grasp-only", "grasp-only")] == [0, 1, 2, 3]
+
+
+def test_on_the_committed_table_the_same_episodes_end_alike_and_the_others_differ() -> None:
+    eps = {(e["method"], e["scene_index"]): e for e in load_episodes(TABLE1)}
+    same = same_episodes(TABLE1, list(range(25)))
+    for a, b in (("ours", "grasp-only"), ("no-cdc", "grasp-only")):
+        assert same[(a, b)], f"{a} and {b} share no episode"
+        for s in range(25):
+            x, y = eps[(a, s)], eps[(b, s)]
+            if s in same[(a, b)]:
+                assert x["metrics"]["semantic_miou_2d"] == y["metrics"]["semantic_miou_2d"]
+            else:
+                assert x["skills"] != y["skills"] or x["curves"] != y["curves"]
+    assert not same[("ours", "view-only")]  # grasps make the episodes differ
