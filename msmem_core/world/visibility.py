@@ -322,7 +322,8 @@ class ObservableMask:
         pts = r[:, :3] + (t[hit][:, None] + nudge / np.linalg.norm(d, axis=1, keepdims=True)) * d
         idx = grid.index_of(pts)
         idx = idx[grid.contains_index(idx)]
-        return np.ravel_multi_index(idx.T, grid.shape).astype(np.int64)
+        flat: NDArray[np.int64] = np.asarray(np.ravel_multi_index(idx.T, grid.shape), dtype=np.int64)
+        return flat
 
 
 def count_views_seeing(
