@@ -16,7 +16,6 @@ from msmem_core.world.scene import ObjectSpec, ShelfSpec, object_class
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 from msmem_core.world.visibility import (
     HIT_NUDGE_VOXELS,
-    ObservableMask,
     count_views_seeing,
     hidden_objects,
     object_pixel_counts,
@@ -191,30 +190,6 @@ def test_observable_mask_drops_only_self_occluded_interiors() -> None:
     front = GRID.index_of([[0.0, 0.15 - 0.0415, 0.1]])[0]  # just behind the front face
     assert not mask[tuple(centre)]
     assert mask[tuple(front)]
-
-
-def test_observable_mask_of_moving_objects_recasts_only_what_moved() -> None:
-    """The episode's mask after a push or grasp: a warm :class:`ObservableMask` gives the mask a fresh
-    one gives, casting only the objects whose pose or spec changed."""
-    objs = [ObjectSpec(id=0, class_name="cracker_box", position_m=(-0.1, 0.1, 0.0)),
-            ObjectSpec(id=1, class_name="tuna_fish_can", position_m=(0.05, 0.2, 0.0)),
-            ObjectSpec(id=2, class_name="wood_block", position_m=(0.12, 0.12, 0.0))]
-    views = generate_viewpoints(ViewpointConfig(grid=3), SHELF)
-    warm = ObservableMask(SHELF, views, SMALL_CAMERA, GRID)
-    moved = {1: pose_matrix((0.0, 0.22, 0.0), yaw_quat(0.4))}
-    steps = [  # (objects, poses, objects cast by the warm instance)
-        (objs, None, 3),
-        (objs, moved, 1),  # one object moved
-        (objs, moved, 0),  # nothing moved
-        (objs[1:], moved, 0),  # one taken out
-        ([objs[1], objs[2].model_copy(update={"class_name": "foam_brick"})], moved, 1),  # another spec, same id
-    ]
-    for objects, poses, casts in steps:
-        before = warm.casts
-        got = warm(objects, poses)
-        assert warm.casts - before == casts
-        np.testing.assert_array_equal(got, ObservableMask(SHELF, views, SMALL_CAMERA, GRID)(objects, poses))
-    assert not np.array_equal(warm(objs, None), warm(objs, moved))  # the move changes the mask
 
 
 def test_default_viewpoints_are_in_front_and_look_at_their_targets() -> None:

@@ -62,7 +62,7 @@ from msmem_core.world.placement import check_placement
 from msmem_core.world.scene import ClassSpec, SceneSpec, class_mismatch
 from msmem_core.world.scenegen import generate_scene
 from msmem_core.world.viewpoints import default_start_view, generate_viewpoints
-from msmem_core.world.visibility import ObservableMask
+from msmem_core.world.visibility import observable_mask
 from msmem_core.world.voxelize import voxelize_instances
 
 
@@ -328,7 +328,6 @@ class MetricTracker:
         self.walls = shelf_wall_mask(self.grid, ep.scene.shelf)
         self.interior = shelf_interior_mask(self.grid, ep.scene.shelf)
         self.paper_counts: dict[str, list[int] | list[float]] = {}
-        self._observable = ObservableMask(ep.scene.shelf, ep.viewpoints, ep.cfg.camera, self.grid)
         self._refresh(self.initial)
 
     def _refresh(self, poses: dict[int, np.ndarray]) -> None:
@@ -342,7 +341,7 @@ class MetricTracker:
         self.gt_cls = lut[self.gt_inst + 1]  # same as voxelize(): where objects share a voxel the later one wins
         present = np.unique(self.gt_inst[self.gt_occ]).tolist()
         self.present_classes = {i: self.objects[i].class_id for i in present}
-        self.mask = self._observable(objs, poses)
+        self.mask = observable_mask(objs, poses, self.ep.scene.shelf, self.ep.viewpoints, self.ep.cfg.camera, self.grid)
         self._gt_poses = {k: v.copy() for k, v in poses.items()}
 
     def __call__(self, belief: EvidentialMap) -> dict[str, float]:

@@ -268,62 +268,27 @@ def observable_mask(
     viewpoint) hits it while its object stands alone in the empty shelf (boards still occlude);
     free voxels are always observable. Only rays whose pixel lies in the projection of the
     object's bounding box are cast. The mask is the same for every method on a scene.
-    :class:`ObservableMask` gives the same masks for a scene whose objects move, recasting only
-    the objects that moved.
     """
-    return ObservableMask(shelf, viewpoints, camera, grid, stride)(objects, poses)
-
-
-class ObservableMask:
-    """:func:`observable_mask` of one shelf, views and grid, for changing objects and poses.
-
-    Each object's observable voxels depend on that object and its pose only (it is cast alone with
-    the boards), so they are kept per object id, with the spec and pose they were cast for, and
-    cast again only when either differs (a grasp or a push recasts the objects it moved, not the
-    whole shelf). Equal to :func:`observable_mask` for every call (tested).
-    """
-
-    def __init__(
-        self, shelf: ShelfSpec, viewpoints: NDArray[np.float64], camera: CameraConfig, grid: GridSpec, stride: int = 4
-    ) -> None:
-        self._boards = shelf_meshes(shelf)
-        self._views, self._camera, self._grid, self._stride = viewpoints, camera, grid, stride
-        self._seen: dict[int, tuple[ObjectSpec, NDArray[np.float64], NDArray[np.int64]]] = {}
-        self.casts = 0
-        """Objects cast so far (the others came from the cache)."""
-
-    def __call__(self, objects: Sequence[ObjectSpec], poses: Poses | None) -> NDArray[np.bool_]:
-        grid = self._grid
-        occ, _ = voxelize(objects, grid, poses)
-        seen = np.zeros(grid.size, dtype=bool)
-        for obj in objects:
-            pose = current_pose(obj, poses)
-            kept = self._seen.get(obj.id)
-            if kept is None or kept[0] != obj or not np.array_equal(kept[1], pose):
-                kept = (obj, pose.copy(), self._cast_alone(obj, pose))
-                self._seen[obj.id] = kept
-                self.casts += 1
-            seen[kept[2]] = True
-        return (~occ) | seen.reshape(grid.shape)
-
-    def _cast_alone(self, obj: ObjectSpec, pose: NDArray[np.float64]) -> NDArray[np.int64]:
-        """Flat indices of the voxels the rays hit on ``obj`` at ``pose``, alone with the boards."""
-        grid, camera, views, stride = self._grid, self._camera, self._views, self._stride
-        mesh = object_mesh(obj, pose)
-        rays = _rays_at(_box_ray_indices(mesh.bounds, views, camera, stride), views, camera, stride)
+    occ, _ = voxelize(objects, grid, poses)
+    seen = np.zeros(grid.size, dtype=bool)
+    boards = shelf_meshes(shelf)
+    max_t = camera.far_m - camera.near_m
+    nudge = HIT_NUDGE_VOXELS * grid.voxel_m
+    for obj in objects:
+        mesh = object_mesh(obj, current_pose(obj, poses))
+        scene, ids = _raycasting_scene([mesh, *boards])
+        rays = _rays_at(_box_ray_indices(mesh.bounds, viewpoints, camera, stride), viewpoints, camera, stride)
         if len(rays) == 0:
-            return np.zeros(0, dtype=np.int64)
-        scene, ids = _raycasting_scene([mesh, *self._boards])
-        t, gid = _cast(scene, rays, camera.far_m - camera.near_m)
+            continue
+        t, gid = _cast(scene, rays, max_t)
         hit = gid == ids[0]
         r = rays[hit].astype(np.float64)
         d = r[:, 3:]
-        nudge = HIT_NUDGE_VOXELS * grid.voxel_m
         pts = r[:, :3] + (t[hit][:, None] + nudge / np.linalg.norm(d, axis=1, keepdims=True)) * d
         idx = grid.index_of(pts)
         idx = idx[grid.contains_index(idx)]
-        flat: NDArray[np.int64] = np.asarray(np.ravel_multi_index(idx.T, grid.shape), dtype=np.int64)
-        return flat
+        seen[np.ravel_multi_index(idx.T, grid.shape)] = True
+    return (~occ) | seen.reshape(grid.shape)
 
 
 def count_views_seeing(
