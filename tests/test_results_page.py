@@ -45,3 +45,19 @@ def test_on_the_committed_table_the_same_episodes_end_alike_and_the_others_diffe
             else:
                 assert x["skills"] != y["skills"] or x["curves"] != y["curves"]
     assert not same[("ours", "view-only")]  # grasps make the episodes differ
+
+
+def test_position_change_where_the_episodes_differ_counts_only_those_scenes() -> None:
+    from msmem_core.run.results import _where_differ
+
+    def row(pc: float, grasps: int, held: int) -> dict:
+        return {"position_change_m": pc, "grasps": grasps, "grasp_success": held / grasps if grasps else 0.0}
+
+    per = {"ours": {0: row(0.01, 2, 2), 1: row(0.30, 4, 1), 2: row(0.02, 3, 3)},
+           "no-cdc": {0: row(0.01, 2, 2), 1: row(0.10, 4, 3), 2: row(0.02, 3, 3)}}
+    text = _where_differ(per, {("ours", "no-cdc"): [0, 2]}, "ours", "no-cdc")
+    assert text == ("; on the scene where their episodes differ, 0.300 m against 0.100 m, "
+                    "grasps held 1 of 4 against 3 of 4")
+    assert _where_differ(per, {("ours", "no-cdc"): [0, 1, 2]}, "ours", "no-cdc") == ""  # the same everywhere
+    assert _where_differ(per, {("ours", "no-cdc"): []}, "ours", "no-cdc") == ""  # different everywhere
+    assert _where_differ(per, None, "ours", "no-cdc") == ""
