@@ -27,15 +27,16 @@ def test_same_episodes_need_the_same_skills_and_the_same_metrics_at_every_step(t
     _write(tmp_path, "grasp-only", 2, grasp, [0.5, 0.6, 0.7])
     _write(tmp_path, "ours", 2, ["view", "push", "view"], [0.5, 0.6, 0.7])  # another skill
     _write(tmp_path, "grasp-only", 3, grasp, [0.5, 0.6, 0.7])  # ours did not run scene 3
-    same = same_episodes(tmp_path, [0, 1, 2, 3])
+    same = same_episodes(load_episodes(tmp_path), [0, 1, 2, 3])
     assert same[("ours", "grasp-only")] == [0]
     assert same[("grasp-only", "ours")] == [0]
     assert same[("grasp-only", "grasp-only")] == [0, 1, 2, 3]
 
 
 def test_on_the_committed_table_the_same_episodes_end_alike_and_the_others_differ() -> None:
-    eps = {(e["method"], e["scene_index"]): e for e in load_episodes(TABLE1)}
-    same = same_episodes(TABLE1, list(range(25)))
+    episodes = load_episodes(TABLE1)
+    eps = {(e["method"], e["scene_index"]): e for e in episodes}
+    same = same_episodes(episodes, list(range(25)))
     for a, b in (("ours", "grasp-only"), ("no-cdc", "grasp-only")):
         assert same[(a, b)], f"{a} and {b} share no episode"
         for s in range(25):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -130,16 +131,18 @@ def table_one(folder: Path, root: Path,
                 cells.append(f"{diff:+.3f} [{lo:+.3f}, {hi:+.3f}]{_star(lo, hi)}")
             out.append(f"| {m} | " + " | ".join(cells) + " |")
     if full:
-        out += ["", claims(per, counts, same_episodes(folder, common)), "", table_two(folder, methods), "",
-                tracking_section(folder), "", funnel_section(folder)]
+        episodes = load_episodes(folder)
+        out += ["", claims(per, counts, same_episodes(episodes, common)), "", table_two(folder, methods), "",
+                tracking_section(episodes), "", funnel_section(folder)]
     return "\n".join(out)
 
 
-def same_episodes(folder: Path, scenes: list[int]) -> dict[tuple[str, str], list[int]]:
-    """For each pair of methods, the scenes (of ``scenes``) on which both took the same episode: the
-    same skill at every step and the same map metrics after every step (``curves``), i.e. the methods
-    made the same choices there. A paired difference is 0 on those scenes by construction."""
-    eps = {(e["method"], e["scene_index"]): e for e in load_episodes(folder)}
+def same_episodes(episodes: Sequence[dict[str, Any]], scenes: list[int]) -> dict[tuple[str, str], list[int]]:
+    """For each pair of methods of ``episodes`` (a bench folder's, ``tracking.load_episodes``), the
+    scenes (of ``scenes``) on which both took the same episode: the same skill at every step and the
+    same map metrics after every step (``curves``), i.e. the methods made the same choices there. A
+    paired difference is 0 on those scenes by construction."""
+    eps = {(e["method"], e["scene_index"]): e for e in episodes}
     methods = sorted({m for m, _ in eps})
     out = {}
     for a in methods:
@@ -229,8 +232,8 @@ def table_two(folder: Path, methods: list[str]) -> str:
     return "\n".join(lines)
 
 
-def tracking_section(folder: Path) -> str:
-    rows = [r for e in load_episodes(folder) for r in step_rows(e)]
+def tracking_section(episodes: Sequence[dict[str, Any]]) -> str:
+    rows = [r for e in episodes for r in step_rows(e)]
     if not rows:
         return ""
     return "\n".join(["### Does predicted IG track what the map gains?", "",
