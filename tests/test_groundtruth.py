@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -12,17 +14,21 @@ from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import look_at, pose_matrix, yaw_quat
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.meshes import object_mesh, shelf_meshes
+from msmem_core.world.placement import load_scene
 from msmem_core.world.scene import ObjectSpec, ShelfSpec, object_class
 from msmem_core.world.viewpoints import ViewpointConfig, default_start_view, generate_viewpoints
 from msmem_core.world.visibility import (
     HIT_NUDGE_VOXELS,
+    _box_ray_indices,
+    _rays_at,
     count_views_seeing,
     hidden_objects,
     object_pixel_counts,
     observable_mask,
+    ray_table,
     visible_objects,
 )
-from msmem_core.world.voxelize import interior_mask, object_voxels, voxelize, voxelize_instances
+from msmem_core.world.voxelize import current_pose, interior_mask, object_voxels, voxelize, voxelize_instances
 
 SHELF = ShelfSpec()
 GRID = GridSpec.around_box(SHELF.interior_lower, SHELF.interior_upper, 0.01)
@@ -206,3 +212,57 @@ def test_default_viewpoints_are_in_front_and_look_at_their_targets() -> None:
     start = views[default_start_view(cfg)]
     assert abs(start[0, 3]) < 0.1  # middle grid
     assert start[2, 3] > cfg.target_z_m  # slightly above the target
+
+
+def _observable_mask_numpy(objects, poses, shelf, viewpoints, camera, grid, stride=4):  # type: ignore[no-untyped-def]
+    """The observable mask in plain numpy, each object's rays computed for it (the reference)."""
+    occ, _ = voxelize(objects, grid, poses)
+    seen = np.zeros(grid.size, dtype=bool)
+    boards = shelf_meshes(shelf)
+    for obj in objects:
+        mesh = object_mesh(obj, current_pose(obj, poses))
+        scene = o3d.t.geometry.RaycastingScene()
+        target, *_ = [scene.add_triangles(o3d.core.Tensor(m.vertices.astype(np.float32)),
+                                          o3d.core.Tensor(m.faces.astype(np.uint32))) for m in [mesh, *boards]]
+        rays = _rays_at(_box_ray_indices(mesh.bounds, viewpoints, camera, stride), viewpoints, camera, stride)
+        ans = scene.cast_rays(o3d.core.Tensor(rays))
+        t, gid = ans["t_hit"].numpy(), ans["geometry_ids"].numpy()
+        hit = (gid == target) & (t <= camera.far_m - camera.near_m)
+        r = rays[hit].astype(np.float64)
+        d = r[:, 3:]
+        nudge = HIT_NUDGE_VOXELS * grid.voxel_m
+        pts = r[:, :3] + (t[hit][:, None] + nudge / np.linalg.norm(d, axis=1, keepdims=True)) * d
+        idx = grid.index_of(pts)
+        idx = idx[grid.contains_index(idx)]
+        seen[np.ravel_multi_index(idx.T, grid.shape)] = True
+    return (~occ) | seen.reshape(grid.shape)
+
+
+def test_observable_mask_equals_the_numpy_reference_to_the_voxel() -> None:
+    # a shipped scene at its poses and with every object nudged by up to a few mm, as a grasp leaves them
+    scene = load_scene(str(Path(__file__).parents[1] / "msmem_core/suites/hard25/scene_07.json"))
+    views = generate_viewpoints(ViewpointConfig(), scene.shelf)
+    camera, grid = CameraConfig(width_px=320, height_px=240), GridSpec()
+    rng = np.random.default_rng(3)
+    poses = {o.id: current_pose(o, None) for o in scene.objects}
+    cut = GridSpec(origin_m=(0.0, 0.05, 0.0), shape=(30, 20, 20))  # objects cross all its faces
+    for _ in range(2):
+        mask = observable_mask(list(scene.objects), poses, scene.shelf, views, camera, grid)
+        ref = _observable_mask_numpy(list(scene.objects), poses, scene.shelf, views, camera, grid)
+        assert np.array_equal(mask, ref)
+        assert (~mask).sum() > 1000  # object interiors are left out
+        mask = observable_mask(list(scene.objects), poses, scene.shelf, views, camera, cut)
+        assert np.array_equal(mask, _observable_mask_numpy(list(scene.objects), poses, scene.shelf, views, camera, cut))
+        poses = {k: v.copy() for k, v in poses.items()}
+        for v in poses.values():
+            v[:2, 3] += rng.normal(0.0, 0.003, 2)
+
+
+def test_ray_table_rows_equal_the_rays_of_any_subset() -> None:
+    views = generate_viewpoints(ViewpointConfig(grid=4), SHELF)
+    table = ray_table(views, SMALL_CAMERA, 4)
+    assert table.shape == (len(views) * 40 * 30, 6)
+    ids = np.sort(np.random.default_rng(0).choice(len(table), 5000, replace=False))
+    assert np.array_equal(table[ids], _rays_at(ids, views, SMALL_CAMERA, 4))
+    assert ray_table(views, SMALL_CAMERA, 4) is table  # kept
+    assert not table.flags.writeable

@@ -11,11 +11,14 @@ of objects resting at z = 0).
 
 from __future__ import annotations
 
+import hashlib
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from msmem_core.world.camera import CameraConfig
@@ -274,21 +277,55 @@ def observable_mask(
     boards = shelf_meshes(shelf)
     max_t = camera.far_m - camera.near_m
     nudge = HIT_NUDGE_VOXELS * grid.voxel_m
+    table = ray_table(viewpoints, camera, stride)
     for obj in objects:
         mesh = object_mesh(obj, current_pose(obj, poses))
         scene, ids = _raycasting_scene([mesh, *boards])
-        rays = _rays_at(_box_ray_indices(mesh.bounds, viewpoints, camera, stride), viewpoints, camera, stride)
+        rays = table[_box_ray_indices(mesh.bounds, viewpoints, camera, stride)]
         if len(rays) == 0:
             continue
         t, gid = _cast(scene, rays, max_t)
-        hit = gid == ids[0]
-        r = rays[hit].astype(np.float64)
-        d = r[:, 3:]
-        pts = r[:, :3] + (t[hit][:, None] + nudge / np.linalg.norm(d, axis=1, keepdims=True)) * d
-        idx = grid.index_of(pts)
-        idx = idx[grid.contains_index(idx)]
-        seen[np.ravel_multi_index(idx.T, grid.shape)] = True
+        _mark_hits(rays, t, gid == ids[0], grid.origin, grid.voxel_m, np.asarray(grid.shape, dtype=np.int64), nudge,
+                   seen)
     return (~occ) | seen.reshape(grid.shape)
+
+
+def ray_table(viewpoints: NDArray[np.float64], camera: CameraConfig, stride: int) -> NDArray[np.float32]:
+    """All rays ``_rays_at(arange(V * P), ...)`` [V * P, 6], each row equal to the bit to what
+    ``_rays_at`` gives for it in any subset (read-only; the last two tables are kept: an episode asks
+    for the same one at every refresh of its observable mask)."""
+    vp = np.ascontiguousarray(viewpoints, dtype=np.float64)
+    key = (vp.shape, hashlib.sha1(vp.tobytes()).hexdigest(), camera.model_dump_json(), int(stride))
+    table = _RAY_TABLES.get(key)
+    if table is None:
+        n = len(vp) * camera.pixel_rays(stride).reshape(-1, 3).shape[0]
+        table = _rays_at(np.arange(n, dtype=np.int64), vp, camera, stride)
+        table.flags.writeable = False
+        while len(_RAY_TABLES) >= 2:
+            _RAY_TABLES.pop(next(iter(_RAY_TABLES)))
+        _RAY_TABLES[key] = table
+    return table
+
+
+_RAY_TABLES: dict[tuple[object, ...], NDArray[np.float32]] = {}
+
+
+@njit(cache=True)
+def _mark_hits(rays, t, hit, origin, voxel, shape, nudge, seen):
+    """Mark in ``seen`` (flat) the voxel of each hit ray's point just past the surface: in float64,
+    in numpy's order of operations (``r[:3] + (t + nudge / |d|) * d``, ``|d|`` summed left to right
+    as ``np.linalg.norm`` does along a row of three), so the voxels are those numpy would pick."""
+    nx, ny, nz = shape[0], shape[1], shape[2]
+    for i in range(rays.shape[0]):
+        if not hit[i]:
+            continue
+        dx, dy, dz = np.float64(rays[i, 3]), np.float64(rays[i, 4]), np.float64(rays[i, 5])
+        s = np.float64(t[i]) + nudge / math.sqrt((dx * dx + dy * dy) + dz * dz)
+        ix = math.floor(((np.float64(rays[i, 0]) + s * dx) - origin[0]) / voxel)
+        iy = math.floor(((np.float64(rays[i, 1]) + s * dy) - origin[1]) / voxel)
+        iz = math.floor(((np.float64(rays[i, 2]) + s * dz) - origin[2]) / voxel)
+        if 0 <= ix < nx and 0 <= iy < ny and 0 <= iz < nz:
+            seen[(ix * ny + iy) * nz + iz] = True
 
 
 def count_views_seeing(
