@@ -323,3 +323,55 @@ def test_the_fused_carried_pass_equals_the_numpy_rules() -> None:
     assert len(empty[0]) == 0
     assert np.array_equal(empty[1], occupied)
     assert empty[1] is not occupied
+
+
+def test_classes_too_wide_for_the_fingers_are_those_with_every_part_wider_than_the_opening() -> None:
+    from msmem_grasp.skill import narrowest_width_m, too_wide
+
+    from msmem_core.world.scene import ObjectClass, Part, object_class
+
+    assert narrowest_width_m(Part(kind="box", size_m=(0.085, 0.09, 0.2))) == pytest.approx(0.085)
+    assert narrowest_width_m(Part(kind="cylinder", size_m=(0.043, 0.03))) == pytest.approx(0.086)
+    tilted = Part(kind="box", size_m=(0.2, 0.2, 0.2), quat_xyzw=(0.0, 0.3826834, 0.0, 0.9238795))
+    assert narrowest_width_m(tilted) is None
+    assert narrowest_width_m(Part(kind="convex", vertices_m=((0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1)))) is None
+    wide = {n for n in ("wood_block", "tuna_fish_can", "master_chef_can", "pudding_box", "cracker_box", "mug",
+                        "bowl", "sugar_box", "mustard_bottle", "gelatin_box") if too_wide(object_class(n), 0.08)}
+    # the mug and the bowl are hollow: their walls are thin parts a rim grasp can span
+    assert wide == {"wood_block", "tuna_fish_can", "master_chef_can", "pudding_box"}
+    assert not too_wide(object_class("wood_block"), 0.09)  # an 8.5 cm block fits a 9 cm opening
+    # one part the fingers can span, or one of unknown width, is enough to keep the class
+    block = Part(kind="box", size_m=(0.1, 0.1, 0.1))
+    other = block.model_copy(update={"position_m": (0.1, 0.0, 0.0)})
+    handle = Part(kind="box", size_m=(0.01, 0.03, 0.05))
+    assert too_wide(ObjectClass(name="two_blocks", class_id=1, mass_kg=1.0, parts=(block, other)), 0.08)
+    assert not too_wide(ObjectClass(name="block_and_handle", class_id=1, mass_kg=1.0, parts=(block, handle)), 0.08)
+    assert not too_wide(ObjectClass(name="block_and_tilt", class_id=1, mass_kg=1.0, parts=(block, tilted)), 0.08)
+
+
+@pytest.mark.slow
+def test_wider_than_opening_skip_drops_the_wood_blocks_grasps_of_a_hard_scene(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """``hard25`` scene 13, 16 steps of grasp-only under the library defaults (one thread): after two
+    cracker boxes are taken out, the front wood block (8.5 cm wide, the gripper opens 8 cm) has grasp
+    candidates; ``wider_than_opening: skip`` drops them and keeps the others."""
+    from msmem_core.config import load_config
+    from msmem_core.map.belief import EvidentialMap as Map
+    from msmem_core.plugins import get_plugin_manager
+    from msmem_core.run.bench import suite_scenes
+    from msmem_core.run.runner import build_episode, run_episode
+
+    cfg = load_config("grasp-only", None, {"steps": 16, "threads": 1})
+    ep = build_episode(cfg, get_plugin_manager(), scene=suite_scenes("hard25")[13])
+    run_episode(ep, tmp_path)
+    skill = next(b.skill for b in ep.skills if b.name == "grasp")
+    belief = Map.load(tmp_path / "belief_final.npz")
+    classes = ep.workspace.classes
+    proposed = {}
+    for mode in ("keep", "skip"):
+        skill.config = skill.config.model_copy(update={"wider_than_opening": mode})
+        stages: dict[str, int] = {}
+        grasps = skill.executable(belief, ep.scene.shelf, stages, classes)
+        proposed[mode] = ({classes[g.target_class - 1].name for g in grasps}, stages["on_object"])
+    assert "wood_block" in proposed["keep"][0]
+    assert proposed["skip"][0] == proposed["keep"][0] - {"wood_block"}
+    assert proposed["skip"][1] < proposed["keep"][1]

@@ -80,7 +80,7 @@ from msmem_core.world.camera import CameraConfig
 from msmem_core.world.geometry import F64
 from msmem_core.world.grid import GridSpec
 from msmem_core.world.gripper import GripperSpec, HandDims
-from msmem_core.world.scene import ObjectClass, ShelfSpec
+from msmem_core.world.scene import ObjectClass, Part, ShelfSpec
 from msmem_core.world.viewpoints import ViewpointConfig
 from msmem_grasp.fpp import FPPConfig, frontier_points, virtual_front_views
 from msmem_grasp.fusion import FusionConfig, GraspBuffer, GraspHypotheses
@@ -214,6 +214,23 @@ class GraspAction(Action):
         return mask
 
 
+def narrowest_width_m(part: Part) -> float | None:
+    """The narrowest horizontal width of a solid part standing as in its object frame: a box's shorter
+    side, a cylinder's diameter (the part turned about the vertical only); None for a mesh piece or a
+    tilted part."""
+    qx, qy, _, _ = part.quat_xyzw
+    if part.kind == "convex" or abs(qx) > 1e-9 or abs(qy) > 1e-9:
+        return None
+    return float(min(part.size_m[:2])) if part.kind == "box" else 2.0 * float(part.size_m[0])
+
+
+def too_wide(cls: ObjectClass, opening_m: float) -> bool:
+    """Whether every part of ``cls`` is a solid box or cylinder wider at its narrowest than ``opening_m``
+    (``GraspConfig.wider_than_opening``)."""
+    widths = [narrowest_width_m(p) for p in cls.parts]
+    return bool(widths) and all(w is not None and w > opening_m for w in widths)
+
+
 class GraspConfig(BaseModel):
     """Parameters of UGS and of grasp execution (see the module docstring)."""
 
@@ -289,6 +306,14 @@ class GraspConfig(BaseModel):
     minimum lift, grasp candidates at 62-70 % of the allowed steps instead of 31 %, twice the objects
     taken out, 2-D semantic mIoU +0.026 (grasp-only) and +0.031 (``ours``) per scene, 2 episodes of 10
     with a fall instead of none; against any width, +0.026 and +0.051 and 2 falls instead of 3 and 4."""
+    wider_than_opening: Literal["keep", "skip"] = "keep"
+    """Candidates on a believed object whose class is too wide for the fingers everywhere: every part a
+    solid upright box or cylinder wider at its narrowest than the gripper's maximum opening (of the
+    built-in classes the wood block, 8.5 cm; the tuna and master chef cans; the pudding box). No
+    horizontal closing spans such a part, so such a grasp slips or stops on it. ``keep`` (the default)
+    proposes them as any other; ``skip`` drops them before the collision tests (a class whose shape is
+    not known, or with a mesh or tilted part, is kept). Table I's grasps on the wood block all failed,
+    10 of 10 in the step records (docs/lab/2026-12-06-failed-grasps)."""
     exit_margin_m: float = Field(0.02, ge=0.0, le=0.1)
     """The grasped object's own component (``planning.Objects``), at any height in the columns within this
     of the footprint of the part the fingers hold (its region), is carried out with it: it must fit under
@@ -598,6 +623,10 @@ class GraspSkill(Skill):
         at_grasp = sweep_hits(grid, c.blocked, c.objects.labels, local, c.poses[:, :3, 3], np.arange(n + 1),
                               np.arange(n), c.label, c.poses, c.opening, cfg.max_object_radius_m)
         on_object = c.label > 0
+        if cfg.wider_than_opening == "skip" and classes:
+            wide = np.array([too_wide(classes[k - 1], cfg.gripper.max_opening_m) if 1 <= k <= len(classes) else False
+                             for k in c.objects.classes], dtype=bool)
+            on_object &= ~wide[c.label]
         stages["on_object"] = int(on_object.sum())
         stages["free_at_grasp"] = int((on_object & ~at_grasp).sum())
         stages["collision_free"] = stages["under_top"] = stages["clear_exit"] = 0
