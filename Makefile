@@ -26,7 +26,7 @@ system-deps:
 
 # The venv; torch is pinned first so pip takes the CPU build instead of pulling a multi-GB CUDA one. The
 # numba kernels are compiled here, not in the first demo or test run: five steps of `ours` with pushes and
-# grasps proposed from step 1 compile 24 of the 27 (about a minute once; the same episode then takes 17 s).
+# grasps proposed from step 1 compile 25 of the 40 (about a minute once; the same episode then takes 17 s).
 $(STAMP): pyproject.toml
 	@test -x $(PY) || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip "setuptools>=77" wheel

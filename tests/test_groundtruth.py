@@ -246,13 +246,15 @@ def test_observable_mask_equals_the_numpy_reference_to_the_voxel() -> None:
     rng = np.random.default_rng(3)
     poses = {o.id: current_pose(o, None) for o in scene.objects}
     cut = GridSpec(origin_m=(0.0, 0.05, 0.0), shape=(30, 20, 20))  # objects cross all its faces
-    for _ in range(2):
+    for trial in range(2):
         mask = observable_mask(list(scene.objects), poses, scene.shelf, views, camera, grid)
         ref = _observable_mask_numpy(list(scene.objects), poses, scene.shelf, views, camera, grid)
         assert np.array_equal(mask, ref)
         assert (~mask).sum() > 1000  # object interiors are left out
-        mask = observable_mask(list(scene.objects), poses, scene.shelf, views, camera, cut)
-        assert np.array_equal(mask, _observable_mask_numpy(list(scene.objects), poses, scene.shelf, views, camera, cut))
+        if trial == 0:
+            mask = observable_mask(list(scene.objects), poses, scene.shelf, views, camera, cut)
+            assert np.array_equal(mask, _observable_mask_numpy(list(scene.objects), poses, scene.shelf, views, camera,
+                                                               cut))
         poses = {k: v.copy() for k, v in poses.items()}
         for v in poses.values():
             v[:2, 3] += rng.normal(0.0, 0.003, 2)
