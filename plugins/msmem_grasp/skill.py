@@ -306,13 +306,13 @@ class GraspConfig(BaseModel):
     minimum lift, grasp candidates at 62-70 % of the allowed steps instead of 31 %, twice the objects
     taken out, 2-D semantic mIoU +0.026 (grasp-only) and +0.031 (``ours``) per scene, 2 episodes of 10
     with a fall instead of none; against any width, +0.026 and +0.051 and 2 falls instead of 3 and 4."""
-    wider_than_opening: Literal["keep", "skip"] = "keep"
+    wider_than_opening: Literal["keep", "skip"] = "skip"
     """Candidates on a believed object whose class is too wide for the fingers everywhere: every part a
     solid upright box or cylinder wider at its narrowest than the gripper's maximum opening (of the
     built-in classes the wood block, 8.5 cm; the tuna and master chef cans; the pudding box). No
-    horizontal closing spans such a part, so such a grasp slips or stops on it. ``keep`` (the default)
-    proposes them as any other; ``skip`` drops them before the collision tests (a class whose shape is
-    not known, or with a mesh or tilted part, is kept). No grasp on the wood block held in the committed
+    horizontal closing spans such a part, so such a grasp slips or stops on it. ``skip`` (the default)
+    drops them before the collision tests (a class whose shape is not known, or with a mesh or tilted
+    part, is kept); ``keep`` proposes them as any other. No grasp on the wood block held in the committed
     step records (5 touched it, 2 more closed on nothing where it had stood); on ``tune10`` ``skip``
     changes no episode, on ``hard25`` the three that grasped the wood block, each then holding every
     grasp (docs/lab/2026-12-06-failed-grasps)."""
