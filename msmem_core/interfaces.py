@@ -457,6 +457,13 @@ class ObservationModel(BeliefModel):
         rules (``cnabu-map``: ``disturbed_rays``). A model that keeps none, like the default here, does
         nothing."""
 
+    def failed_manipulation(self, region: NDArray[np.bool_], cap: float) -> None:
+        """As ``disturbed``, after a manipulation that reported failure (a grasp that held nothing, a push
+        stopped short): the belief stayed as it was before the action, capped in ``region`` at ``cap``,
+        and what stood there may have moved without the prediction saying where. The default calls
+        ``disturbed``, so a model that only implements ``disturbed`` is told either way."""
+        self.disturbed(region, cap)
+
 
 class EffectModel(BeliefModel):
     """sigma_p / sigma_g: predict the belief after manipulation actions, batched."""

@@ -433,7 +433,8 @@ def run_msas(
     effect model's prediction (capped where it changed by ``cfg.disturbed_evidence_cap``); after one that
     reports failure it stays as it was, capped where the prediction would have changed it
     (``cfg.failed_manipulation_cap``); the observation model is told the capped region
-    (``ObservationModel.disturbed``), for evidence it keeps of its own. Either way visited
+    (``ObservationModel.disturbed``, or ``failed_manipulation`` after a failure), for evidence it keeps
+    of its own. Either way visited
     views are cleared, and the next step may only choose a view, the manipulation's associated best
     view (both count towards T_max). Manipulation is allowed in ``cfg.manipulation_window``, not once
     ``cfg.mapped_fraction`` of the BEV cells are mapped (``mapped_fraction``), and never again after
@@ -484,7 +485,11 @@ def run_msas(
                     changed[prediction.changes[decision.index].idx] = True
                     region = disturbed_region(changed.reshape(workspace.grid.shape), cfg.disturbed_margin_voxels)
                     belief = belief.capped(region, cap)
-                    observe_model.disturbed(region, cap)  # for evidence the model keeps of its own
+                    # for evidence the model keeps of its own
+                    if outcome.success:
+                        observe_model.disturbed(region, cap)
+                    else:
+                        observe_model.failed_manipulation(region, cap)
                 visited.clear()
                 last_manipulation = step
                 manipulation_ok = manipulation_ok and not outcome.fell_or_left

@@ -1103,6 +1103,30 @@ def test_disturbed_rays_cap_keeps_a_disturbed_region_capped_through_the_next_vie
     assert np.mean(kept_gone.expected_occupancy()[occupied_before] < 0.5) < 0.8  # measured 0.57
 
 
+@pytest.mark.parametrize(("mode", "after_success", "after_failure"),
+                         [("keep", False, False), ("cap", True, True), ("failed", False, True)])
+def test_disturbed_rays_decides_which_manipulations_cap_the_ray_record(shard, mode, after_success,
+                                                                        after_failure):
+    """``disturbed_rays``: ``cap`` caps the ray record after every manipulation, ``failed`` only after one
+    that reported failure (``failed_manipulation``), ``keep`` never."""
+    from msmem_cnabu.configs import CNABUMapConfig
+    from msmem_cnabu.mapmodel import CNABUMapObservationModel
+
+    model = CNABUMapObservationModel(CNABUMapConfig(disturbed_rays=mode))
+    b = EvidentialMap.empty(shard.grid, len(model.classes))
+    for f, o, s in [start_masks(shard), *(shard.masks(i) for i in range(2))]:
+        b = model.update_masks(b, f, o, s)
+    total = model._rays.alpha + model._rays.beta
+    region = total > 6.0
+    assert region.sum() > 1000
+    for tell, capped in ((model.disturbed, after_success), (model.failed_manipulation, after_failure)):
+        before = model._rays
+        tell(region, 4.0)
+        after = model._rays.alpha + model._rays.beta
+        assert np.all(after[region] <= 4.0 + 1e-4) == capped
+        assert np.array_equal(after[~region], (before.alpha + before.beta)[~region])
+
+
 @pytest.mark.slow  # an option that is off by default
 def test_an_occupied_voxel_no_ray_named_takes_the_class_of_the_nearest_voxel_rays_named(shard):
     """``ray_classes_within``: the network's completion of an object takes the object class of the nearest

@@ -287,6 +287,38 @@ def test_the_observation_model_is_told_the_region_msas_capped(ig, success):
     assert np.array_equal(capped, region)  # Sure's evidence (32) everywhere else
 
 
+class ToldApart(Told):
+    """``Told``, with ``failed_manipulation`` recorded apart."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.failed: list[tuple[np.ndarray, float]] = []
+
+    def failed_manipulation(self, region: np.ndarray, cap: float) -> None:
+        self.failed.append((region.copy(), cap))
+
+
+@pytest.mark.parametrize("success", [True, False])
+def test_a_failed_manipulation_is_told_as_such_and_old_models_hear_it_as_disturbed(ig, success):
+    """After a manipulation that reported failure MSAS calls ``failed_manipulation`` (after a success,
+    ``disturbed``); a model that implements only ``disturbed`` is told through it either way."""
+    cfg = MSASConfig(manipulation_window=(0, 10), mapped_fraction=1.0, disturbed_evidence_cap=5.0,
+                     failed_manipulation_cap=3.0)
+    skills = [BoundSkill("view", ViewSkill()), BoundSkill("flaky", Flaky(success), Stamp())]
+    apart, old = ToldApart(), Told()
+    for model in (apart, old):
+        sim = FakeSimulator(CAMERA)
+        sim.reset(SCENE)
+        run_msas(sim, model, skills, Objective([("constant", 1.0, Constant())]), ig, WORKSPACE, cfg, 1,
+                 start_view=0, seed=0, on_step=lambda step, d, o, b: None)
+    assert (len(apart.told), len(apart.failed)) == ((1, 0) if success else (0, 1))
+    assert len(old.told) == 1
+    assert old.told[0][1] == (5.0 if success else 3.0)
+    told = (apart.told if success else apart.failed)[0]
+    assert np.array_equal(told[0], old.told[0][0])
+    assert told[1] == old.told[0][1]
+
+
 def test_an_episode_counts_its_falls_and_the_bench_table_reads_them(tmp_path):
     """run_episode counts the manipulations after which an object fell or left; the bench turns them
     into ``falls`` and ``fell`` (NaN for an episode that never manipulated)."""

@@ -74,8 +74,18 @@ class CNABUMapObservationModel(ObservationModel):
         the belief: rays from before a manipulation count there as at most ``cap`` in all, so that the
         next views can overturn them (uncapped, the record's confident evidence is authoritative again
         at the next update). ``keep``, the default, leaves the record."""
-        if (self.config.disturbed_rays == "cap" and self._rays is not None
-                and self._rays.alpha.shape == region.shape):
+        if self.config.disturbed_rays == "cap":
+            self._cap_rays(region, cap)
+
+    def failed_manipulation(self, region: NDArray[np.bool_], cap: float) -> None:
+        """With ``disturbed_rays: cap`` or ``failed``, the ray record is capped in ``region`` after a
+        manipulation that reported failure: what it touched may have moved somewhere the prediction does
+        not say, so the rays from before must not restore it."""
+        if self.config.disturbed_rays in ("cap", "failed"):
+            self._cap_rays(region, cap)
+
+    def _cap_rays(self, region: NDArray[np.bool_], cap: float) -> None:
+        if self._rays is not None and self._rays.alpha.shape == region.shape:
             self._rays = self._rays.capped(region, cap)
 
     def _carried(self, belief: EvidentialMap, alpha: NDArray[np.float32], beta: NDArray[np.float32],
