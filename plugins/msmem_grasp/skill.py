@@ -314,8 +314,8 @@ class GraspConfig(BaseModel):
     drops them before the collision tests (a class whose shape is not known, or with a mesh or tilted
     part, is kept); ``keep`` proposes them as any other. No grasp on the wood block held in the committed
     step records (5 touched it, 2 more closed on nothing where it had stood); on ``tune10`` ``skip``
-    changes no episode, on ``hard25`` the three that grasped the wood block, each then holding every
-    grasp (docs/lab/2026-12-06-failed-grasps)."""
+    changes no episode, in Table I the four that grasped the wood block, each then holding every grasp
+    (docs/lab/2026-12-06-failed-grasps)."""
     exit_margin_m: float = Field(0.02, ge=0.0, le=0.1)
     """The grasped object's own component (``planning.Objects``), at any height in the columns within this
     of the footprint of the part the fingers hold (its region), is carried out with it: it must fit under
