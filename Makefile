@@ -33,7 +33,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip "setuptools>=77" wheel
 	$(PY) -m pip install -q $(TORCH)
 	$(PY) -m pip install -q -e ".[dev]"
-	@echo "compiling the numba kernels once (a five-step episode, about a minute; cached beside the sources)"
+	@echo "compiling the numba kernels once (a five-step episode and one timed decision, about 1.5 minutes; cached beside the sources)"
 	$(VENV)/bin/msmem run --steps 5 --scene msmem_core/suites/hard25/scene_07.json \
 	  -c examples/manipulate-from-step-1.yaml --out $(VENV)/warm-up --overwrite --no-report -q >/dev/null
 	@rm -rf $(VENV)/warm-up
