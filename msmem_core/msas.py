@@ -424,22 +424,21 @@ def run_msas(
 ) -> EvidentialMap:
     """One episode of MSAS on a reset simulator; returns the final belief.
 
-    The belief starts from the prior and the observation from ``start_view`` (``on_start`` sees it);
-    the first decision counts that view as visited. Then ``steps`` (T_max) actions: every skill
-    proposes, the objective picks (``decide``, on a ``DecisionContext`` whose ``rng`` is seeded with
-    ``seed``), the action is executed (``execute_measured``, span ``execute``: info ``ctx``, ``sim``
-    and ``decision``; result: the ``Outcome``), and ``on_step`` sees the step. A view is integrated
-    by the observation model and counted as visited. After a manipulation the belief becomes the
-    effect model's prediction (capped where it changed by ``cfg.disturbed_evidence_cap``); after one that
-    reports failure it stays as it was, capped where the prediction would have changed it
+    The belief starts from the prior and the observation from ``start_view`` (``on_start`` sees it); the
+    first decision counts that view as visited. Then ``steps`` (T_max) actions: every skill proposes,
+    the objective picks (``decide``, on a ``DecisionContext`` whose ``rng`` is seeded with ``seed``),
+    the action is executed (``execute_measured``, span ``execute``: info ``ctx``, ``sim`` and
+    ``decision``; result: the ``Outcome``), and ``on_step`` sees the step. A view is integrated by the
+    observation model and counted as visited. After a manipulation the belief becomes the effect model's
+    prediction (capped where it changed by ``cfg.disturbed_evidence_cap``); after one that reports
+    failure it stays as it was, capped where the prediction would have changed it
     (``cfg.failed_manipulation_cap``); the observation model is told the capped region
     (``ObservationModel.disturbed``, or ``failed_manipulation`` after a failure), for evidence it keeps
-    of its own. Either way visited
-    views are cleared, and the next step may only choose a view, the manipulation's associated best
-    view (both count towards T_max). Manipulation is allowed in ``cfg.manipulation_window``, not once
-    ``cfg.mapped_fraction`` of the BEV cells are mapped (``mapped_fraction``), and never again after
-    an object fell over or left the shelf (tilt over ``cfg.fall_tilt_deg``). ``tracer`` sees every
-    span of the episode.
+    of its own. Either way visited views are cleared, and the next step may only choose a view, the
+    manipulation's associated best view (both count towards T_max). Manipulation is allowed in
+    ``cfg.manipulation_window``, not once ``cfg.mapped_fraction`` of the BEV cells are mapped
+    (``mapped_fraction``), and never again after an object fell over or left the shelf (tilt over
+    ``cfg.fall_tilt_deg``). ``tracer`` sees every span of the episode.
     """
     from msmem_core.world.voxelize import interior_mask
 
@@ -485,11 +484,8 @@ def run_msas(
                     changed[prediction.changes[decision.index].idx] = True
                     region = disturbed_region(changed.reshape(workspace.grid.shape), cfg.disturbed_margin_voxels)
                     belief = belief.capped(region, cap)
-                    # for evidence the model keeps of its own
-                    if outcome.success:
-                        observe_model.disturbed(region, cap)
-                    else:
-                        observe_model.failed_manipulation(region, cap)
+                    tell = observe_model.disturbed if outcome.success else observe_model.failed_manipulation
+                    tell(region, cap)  # for evidence the model keeps of its own
                 visited.clear()
                 last_manipulation = step
                 manipulation_ok = manipulation_ok and not outcome.fell_or_left

@@ -164,17 +164,19 @@ class CNABUMapConfig(BaseModel):
     semantic mIoU, grasp-only -0.011 +- 0.031 and ``ours`` -0.012 +- 0.031 (other grasps are taken);
     study: docs/lab/2026-12-05-stray-classes."""
     disturbed_rays: Literal["keep", "cap", "failed"] = "keep"
-    """With ``observed_voxels: rays``: what a manipulation's disturbed region (``ObservationModel.disturbed``,
-    where MSAS capped the belief's evidence) does to the episode's ray record. ``keep`` (the default) leaves it,
-    so where the record is confident the next update restores the evidence from before the manipulation; ``cap``
-    caps it as MSAS capped the belief, and one view that sees such a voxel free overturns it; ``failed`` caps it
-    only after a manipulation that reported failure (``ObservationModel.failed_manipulation``), where the object
-    may have moved somewhere the prediction does not say. ``cap`` was measured on ``tune10`` and not adopted: in
-    closed loop, 40 steps, paired per scene, grasp-only +0.025 +- 0.071, ``ours`` +0.000 +- 0.066 and push-only
-    -0.010 +- 0.022 2-D semantic mIoU; executed from one state at step 10, the best grasp ended 0.042 lower and
-    the best push 0.004 lower. Study: docs/lab/2026-12-05-decision-oracle (section 7). ``failed``, measured
-    and not yet adopted: on ``tune10`` it changes 1 episode of 10 per method (+0.020 2-D semantic mIoU);
-    on ``hard25`` 14 episodes move both ways, pooled +0.001 to +0.007 (docs/lab/2026-12-06-failed-manipulation-rays)."""
+    """With ``observed_voxels: rays``: what a manipulation's disturbed region
+    (``ObservationModel.disturbed``, where MSAS capped the belief's evidence) does to the episode's ray
+    record. ``keep`` (the default) leaves it, so where the record is confident the next update restores
+    the evidence from before the manipulation; ``cap`` caps it as MSAS capped the belief, and one view
+    that sees such a voxel free overturns it; ``failed`` caps it only after a manipulation that reported
+    failure (``ObservationModel.failed_manipulation``), where the object may have moved somewhere the
+    prediction does not say. ``cap`` was measured on ``tune10`` and not adopted: in closed loop, 40
+    steps, paired per scene, grasp-only +0.025 +- 0.071, ``ours`` +0.000 +- 0.066 and push-only -0.010
+    +- 0.022 2-D semantic mIoU; executed from one state at step 10, the best grasp ended 0.042 lower and
+    the best push 0.004 lower. Study: docs/lab/2026-12-05-decision-oracle (section 7). ``failed``,
+    measured and not yet adopted: on ``tune10`` it changes 1 episode of 10 per method (+0.020 2-D
+    semantic mIoU); on ``hard25`` 14 episodes move both ways, pooled +0.001 to +0.007
+    (docs/lab/2026-12-06-failed-manipulation-rays)."""
     fill_under_surfaces: float | None = Field(2.0, gt=0.0, lt=10.0)
     """With ``observed_voxels: rays``: voxels no ray reached below a column's highest believed-occupied
     voxel that the network believes free are filled as ``column-fill`` fills them (occupied with this

@@ -22,6 +22,9 @@ import numpy as np
 from msmem_core.run.bench import cumulative, mean_ci
 from msmem_core.world.placement import load_scene
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "2026-12-06-failed-grasps"))
+from failed_grasps import kind  # the failed-grasps study's sorting of a failed grasp
+
 KEYS = ("semantic_miou_2d", "occupancy_miou")
 
 
@@ -40,8 +43,7 @@ def episode(run: Path) -> dict:
             "class": classes.get(r["action"].get("target_class")),
             "above": bool(approach[2] < -np.sqrt(0.5)),
             "held": info.get("held") is not None,
-            "nothing": info.get("held") is None and info.get("touching_after_close") is None
-            and info.get("pose_error_m", 0.0) <= 0.01,
+            "nothing": info.get("held") is None and kind(info) == "closed on nothing",
         })
     return {"metrics": metrics, "paper_counts": metrics.get("paper_counts", {}),
             "skills": [r["skill"] for r in steps], "grasps": grasps}

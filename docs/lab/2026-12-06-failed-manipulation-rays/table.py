@@ -20,6 +20,12 @@ from msmem_core.run.tracking import load_episodes
 KEYS = ("semantic_miou_2d", "occupancy_miou")
 
 
+def failed(m: dict) -> str:
+    """An episode's grasps, and in brackets how many failed."""
+    n = m.get("grasps") or 0
+    return f"{n} ({round(n * (1 - (m.get('grasp_success') or 0)))})"
+
+
 def main(table: str, runs: str, variant: str) -> None:
     a = {(e["method"], e["scene_index"]): e for e in load_episodes(Path(table))}
     b = dict(a)
@@ -41,11 +47,6 @@ def main(table: str, runs: str, variant: str) -> None:
     print("|---|---|---|---|---|")
     for key in sorted(swapped):
         ma, mb = a[key]["metrics"], b[key]["metrics"]
-
-        def failed(m: dict) -> str:
-            n = m.get("grasps") or 0
-            return f"{n} ({round(n * (1 - (m.get('grasp_success') or 0)))})"
-
         print(f"| {key[0]} {key[1]} | {ma['semantic_miou_2d']:.3f} -> {mb['semantic_miou_2d']:.3f} "
               f"| {ma['occupancy_miou']:.3f} -> {mb['occupancy_miou']:.3f} "
               f"| {ma['position_change_m']:.3f} -> {mb['position_change_m']:.3f} | {failed(ma)} -> {failed(mb)} |")
