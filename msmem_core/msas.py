@@ -435,8 +435,8 @@ def run_msas(
     (``cfg.failed_manipulation_cap``); the observation model is told the capped region
     (``ObservationModel.disturbed``, or ``failed_manipulation`` after a failure), for evidence it keeps
     of its own. Either way visited views are cleared, and the next step may only choose a view, the
-    manipulation's associated best view (both count towards T_max). Manipulation is allowed in
-    ``cfg.manipulation_window``, not once ``cfg.mapped_fraction`` of the BEV cells are mapped
+    manipulation's associated best view (both count towards T_max). Manipulation is allowed, in a run
+    with a manipulation skill, in ``cfg.manipulation_window``, not once ``cfg.mapped_fraction`` of the BEV cells are mapped
     (``mapped_fraction``), and never again after an object fell over or left the shelf (tilt over
     ``cfg.fall_tilt_deg``). ``tracer`` sees every span of the episode.
     """
@@ -450,7 +450,9 @@ def run_msas(
             on_start(belief)
         visited: set[int] = set()
         interior: NDArray[np.bool_] | None = None
-        manipulation_ok, just_manipulated, last_manipulation = True, False, -1
+        # a run without a manipulation skill never allows manipulation (the views then compete only among themselves)
+        manipulation_ok = any(b.skill.category == "manipulation" for b in skills)
+        just_manipulated, last_manipulation = False, -1
         lo, hi = cfg.manipulation_window
         for step in range(steps):
             # right after a manipulation only views compete: the argmax is its associated next-best view

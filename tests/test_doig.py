@@ -10,6 +10,7 @@ from msmem_objectives.cdc import CDCConfig, CDCTerm, disturbed_voxels
 from msmem_objectives.ig import IGTerm, IGTermConfig
 from msmem_push.effect import AnalyticPushEffect
 from msmem_push.skill import PushConfig, PushSkill
+from msmem_view.skill import ViewAction
 
 from msmem_core.interfaces import CandidateBatch, Prediction
 from msmem_core.map.belief import EvidentialMap
@@ -179,3 +180,38 @@ def test_the_counting_kernel_is_the_numpy_rule(seed: int, layout: str, with_excl
         for t in (float(tau), float(tau) * (1.0 + 1e-12), float(np.nextafter(np.float32(tau), np.float32(2.0)))):
             want = int(disturbed_voxels(eta[:, idx], after, t, excluded).sum())
             assert count_disturbed(eta, idx, after, t, excluded) == want, (t, layout)
+
+
+def test_screened_views_keep_the_best_view_and_score_any_winner_at_full_density() -> None:
+    belief = synthetic_belief(3)
+    ig = _small_ig()
+    views = np.arange(ig.num_views)
+    batch = CandidateBatch("view", "perception", [ViewAction(view=int(v)) for v in views], view_indices=views)
+    full = ig.view_ig(ig.prepare(belief))
+    exact = IGTerm(IGTermConfig(screen_views=False)).score(_ctx(belief, ig=ig), batch)
+    screened = IGTerm(IGTermConfig(view_finalists=4)).score(_ctx(belief, ig=ig), batch)
+    best = int(np.argmax(exact))
+    assert int(np.argmax(screened)) == best
+    # the best view keeps its full-density IG and a second view's, found among 4 screened finalists
+    assert full[best] < screened[best] <= exact[best]
+    others = np.isclose(screened, full, rtol=0, atol=0)
+    assert others.sum() == 3  # the other finalists, exact
+    rest = ~others
+    rest[best] = False
+    assert np.all(screened[rest] <= screened[others].min())
+    last = int(np.argmin(screened))
+    assert screened[last] != full[last]
+
+    class Favour(CDCTerm):  # a term that favours the view the screening ranks last
+        applies_to = frozenset({"perception"})
+
+        def score(self, ctx: object, batch: CandidateBatch) -> np.ndarray:
+            out = np.zeros(len(batch.actions))
+            out[last] = 1e9
+            return out
+
+    objective = Objective([("ig", 1.0, IGTerm(IGTermConfig(view_finalists=4))), ("favour", 1.0, Favour())])
+    i, value, terms, refined = objective.best(_ctx(belief, ig=ig), batch)
+    assert (i, refined) == (last, 1)
+    assert terms["ig"] == full[last]
+    assert np.isclose(value, full[last] + 1e9, rtol=1e-12)

@@ -256,10 +256,29 @@ def test_ig_stages_are_reported_by_name_with_what_they_work_on():
         svc.sweep(base, ray_step=2)
         deltas = [svc.belief_delta(base, d) for d in random_deltas(belief, np.random.default_rng(0), 3)]
         svc.view_ig_delta(base, deltas, ray_step=2)
+        svc.view_ig_delta(base, deltas[:2], views=np.array([1, 4]))
         svc.view_ig(base)
+        svc.views_ig(base, [0, 5, 2])
         svc.after_view(base, 0)
     assert rec.seen == [("ig.prepare", {}), ("ig.sweep", {"ray_step": 2}),
-                        ("ig.incremental", {"ray_step": 2, "candidates": 3}), ("ig.sweep", {}), ("ig.after_view", {})]
+                        ("ig.incremental", {"ray_step": 2, "candidates": 3, "views": 6}),
+                        ("ig.incremental", {"ray_step": 1, "candidates": 2, "views": 2}), ("ig.sweep", {}),
+                        ("ig.views", {"views": 3}), ("ig.after_view", {})]
+
+
+def test_view_ig_delta_over_some_views_equals_those_columns_of_the_full_call():
+    from test_ig_incremental import random_deltas
+
+    svc = service()
+    belief = random_belief(3)
+    base = svc.prepare(belief)
+    deltas = [svc.belief_delta(base, d) for d in random_deltas(belief, np.random.default_rng(1), 4)]
+    for exact in (False, True):
+        full = svc.view_ig_delta(base, deltas, exact=exact)
+        for views in ([2], [5, 0, 3], list(range(svc.num_views))):
+            np.testing.assert_allclose(svc.view_ig_delta(base, deltas, exact=exact, views=np.array(views)),
+                                       full[:, views], rtol=1e-12)
+        assert svc.view_ig_delta(base, [], views=np.array([1, 2])).shape == (0, 2)
 
 
 def test_a_removed_surface_opens_the_rays_behind_it():
@@ -295,3 +314,53 @@ def test_best_two_step_ignores_unknown_views_and_uses_the_callers_first_ig():
     v1, ig1, v2, _ = svc.best_two_step(f, first=first)
     assert (v1, ig1) == (other, 5.0)
     assert v2 != v1
+
+
+def test_views_ig_equals_the_full_sweep_view_for_view():
+    svc = service()
+    f = svc.prepare(random_belief(6))
+    full = svc.view_ig(f)
+    for views in ([3], [5, 0, 2], list(range(svc.num_views))):
+        np.testing.assert_array_equal(svc.views_ig(f, views), full[views])
+    assert svc.views_ig(f, []).shape == (0,)
+
+
+@pytest.mark.parametrize("finalists", [1, 2, 3])
+def test_screened_view_ig_scores_its_finalists_exactly_and_ranks_no_other_view_above_them(finalists):
+    svc = service()
+    f = svc.prepare(random_belief(7))
+    full = svc.view_ig(f)
+    coarse = svc.sweep(f, ray_step=2)
+    views = np.array([4, 1, 5, 0, 2])
+    values, exact = svc.screened_view_ig(f, views, 2, finalists)
+    assert exact.sum() == finalists
+    # the finalists are the best screened views, scored at full density
+    top = views[np.argsort(-coarse[views], kind="stable")[:finalists]]
+    assert set(views[exact].tolist()) == set(top.tolist())
+    np.testing.assert_array_equal(values[exact], full[views[exact]])
+    assert np.all(values[~exact] <= values[exact].min())
+    # the others: screened value times the finalists' median full/screened ratio, capped
+    ratio = np.median(full[views[exact]] / coarse[views[exact]])
+    np.testing.assert_allclose(values[~exact], np.minimum(coarse[views[~exact]] * ratio, values[exact].min()),
+                               rtol=1e-12)
+    # no screening (ray step 1, or no more views than finalists): every view exact
+    for step, k in ((1, finalists), (2, len(views))):
+        values, exact = svc.screened_view_ig(f, views, step, k)
+        assert exact.all()
+        np.testing.assert_array_equal(values, full[views])
+
+
+def test_a_screened_second_view_is_the_best_full_density_one_among_the_finalists():
+    svc = service()
+    f = svc.prepare(random_belief(8))
+    v1, ig1, v2, ig2 = svc.best_two_step(f, {2})
+    after = svc.view_ig(svc.after_view(f, v1))
+    # with every remaining view a finalist, screening changes nothing
+    assert svc.best_two_step(f, {2}, ray_step=2, finalists=svc.num_views) == (v1, ig1, v2, ig2)
+    s1, sig1, s2, sig2 = svc.best_two_step(f, {2}, ray_step=2, finalists=1)
+    assert (s1, sig1) == (v1, ig1)
+    assert s2 not in (v1, 2)
+    assert sig2 == after[s2] and sig2 <= ig2
+    rest = [v for v in range(svc.num_views) if v not in (v1, 2)]
+    screened = svc._coarse_sweep(svc.after_view(f, v1), 2)
+    assert s2 == rest[int(np.argmax(screened[rest]))]

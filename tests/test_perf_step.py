@@ -33,7 +33,10 @@ def test_every_stage_of_every_skill_is_timed(small):
         assert f"{skill}: propose" in stages
     assert "grasp: track / FPP (frontier points)" in stages
     assert "grasp: track / FE-UMGF fusion" in stages
-    assert any(k.startswith("view: score / term ig") and k.endswith("IG sweep (all views)") for k in stages)
+    # 27 views, no more than the view finalists: every view is scored at full density, none screened
+    assert any(k.startswith("view: score / term ig") and k.endswith("IG of the finalist views (full density)")
+               for k in stages)
+    assert not any(k.startswith("view: score") and "screening" in k for k in stages)
     for skill, n in res["candidates"].items():  # a manipulation skill with candidates is predicted and scored
         if n and skill != "view":
             assert f"{skill}: effect prediction" in stages

@@ -382,9 +382,13 @@ class IGService:
         return ig, t_stop
 
     def view_ig_delta(
-        self, base: IGField, deltas: Sequence[IGDelta], exact: bool = False, ray_step: int = 1
+        self, base: IGField, deltas: Sequence[IGDelta], exact: bool = False, ray_step: int = 1,
+        views: NDArray[np.integer] | None = None,
     ) -> NDArray[np.float64]:
         """IG of every view for K changed fields, float64 [K, V], re-scoring only affected rays.
+
+        ``views``: only these views, [K, len(views)], each column equal to the full call's (the base
+        field's IG of those views is computed for them alone, not remembered).
 
         Equal to ``view_ig([d.apply(base) for d in deltas], exact)`` up to float64 summation order
         (tested); the early exit applies the same way to both. ``ray_step > 1`` uses every
@@ -392,16 +396,24 @@ class IGService:
         full-density values). The base field's sweep (:meth:`sweep`) is computed once and reused;
         identical deltas are scored once.
         """
-        with span("ig.incremental", ray_step=ray_step, candidates=len(deltas)):
-            return self._view_ig_delta(base, deltas, exact, ray_step)
+        with span("ig.incremental", ray_step=ray_step, candidates=len(deltas),
+                  views=self.num_views if views is None else len(views)):
+            return self._view_ig_delta(base, deltas, exact, ray_step, views)
 
-    def _view_ig_delta(self, base: IGField, deltas: Sequence[IGDelta], exact: bool, ray_step: int
-                       ) -> NDArray[np.float64]:
+    def _view_ig_delta(self, base: IGField, deltas: Sequence[IGDelta], exact: bool, ray_step: int,
+                       views: NDArray[np.integer] | None = None) -> NDArray[np.float64]:
         eps = 0.0 if exact else self.config.early_exit
         k = len(deltas)
+        rays = self.coarse_rays(ray_step)
+        if views is not None:
+            rays = rays.subset(np.asarray(views, dtype=np.int64))
         if k == 0:
-            return np.zeros((0, self.num_views))
-        base_ig, t_stop = self._sweep(base, eps, ray_step)
+            return np.zeros((0, len(rays.count)))
+        if views is None:
+            base_ig, t_stop = self._sweep(base, eps, ray_step)
+        else:
+            with deferred_interrupt():
+                base_ig, t_stop = raycast.ig_views_stop(base.p, base.H, *rays.args(), self._g0, self._s, self._n, eps)
         deltas, same = _unique_deltas(deltas)
         k = len(deltas)
         sizes = np.array([len(d.idx) for d in deltas], dtype=np.int64)
@@ -427,7 +439,6 @@ class IGService:
         pad = 1e-6 * self._s
         box_lo = self._g0 + ijk.min(axis=0) * self._s - pad
         box_hi = self._g0 + (ijk.max(axis=0) + 1) * self._s + pad
-        rays = self.coarse_rays(ray_step)
         # views differ in work (rays skipped): schedule them dynamically
         with deferred_interrupt(), numba.parallel_chunksize(4):
             change = raycast.ig_views_delta(
@@ -466,16 +477,51 @@ class IGService:
                 self.t_max)
             return IGField(field.p, h, field.observed_record)
 
+    def views_ig(self, field: IGField, views: NDArray[np.integer] | Sequence[int], exact: bool = False
+                 ) -> NDArray[np.float64]:
+        """IG of the listed views only, float64 [len(views)], equal to ``view_ig(field, exact)[views]`` bit
+        for bit (each view's rays are summed in the same order)."""
+        eps = 0.0 if exact else self.config.early_exit
+        sel = np.asarray(views, dtype=np.int64)
+        if len(sel) == 0:
+            return np.zeros(0)
+        with span("ig.views", views=len(sel)), deferred_interrupt():
+            return raycast.ig_views(field.p, field.H, *self.rays.subset(sel).args(), self._g0, self._s, self._n, eps)
+
+    def screened_view_ig(self, field: IGField, views: NDArray[np.integer], ray_step: int, finalists: int,
+                         coarse: NDArray[np.float64] | None = None,
+                         ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """IG of ``views`` [K] screened: every view at every ``ray_step``-th ray in both image axes, the
+        ``finalists`` best of them again at full density. Returns (values [K], exact [K]): the finalists
+        get their full-density IG (equal to :meth:`view_ig`'s); every other view its screened IG times
+        the finalists' median full/screened ratio, capped at the lowest finalist's value, so no
+        screened view out-scores a finalist. ``ray_step`` 1 or at most ``finalists`` views: all exact.
+        ``coarse``: the caller's screened sweep of ``field`` (else :meth:`sweep` at ``ray_step``)."""
+        views = np.asarray(views, dtype=np.int64)
+        if ray_step <= 1 or len(views) <= finalists:
+            return self.views_ig(field, views), np.ones(len(views), dtype=bool)
+        c = (self.sweep(field, ray_step=ray_step) if coarse is None else coarse)[views]
+        top = np.argsort(-c, kind="stable")[:finalists]
+        full = self.views_ig(field, views[top])
+        ratio = float(np.median(full / np.maximum(c[top], 1e-12)))
+        out = np.minimum(c * ratio, full.min())
+        out[top] = full
+        exact = np.zeros(len(views), dtype=bool)
+        exact[top] = True
+        return out, exact
+
     def best_two_step(
         self, field: IGField, excluded: set[int] | frozenset[int] = frozenset(),
-        first: NDArray[np.float64] | None = None,
+        first: NDArray[np.float64] | None = None, ray_step: int = 1, finalists: int = 8,
     ) -> tuple[int, float, int, float]:
         """Greedy two-view lookahead (paper eq. oig, view branch, as MEM).
 
         ``v1 = argmax IG(v)`` over views not excluded, then ``v2 = argmax IG(v | after_view(v1))``
         over views not in ``excluded | {v1}``. Returns ``(v1, ig1, v2, ig2)``; ``v2 = -1, ig2 = 0``
         when no second view is left. Raises ``ValueError`` if every view is excluded. ``first``: the
-        caller's ``view_ig(field)``, to skip recomputing it.
+        caller's ``view_ig(field)``, to skip recomputing it (views it sets to -inf are not taken as v1).
+        ``ray_step`` > 1 screens the second view (:meth:`screened_view_ig`): ``ig2`` is the largest
+        full-density IG among the ``finalists`` best screened views, so at most the exact one.
         """
         allowed = np.ones(self.num_views, dtype=bool)
         allowed[[v for v in excluded if 0 <= v < self.num_views]] = False
@@ -486,6 +532,21 @@ class IGService:
         allowed[v1] = False
         if not allowed.any():
             return v1, float(ig[v1]), -1, 0.0
-        ig2 = np.where(allowed, self.view_ig(self.after_view(field, v1)), -np.inf)
-        v2 = int(np.argmax(ig2))
-        return v1, float(ig[v1]), v2, float(ig2[v2])
+        after = self.after_view(field, v1)
+        rest = np.flatnonzero(allowed)
+        if ray_step > 1 and len(rest) > finalists:
+            values, exact = self.screened_view_ig(after, rest, ray_step, finalists,
+                                                  coarse=self._coarse_sweep(after, ray_step))
+            best = int(np.argmax(np.where(exact, values, -np.inf)))
+            return v1, float(ig[v1]), int(rest[best]), float(values[best])
+        # the remaining views, each exactly as in view_ig(after) (a few alone, rather than copy their rays)
+        ig2 = self.view_ig(after)[rest] if 4 * len(rest) > self.num_views else self.views_ig(after, rest)
+        best = int(np.argmax(ig2))
+        return v1, float(ig[v1]), int(rest[best]), float(ig2[best])
+
+    def _coarse_sweep(self, field: IGField, ray_step: int) -> NDArray[np.float64]:
+        """Screened IG of every view of a one-off field (not remembered, unlike :meth:`sweep`)."""
+        rays = self.coarse_rays(ray_step)
+        with span("ig.sweep", ray_step=ray_step), deferred_interrupt():
+            return raycast.ig_views(field.p, field.H, *rays.args(), self._g0, self._s, self._n,
+                                    self.config.early_exit)

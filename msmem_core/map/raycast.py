@@ -224,6 +224,11 @@ class RayTable:
             ray_index=order.astype(np.int64),
         )
 
+    def subset(self, views: NDArray[np.int64]) -> RayTable:
+        """The table of the listed views only (rows copied, in the order given)."""
+        return RayTable(origins=self.origins[views], dirs=self.dirs[views], t_enter=self.t_enter[views],
+                        t_exit=self.t_exit[views], count=self.count[views], ray_index=self.ray_index[views])
+
     def unsort(self, per_slot: NDArray[np.float64]) -> NDArray[np.float64]:
         """A [V, R] per-slot array back in the original ray order."""
         out = np.empty_like(per_slot)

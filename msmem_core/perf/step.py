@@ -50,7 +50,7 @@ from msmem_core.util.trace import Span, Tracer
 
 Path_ = tuple[str, ...]
 _IG_STAGES = {"ig.prepare": "ig.prepare (belief -> IG field)", "ig.sweep": "IG sweep (all views)",
-              "ig.after_view": "two-step: after_view"}
+              "ig.after_view": "two-step: after_view", "ig.views": "IG of the finalist views (full density)"}
 
 
 def stage_label(span: Span) -> str | None:
@@ -64,6 +64,9 @@ def stage_label(span: Span) -> str | None:
         return f"{span.skill}: {s}"
     if s in ("term", "refine"):
         return f"{s} {span.info['term']}"
+    if s == "ig.sweep" and int(span.info.get("ray_step", 1)) > 1:
+        step = int(span.info["ray_step"])
+        return f"IG sweep, screening (1 ray in {step}x{step})"
     if s == "ig.incremental":
         step = int(span.info.get("ray_step", 1))
         return f"IG incremental, screening (1 ray in {step}x{step})" if step > 1 else "IG incremental, full density"

@@ -26,7 +26,11 @@ class IGTermConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     two_step: bool = True
-    """Add the greedy second view's IG to the best view's value."""
+    """Add the greedy second view's IG to the best view's value, at the steps where manipulation is
+    allowed: only there does a view compete with another kind of action."""
+    two_step_always: bool = False
+    """Add it at every step. Where manipulation is not allowed the best view wins with or without it,
+    so this changes only the values recorded, and costs a second IG sweep per step."""
     incremental: bool = True
     """Score manipulation candidates by re-scoring only the rays their changes touch (exact);
     False re-scores every predicted belief in full (the reference, many times slower)."""
@@ -36,6 +40,15 @@ class IGTermConfig(BaseModel):
     compared with the view branch are at the same density as views (docs/explanation/push.md, "Objective terms")."""
     finalists: int = Field(8, ge=1)
     """Candidates re-scored at full density after screening."""
+    finalist_views: int = Field(16, ge=0)
+    """A screened manipulation candidate is re-scored at full density over its own ``finalist_views``
+    best views by the screening (the union over the finalists), not over every view (0: every view)."""
+    screen_views: bool = True
+    """Screen the view candidates too, and the second view of ``two_step``, as manipulation candidates
+    are (with ``view_finalists``): the view that wins is always scored at full density."""
+    view_finalists: int = Field(64, ge=1)
+    """View candidates re-scored at full density after screening (a view costs far less than a
+    manipulation candidate, and neighbouring views differ little)."""
 
 
 def reachable_mask(ctx: DecisionContext) -> NDArray[np.bool_] | None:
@@ -63,7 +76,8 @@ def ig_deltas(ctx: DecisionContext, batch: CandidateBatch) -> list[IGDelta]:
 def _manipulation_state(ctx: DecisionContext, batch: CandidateBatch, cfg: IGTermConfig) -> dict[str, Any]:
     """Per-batch cache: the candidates' values, which of them are exact, and their IG deltas."""
     assert batch.prediction is not None
-    key = ("manipulation_ig", id(batch.prediction), cfg.incremental, cfg.screen_ray_step, cfg.finalists)
+    key = ("manipulation_ig", id(batch.prediction), cfg.incremental, cfg.screen_ray_step, cfg.finalists,
+           cfg.finalist_views)
     if key in ctx.cache:
         return ctx.cache[key]
     state: dict[str, Any] = {"deltas": None, "mask": reachable_mask(ctx)}
@@ -76,9 +90,13 @@ def _manipulation_state(ctx: DecisionContext, batch: CandidateBatch, cfg: IGTerm
         deltas = state["deltas"] = ig_deltas(ctx, batch)
         exact = np.ones(len(deltas), dtype=bool)
         if cfg.screen_ray_step > 1 and len(deltas) > cfg.finalists:
-            coarse = best_view(ctx.ig.view_ig_delta(ctx.field, deltas, ray_step=cfg.screen_ray_step), mask)
+            screened = ctx.ig.view_ig_delta(ctx.field, deltas, ray_step=cfg.screen_ray_step)
+            if mask is not None and mask.any():
+                screened[:, ~mask] = -np.inf
+            state["screened"] = screened
+            coarse = screened.max(axis=1)
             top = np.argsort(-coarse, kind="stable")[: cfg.finalists]
-            full = best_view(ctx.ig.view_ig_delta(ctx.field, [deltas[i] for i in top]), mask)
+            full = _full_density(ctx, state, top, cfg)
             ratio = float(np.median(full / np.maximum(coarse[top], 1e-12)))
             out = np.minimum(coarse * ratio, full.min())
             out[top] = full
@@ -89,6 +107,19 @@ def _manipulation_state(ctx: DecisionContext, batch: CandidateBatch, cfg: IGTerm
     state["values"], state["exact"] = out, exact
     ctx.cache[key] = state
     return state
+
+
+def _full_density(ctx: DecisionContext, state: dict[str, Any], idx: NDArray[np.int64] | list[int],
+                  cfg: IGTermConfig) -> NDArray[np.float64]:
+    """``max_v IG(v | predicted belief)`` at full density of the screened candidates ``idx``: over the
+    views in the union of their ``finalist_views`` best screened views (every view: 0)."""
+    deltas = [state["deltas"][i] for i in idx]
+    screened = state["screened"][np.asarray(idx)]
+    if cfg.finalist_views == 0 or cfg.finalist_views >= screened.shape[1]:
+        return best_view(ctx.ig.view_ig_delta(ctx.field, deltas), state["mask"])
+    best = np.argsort(-screened, axis=1, kind="stable")[:, : cfg.finalist_views]
+    views = np.unique(best[np.isfinite(np.take_along_axis(screened, best, axis=1))])
+    return ctx.ig.view_ig_delta(ctx.field, deltas, views=views).max(axis=1)
 
 
 def manipulation_ig(ctx: DecisionContext, batch: CandidateBatch,
@@ -111,32 +142,57 @@ class IGTerm(Term):
 
     def score(self, ctx: DecisionContext, batch: CandidateBatch) -> NDArray[np.float64]:
         if batch.category == "perception":
-            assert batch.view_indices is not None
-            if "view_ig" not in ctx.cache:  # one sweep per step, shared with other terms; ig.sweep keeps
-                # it (and where each ray stopped) for this field, so the manipulation branch reuses it
-                ctx.cache["view_ig"] = np.asarray(ctx.ig.sweep(ctx.field), dtype=np.float64)
-            ig = ctx.cache["view_ig"]
-            scores = ig[batch.view_indices]
-            if self.config.two_step and len(scores):
-                mask = reachable_mask(ctx)
-                out_of_reach = set() if mask is None else set(np.flatnonzero(~mask).tolist())
-                v1, _ig1, _v2, ig2 = ctx.ig.best_two_step(ctx.field, set(ctx.visited) | out_of_reach, first=ig)
-                scores[batch.view_indices == v1] += ig2
-            return scores
+            return self._views(ctx, batch)["values"].copy()
         if not batch.actions:
             return np.zeros(0)
         return manipulation_ig(ctx, batch, self.config)
 
+    def _views(self, ctx: DecisionContext, batch: CandidateBatch) -> dict[str, Any]:
+        """Per-batch cache of the view candidates' values: IG, screened unless ``screen_views`` is off,
+        plus the second view's IG on the best one (``two_step``)."""
+        assert batch.view_indices is not None
+        cfg = self.config
+        key = ("view_ig", id(batch), cfg.screen_views, cfg.screen_ray_step, cfg.view_finalists, cfg.two_step,
+               cfg.two_step_always)
+        if key in ctx.cache:
+            return ctx.cache[key]
+        views = np.asarray(batch.view_indices, dtype=np.int64)
+        step = cfg.screen_ray_step if cfg.screen_views else 1
+        if step > 1:
+            values, exact = ctx.ig.screened_view_ig(ctx.field, views, step, cfg.view_finalists)
+            first = np.full(ctx.ig.num_views, -np.inf)
+            first[views] = np.where(exact, values, -np.inf)  # the best view is an exactly scored one
+        else:  # one sweep per field; ig.sweep keeps it (and where each ray stopped) for the manipulation branch
+            first = np.asarray(ctx.ig.sweep(ctx.field), dtype=np.float64)
+            values, exact = first[views], np.ones(len(views), dtype=bool)
+        state: dict[str, Any] = {"values": values, "exact": exact}
+        if cfg.two_step and len(views) and (ctx.manipulation_allowed or cfg.two_step_always):
+            mask = reachable_mask(ctx)
+            out_of_reach = set() if mask is None else set(np.flatnonzero(~mask).tolist())
+            v1, _ig1, _v2, ig2 = ctx.ig.best_two_step(ctx.field, set(ctx.visited) | out_of_reach, first=first,
+                                                      ray_step=step, finalists=cfg.view_finalists)
+            values[views == v1] += ig2
+        ctx.cache[key] = state
+        return state
+
     def refine(self, ctx: DecisionContext, batch: CandidateBatch,
                indices: NDArray[np.int64]) -> NDArray[np.float64] | None:
-        """Exact (full-density) values of screened manipulation candidates; None when all are exact."""
+        """Exact (full-density) values of screened candidates; None when all are exact."""
+        if batch.category == "perception":
+            views = self._views(ctx, batch)
+            todo = [int(i) for i in indices if not views["exact"][i]]
+            if not todo:
+                return None
+            assert batch.view_indices is not None
+            views["values"][todo] = ctx.ig.views_ig(ctx.field, np.asarray(batch.view_indices)[todo])
+            views["exact"][todo] = True
+            return views["values"][np.asarray(indices)].copy()
         if batch.category != "manipulation":
             return None
         state = _manipulation_state(ctx, batch, self.config)
         todo = [int(i) for i in indices if not state["exact"][i]]
         if not todo:
             return None
-        full = best_view(ctx.ig.view_ig_delta(ctx.field, [state["deltas"][i] for i in todo]), state["mask"])
-        state["values"][todo] = full
+        state["values"][todo] = _full_density(ctx, state, todo, self.config)
         state["exact"][todo] = True
         return state["values"][np.asarray(indices)].copy()
