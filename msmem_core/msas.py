@@ -436,8 +436,8 @@ def run_msas(
     (``ObservationModel.disturbed``, or ``failed_manipulation`` after a failure), for evidence it keeps
     of its own. Either way visited views are cleared, and the next step may only choose a view, the
     manipulation's associated best view (both count towards T_max). Manipulation is allowed, in a run
-    with a manipulation skill, in ``cfg.manipulation_window``, not once ``cfg.mapped_fraction`` of the BEV cells are mapped
-    (``mapped_fraction``), and never again after an object fell over or left the shelf (tilt over
+    with a manipulation skill, in ``cfg.manipulation_window``, not once ``cfg.mapped_fraction`` of the
+    BEV cells are mapped (``mapped_fraction``), and never again after an object fell over or left the shelf (tilt over
     ``cfg.fall_tilt_deg``). ``tracer`` sees every span of the episode.
     """
     from msmem_core.world.voxelize import interior_mask

@@ -360,7 +360,8 @@ def test_a_screened_second_view_is_the_best_full_density_one_among_the_finalists
     s1, sig1, s2, sig2 = svc.best_two_step(f, {2}, ray_step=2, finalists=1)
     assert (s1, sig1) == (v1, ig1)
     assert s2 not in (v1, 2)
-    assert sig2 == after[s2] and sig2 <= ig2
+    assert sig2 == after[s2]
+    assert sig2 <= ig2
     rest = [v for v in range(svc.num_views) if v not in (v1, 2)]
     screened = svc._coarse_sweep(svc.after_view(f, v1), 2)
     assert s2 == rest[int(np.argmax(screened[rest]))]
