@@ -554,6 +554,29 @@ def test_manipulation_ig_is_the_best_view_after_the_predicted_belief_and_screeni
     assert np.all(screened[~finalists] <= screened[finalists].min() + 1e-9)
 
 
+def test_finalists_are_scored_at_full_density_over_their_best_screened_views() -> None:
+    belief = synthetic_belief(2)
+    ig = _small_ig()
+    ctx = _ctx(belief, ig=ig)
+    actions = PushSkill(PushConfig(max_samples=12)).propose(ctx)
+    pred = AnalyticPushEffect().predict(belief, actions, WORKSPACE)
+    batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
+    fields = [ig.prepare(b, before=ctx.field) for b in pred.beliefs]
+    full = ig.view_ig(fields)  # [K, V] at full density
+    coarse = np.stack([ig.sweep(f, ray_step=2) for f in fields])  # the screening's view of each
+    top = np.argsort(-coarse.max(axis=1), kind="stable")[:3]
+    # each finalist over its own 2 best screened views: the best full-density IG among the union's views
+    two = IGTerm(IGTermConfig(finalists=3, finalist_views=2)).score(_ctx(belief, ig=ig), batch)
+    union = np.unique(np.argsort(-coarse[top], axis=1, kind="stable")[:, :2])
+    np.testing.assert_allclose(two[top], full[np.ix_(top, union)].max(axis=1), rtol=1e-9)
+    assert np.all(two[top] <= full[top].max(axis=1) + 1e-9)
+    assert np.any(two[top] < full[top].max(axis=1) - 1e-6)  # here the restriction does cost some IG
+    # every view (0, or as many as there are): the best view's full-density IG
+    for k in (0, ig.num_views):
+        every = IGTerm(IGTermConfig(finalists=3, finalist_views=k)).score(_ctx(belief, ig=ig), batch)
+        np.testing.assert_allclose(every[top], full[top].max(axis=1), rtol=1e-9)
+
+
 def test_semantic_entropy_term_is_the_clipped_entropy_difference() -> None:
     belief = synthetic_belief(4)
     actions = PushSkill(PushConfig(max_samples=10)).propose(_ctx(belief))
