@@ -215,3 +215,22 @@ def test_screened_views_keep_the_best_view_and_score_any_winner_at_full_density(
     assert (i, refined) == (last, 1)
     assert terms["ig"] == full[last]
     assert np.isclose(value, full[last] + 1e9, rtol=1e-12)
+
+
+def test_the_second_view_is_added_only_where_manipulation_is_allowed() -> None:
+    belief = synthetic_belief(3)
+    ig = _small_ig()
+    views = np.arange(ig.num_views)
+    batch = CandidateBatch("view", "perception", [ViewAction(view=int(v)) for v in views], view_indices=views)
+    full = ig.view_ig(ig.prepare(belief))
+    best = int(np.argmax(full))
+    exact = IGTermConfig(screen_views=False)
+    allowed = IGTerm(exact).score(_ctx(belief, ig=ig), batch)
+    alone = IGTerm(exact).score(_ctx(belief, allowed=False, ig=ig), batch)
+    always = IGTerm(exact.model_copy(update={"two_step_always": True})).score(_ctx(belief, allowed=False, ig=ig), batch)
+    np.testing.assert_array_equal(alone, full)  # views compete only among themselves: no lookahead
+    assert allowed[best] > full[best]
+    np.testing.assert_array_equal(always, allowed)
+    assert int(np.argmax(alone)) == int(np.argmax(allowed)) == best  # the same view wins either way
+    off = IGTerm(exact.model_copy(update={"two_step": False, "two_step_always": True}))
+    np.testing.assert_array_equal(off.score(_ctx(belief, ig=ig), batch), full)

@@ -382,3 +382,23 @@ def test_best_skips_refused_argmaxes_and_does_not_ask_about_one_that_cannot_win(
     assert best(admissible=lambda i: asked.append(i) or False) is None
     assert sorted(asked) == [0, 1, 2, 3]
     assert best()[:2] == (1, 5.0)
+
+
+def test_a_run_without_a_manipulation_skill_never_allows_manipulation(ig):
+    seen: list[bool] = []
+
+    class Spy(Term):
+        def score(self, ctx: Any, batch: CandidateBatch) -> np.ndarray:
+            seen.append(ctx.manipulation_allowed)
+            return np.ones(len(batch.actions))
+
+    cfg = MSASConfig(manipulation_window=(0, 10), mapped_fraction=1.0)
+    for bound, allowed in (([BoundSkill("view", ViewSkill())], False), (skills(), True)):
+        seen.clear()
+        sim = FakeSimulator(CAMERA)
+        sim.reset(SCENE)
+        run_msas(sim, KeepBelief(), bound, Objective([("spy", 1.0, Spy())]), ig, WORKSPACE, cfg, 3,
+                 start_view=0, seed=0, on_step=lambda *a: None)
+        # inside the window every step allows manipulation, if the run has a skill to manipulate with
+        assert len(seen) >= 3
+        assert set(seen) == {allowed}

@@ -1,13 +1,16 @@
 """Objective term ``ig``: the information-gain part of OIG (paper eq. OIG).
 
-Views: IG(v | belief), and for the argmax view the greedy second step max_v' IG(v' | after v) is
-added ([MEM]'s two-step view value). Manipulations: max_v IG(v | predicted belief), computed
-incrementally (``IGService.view_ig_delta``): per view, only the rays crossing a candidate's changed
-voxels are re-scored, which equals a full re-score of every predicted belief. By default the
-candidates are first screened at a quarter of the rays (every 2nd ray in u and v, as [MEM] screens
-at a coarser density) and the 8 best re-scored at full density. With a robot that cannot reach every
-view (``ctx.workspace.robot``), the second view and the best view after a manipulation are chosen among
-the views it reaches, as the view skill's candidates are.
+Views: IG(v | belief), and at steps where manipulation is allowed, for the argmax view the greedy
+second step max_v' IG(v' | after v) is added ([MEM]'s two-step view value; elsewhere the argmax view
+wins either way). Manipulations: max_v IG(v | predicted belief), computed incrementally
+(``IGService.view_ig_delta``): per view, only the rays crossing a candidate's changed voxels are
+re-scored, which equals a full re-score of every predicted belief. By default every candidate is
+first screened at a quarter of the rays (every 2nd ray in u and v, as [MEM] screens at a coarser
+density): the 64 best views and the 8 best manipulation candidates are scored again at full density,
+the manipulation candidates over their own 16 best screened views, and the second view is screened
+the same way. The action chosen is always valued at full density. With a robot that cannot reach
+every view (``ctx.workspace.robot``), the second view and the best view after a manipulation are
+chosen among the views it reaches, as the view skill's candidates are.
 """
 
 from __future__ import annotations
