@@ -62,3 +62,35 @@ def test_position_change_where_the_episodes_differ_counts_only_those_scenes() ->
     assert _where_differ(per, {("ours", "no-cdc"): [0, 1, 2]}, "ours", "no-cdc") == ""  # the same everywhere
     assert _where_differ(per, {("ours", "no-cdc"): []}, "ours", "no-cdc") == ""  # different everywhere
     assert _where_differ(per, None, "ours", "no-cdc") == ""
+
+
+def test_absent_classes_are_the_predicted_classes_no_scene_holds(tmp_path: Path) -> None:
+    from msmem_core.run.bench import suite_scenes
+    from msmem_core.run.results import absent_classes
+    from msmem_core.world.scene import CLASS_NAMES
+
+    scenes = suite_scenes("hard25")[:2]
+    held = {CLASS_NAMES.index(o.class_name) for s in scenes for o in s.objects}
+    missing = [c for c in range(1, len(CLASS_NAMES)) if c not in held]
+    assert missing  # two scenes never hold every class
+    episodes = []
+    for i in range(2):
+        union = [0] * len(CLASS_NAMES)
+        for c in held:
+            union[c] = 50 + c  # held classes: predicted or not, never reported
+        union[missing[0]] = 2 + i  # a stray label of a class neither scene holds
+        episodes.append({"method": "ours", "scene_index": i, "fingerprint": {"suite": "hard25"},
+                         "paper_counts": {"semantic_2d_union": union}})
+    assert absent_classes(episodes, "ours", [0, 1]) == {CLASS_NAMES[missing[0]]: 5}
+    assert absent_classes(episodes, "ours", [0]) == {CLASS_NAMES[missing[0]]: 2}
+    assert absent_classes(episodes, "view-only", [0, 1]) == {}
+    user = [{**e, "fingerprint": {"suite": str(tmp_path)}} for e in episodes]  # a user's suite: not checked
+    assert absent_classes(user, "ours", [0, 1]) == {}
+
+
+def test_the_committed_ur5e_row_labels_a_bowl_no_scene_holds() -> None:
+    from msmem_core.run.results import absent_classes
+
+    episodes = load_episodes(TABLE1.parent / "table1-ur5e")
+    assert absent_classes(episodes, "view-only", list(range(10))) == {"bowl": 2}
+    assert absent_classes(load_episodes(TABLE1), "ours", list(range(25))) == {}

@@ -113,6 +113,12 @@ def table_one(folder: Path, root: Path,
             f"{'/'.join(f'{v:.3f}' for v in paper) if paper else '-'} | "
             f"{_fmt_ci(*mean_ci([r['occupancy_iou'] for r in rows]))} / "
             f"{_fmt_ci(*mean_ci([r['semantic_miou'] for r in rows]))} |")
+    absent = {m: absent_classes(load_episodes(folder), m, common) for m in methods}
+    if any(absent.values()):
+        out += ["", "Classes the final beliefs label on the top view that none of these scenes holds (columns, "
+                "summed over the scenes): each adds a class with IoU 0 to that method's 2-D semantic mean. "
+                + "; ".join(f"{m}: " + ", ".join(f"{c} {n}" for c, n in absent[m].items())
+                            for m in methods if absent[m]) + "."]
     if "view-only" in methods:
         out += ["", "Paired against view-only:", "",
                 "| method | occupancy mIoU per scene | pooled | 2-D semantic mIoU per scene | pooled |",
@@ -135,6 +141,33 @@ def table_one(folder: Path, root: Path,
         out += ["", claims(per, counts, same_episodes(episodes, common)), "", table_two(folder, methods), "",
                 tracking_section(episodes), "", funnel_section(folder)]
     return "\n".join(out)
+
+
+def absent_classes(episodes: Sequence[dict[str, Any]], method: str, scenes: list[int]) -> dict[str, int]:
+    """Class name -> top-view columns (summed over ``scenes``) that ``method``'s final beliefs give a
+    class none of those scenes' ground truths holds: the 2-D semantic union of such a class is all
+    prediction, so a single column adds a class with IoU 0 to the mean. Scenes are read from the
+    episodes' shipped suite (``fingerprint.suite``); episodes of a user's suite, or of scenes with
+    objects of other classes (mesh objects, mapped by the run's config), are skipped."""
+    from msmem_core.run.bench import SUITES, suite_scenes
+    from msmem_core.world.scene import CLASS_NAMES
+
+    union = np.zeros(len(CLASS_NAMES))
+    present = {0}  # the background is everywhere
+    specs: dict[str, list[Any]] = {}  # suite -> its scenes
+    for e in episodes:
+        suite = e.get("fingerprint", {}).get("suite")
+        if e.get("method") != method or e.get("scene_index") not in scenes or suite not in SUITES:
+            continue
+        if suite not in specs:
+            specs[suite] = suite_scenes(suite)
+        names = [o.class_name for o in specs[suite][e["scene_index"]].objects]
+        if not set(names) <= set(CLASS_NAMES):  # mesh objects: their classes are mapped by the run's config
+            continue
+        present |= {CLASS_NAMES.index(n) for n in names}
+        u = np.asarray(e["paper_counts"]["semantic_2d_union"], dtype=float)
+        union[: len(u)] += u[: len(union)]
+    return {CLASS_NAMES[c]: int(union[c]) for c in range(len(union)) if union[c] > 0 and c not in present}
 
 
 def same_episodes(episodes: Sequence[dict[str, Any]], scenes: list[int]) -> dict[tuple[str, str], list[int]]:
