@@ -14,13 +14,14 @@ from msmem_view.skill import ViewAction
 
 from msmem_core.interfaces import CandidateBatch, Prediction
 from msmem_core.map.belief import EvidentialMap
+from msmem_core.map.ig import IGService
 from msmem_core.msas import Objective, bev_confidence, mapped_fraction
 from msmem_core.plugins import get_plugin_manager
 from msmem_core.plugins.manager import ComponentRef
 from msmem_core.world.voxelize import interior_mask
 from tests.test_grasp import BYSTANDER, IN_THE_WAY, TARGET, top_grasp
 from tests.test_grasp import box_belief as grasp_box_belief
-from tests.test_push import GRID, SHELF, WORKSPACE, _ctx, _small_ig, synthetic_belief
+from tests.test_push import GRID, SHELF, WORKSPACE, _ctx, _small_ig, push_batch, synthetic_belief
 
 C = 15
 
@@ -111,12 +112,7 @@ def test_cdc_is_a_registered_term_and_the_ours_preset_uses_it() -> None:
 
 
 def test_the_winner_of_a_screened_batch_is_scored_at_full_density() -> None:
-    belief = synthetic_belief(3)
-    ig = _small_ig()
-    ctx = _ctx(belief, ig=ig)
-    actions = PushSkill(PushConfig(max_samples=12)).propose(ctx)
-    pred = AnalyticPushEffect().predict(belief, actions, WORKSPACE)
-    batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
+    belief, ig, ctx, pred, batch = push_batch(3)
     full = ig.view_ig([ig.prepare(b, before=ctx.field) for b in pred.beliefs]).max(axis=1)
     # a term that favours the candidate the screening ranks last forces a refinement
     screened = IGTerm(IGTermConfig(screen_ray_step=2, finalists=2)).score(ctx, batch)
@@ -182,12 +178,17 @@ def test_the_counting_kernel_is_the_numpy_rule(seed: int, layout: str, with_excl
             assert count_disturbed(eta, idx, after, t, excluded) == want, (t, layout)
 
 
-def test_screened_views_keep_the_best_view_and_score_any_winner_at_full_density() -> None:
-    belief = synthetic_belief(3)
+def _every_view(seed: int) -> tuple[EvidentialMap, IGService, CandidateBatch, np.ndarray]:
+    """A synthetic belief, the small IG service, a view batch of its every view and their full-density IG."""
+    belief = synthetic_belief(seed)
     ig = _small_ig()
     views = np.arange(ig.num_views)
     batch = CandidateBatch("view", "perception", [ViewAction(view=int(v)) for v in views], view_indices=views)
-    full = ig.view_ig(ig.prepare(belief))
+    return belief, ig, batch, ig.view_ig(ig.prepare(belief))
+
+
+def test_screened_views_keep_the_best_view_and_score_any_winner_at_full_density() -> None:
+    belief, ig, batch, full = _every_view(3)
     exact = IGTerm(IGTermConfig(screen_views=False)).score(_ctx(belief, ig=ig), batch)
     screened = IGTerm(IGTermConfig(view_finalists=4)).score(_ctx(belief, ig=ig), batch)
     best = int(np.argmax(exact))
@@ -218,11 +219,7 @@ def test_screened_views_keep_the_best_view_and_score_any_winner_at_full_density(
 
 
 def test_the_second_view_is_added_only_where_manipulation_is_allowed() -> None:
-    belief = synthetic_belief(3)
-    ig = _small_ig()
-    views = np.arange(ig.num_views)
-    batch = CandidateBatch("view", "perception", [ViewAction(view=int(v)) for v in views], view_indices=views)
-    full = ig.view_ig(ig.prepare(belief))
+    belief, ig, batch, full = _every_view(3)
     best = int(np.argmax(full))
     exact = IGTermConfig(screen_views=False)
     allowed = IGTerm(exact).score(_ctx(belief, ig=ig), batch)

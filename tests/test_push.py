@@ -554,13 +554,19 @@ def test_manipulation_ig_is_the_best_view_after_the_predicted_belief_and_screeni
     assert np.all(screened[~finalists] <= screened[finalists].min() + 1e-9)
 
 
-def test_finalists_are_scored_at_full_density_over_their_best_screened_views() -> None:
-    belief = synthetic_belief(2)
+def push_batch(seed: int) -> tuple[EvidentialMap, IGService, DecisionContext, Prediction, CandidateBatch]:
+    """A synthetic belief, the small IG service, a context on them and 12 sampled pushes, predicted
+    by the analytic effect model, as a batch."""
+    belief = synthetic_belief(seed)
     ig = _small_ig()
     ctx = _ctx(belief, ig=ig)
     actions = PushSkill(PushConfig(max_samples=12)).propose(ctx)
     pred = AnalyticPushEffect().predict(belief, actions, WORKSPACE)
-    batch = CandidateBatch("push", "manipulation", list(actions), prediction=pred)
+    return belief, ig, ctx, pred, CandidateBatch("push", "manipulation", list(actions), prediction=pred)
+
+
+def test_finalists_are_scored_at_full_density_over_their_best_screened_views() -> None:
+    belief, ig, ctx, pred, batch = push_batch(2)
     fields = [ig.prepare(b, before=ctx.field) for b in pred.beliefs]
     full = ig.view_ig(fields)  # [K, V] at full density
     coarse = np.stack([ig.sweep(f, ray_step=2) for f in fields])  # the screening's view of each

@@ -113,7 +113,8 @@ def table_one(folder: Path, root: Path,
             f"{'/'.join(f'{v:.3f}' for v in paper) if paper else '-'} | "
             f"{_fmt_ci(*mean_ci([r['occupancy_iou'] for r in rows]))} / "
             f"{_fmt_ci(*mean_ci([r['semantic_miou'] for r in rows]))} |")
-    absent = {m: absent_classes(load_episodes(folder), m, common) for m in methods}
+    episodes = load_episodes(folder)
+    absent = {m: absent_classes(episodes, m, common) for m in methods}
     if any(absent.values()):
         out += ["", "Classes the final beliefs label on the top view that none of these scenes holds (columns, "
                 "summed over the scenes): each adds a class with IoU 0 to that method's 2-D semantic mean. "
@@ -137,7 +138,6 @@ def table_one(folder: Path, root: Path,
                 cells.append(f"{diff:+.3f} [{lo:+.3f}, {hi:+.3f}]{_star(lo, hi)}")
             out.append(f"| {m} | " + " | ".join(cells) + " |")
     if full:
-        episodes = load_episodes(folder)
         out += ["", claims(per, counts, same_episodes(episodes, common)), "", table_two(folder, methods), "",
                 tracking_section(episodes), "", funnel_section(folder)]
     return "\n".join(out)
